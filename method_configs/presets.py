@@ -1,0 +1,144 @@
+"""Right-sized base presets for small (<= 200 px) Blender-format scenes.
+
+"Model no more than a scene needs": stock nerfacto (2^19-entry hash grids, 4096 rays) costs ~7 s per
+iteration on a 2-core CPU; these presets keep the stock model classes and only shrink their sizes.
+Measured numbers: docs/presets.md (``python -m gsticker_plugin.bench.presets``).
+"""
+
+from __future__ import annotations
+
+from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+from nerfstudio.configs.base_config import ViewerConfig
+from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
+from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.models.nerfacto import NerfactoModelConfig
+from nerfstudio.models.tensorf import TensoRFModelConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+import method_configs  # noqa: F401  (host fixes)
+
+
+def nerfacto_small_config(max_num_iterations: int = 3000) -> TrainerConfig:
+    """nerfacto (torch implementation) sized for a 100-200 px object scene, with the Blender recipe."""
+    return TrainerConfig(
+        method_name="gsticker-nerfacto-small",
+        steps_per_eval_batch=500,
+        steps_per_eval_image=1000,
+        steps_per_eval_all_images=1_000_000,
+        steps_per_save=500,
+        save_only_latest_checkpoint=True,
+        max_num_iterations=max_num_iterations,
+        mixed_precision=False,
+        pipeline=VanillaPipelineConfig(
+            datamanager=VanillaDataManagerConfig(
+                dataparser=BlenderDataParserConfig(),
+                train_num_rays_per_batch=1024,
+                eval_num_rays_per_batch=4096,
+            ),
+            model=NerfactoModelConfig(
+                implementation="torch",
+                log2_hashmap_size=15,
+                num_levels=8,
+                max_res=256,
+                hidden_dim=32,
+                hidden_dim_color=64,
+                num_nerf_samples_per_ray=32,
+                num_proposal_samples_per_ray=(64, 32),
+                proposal_net_args_list=[
+                    {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 128, "use_linear": False},
+                    {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 256, "use_linear": False},
+                ],
+                background_color="white",
+                near_plane=2.0,
+                far_plane=6.0,
+                proposal_initial_sampler="uniform",
+                disable_scene_contraction=True,
+                distortion_loss_mult=0.0,
+                use_average_appearance_embedding=False,
+                average_init_density=0.01,
+                camera_optimizer=CameraOptimizerConfig(mode="off"),
+                eval_num_rays_per_chunk=1 << 13,
+            ),
+        ),
+        optimizers={
+            "proposal_networks": {
+                "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=200000),
+            },
+            # The stock 1e-2 saturates the torch-implementation color head on small grids (r = g = b).
+            "fields": {
+                "optimizer": AdamOptimizerConfig(lr=3e-3, eps=1e-15),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=200000),
+            },
+            "camera_opt": {
+                "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
+            },
+        },
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 13),
+        vis="tensorboard",
+    )
+
+
+def tensorf_small_config(max_num_iterations: int = 2000) -> TrainerConfig:
+    """TensoRF (VM) with a 64 -> 160 voxel schedule compressed into 2000 steps, white background."""
+    return TrainerConfig(
+        method_name="gsticker-tensorf-small",
+        steps_per_eval_batch=500,
+        steps_per_eval_image=1000,
+        steps_per_eval_all_images=1_000_000,
+        steps_per_save=500,
+        save_only_latest_checkpoint=True,
+        max_num_iterations=max_num_iterations,
+        mixed_precision=False,
+        pipeline=VanillaPipelineConfig(
+            datamanager=VanillaDataManagerConfig(
+                dataparser=BlenderDataParserConfig(),
+                train_num_rays_per_batch=1024,
+                eval_num_rays_per_batch=4096,
+            ),
+            model=TensoRFModelConfig(
+                init_resolution=64,
+                final_resolution=160,
+                upsampling_iters=(300, 600, 900, 1200),
+                num_samples=128,
+                num_uniform_samples=64,
+                num_den_components=16,
+                num_color_components=48,
+                background_color="white",
+                regularization="tv",
+                camera_optimizer=CameraOptimizerConfig(mode="off"),
+                eval_num_rays_per_chunk=1 << 12,
+            ),
+        ),
+        optimizers={
+            "fields": {
+                "optimizer": AdamOptimizerConfig(lr=1e-3),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_num_iterations),
+            },
+            "encodings": {
+                "optimizer": AdamOptimizerConfig(lr=0.02),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=2e-3, max_steps=max_num_iterations),
+            },
+            "camera_opt": {
+                "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=5000),
+            },
+        },
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 12),
+        vis="tensorboard",
+    )
+
+
+nerfacto_small = MethodSpecification(
+    config=nerfacto_small_config(),
+    description="[gsticker] nerfacto sized for <=200 px object scenes on a CPU (2^15 hash, 8 levels, 1024 rays).",
+)
+tensorf_small = MethodSpecification(
+    config=tensorf_small_config(),
+    description="[gsticker] TensoRF VM sized for <=200 px object scenes on a CPU (64->160 voxels, 2000 steps).",
+)
