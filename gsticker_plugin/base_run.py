@@ -1,0 +1,125 @@
+"""Reading a foreign (base) Nerfstudio run: its config.yml, its checkpoint, and a strict weight load.
+
+Nerfstudio's ``Pipeline.load_state_dict`` silently retries with ``strict=False`` when keys do not match;
+a watermark stuck onto a half-loaded base would be worthless, so everything here is strict and every
+failure is a one-line :class:`GStickerError` naming the fix.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+from typing import Any, Dict, Optional, Tuple
+
+import torch
+import yaml
+
+from gsticker_plugin.errors import GStickerError
+
+
+def resolve_checkpoint(load_checkpoint: Optional[Path], load_dir: Optional[Path], load_step: Optional[int]) -> Optional[Path]:
+    """The checkpoint file named by ``--load-checkpoint`` or ``--load-dir`` (+ ``--load-step``), if any."""
+    if load_checkpoint is not None:
+        p = Path(load_checkpoint)
+        if not p.is_file():
+            raise GStickerError(f"checkpoint {p} does not exist; pass --load-checkpoint RUN/nerfstudio_models/step-N.ckpt")
+        return p
+    if load_dir is not None:
+        d = Path(load_dir)
+        ckpts = sorted(d.glob("step-*.ckpt")) if d.is_dir() else []
+        if not ckpts:
+            raise GStickerError(f"no step-*.ckpt in {d}; pass --load-dir RUN/nerfstudio_models")
+        if load_step is not None:
+            p = d / f"step-{load_step:09d}.ckpt"
+            if not p.is_file():
+                raise GStickerError(f"{p} does not exist; pick --load-step from {[c.name for c in ckpts]}")
+            return p
+        return max(ckpts, key=lambda c: int(c.stem.split("-")[1]))
+    return None
+
+
+def run_config_path(checkpoint: Path) -> Path:
+    cfg = checkpoint.resolve().parent.parent / "config.yml"
+    if not cfg.is_file():
+        raise GStickerError(f"no config.yml beside {checkpoint} (expected {cfg}); point --load-checkpoint at "
+                            "RUN/nerfstudio_models/step-N.ckpt inside an intact Nerfstudio run folder")
+    return cfg
+
+
+def load_run_config(config_path: Path):
+    """Parse a run's config.yml; a method whose package is missing gives a one-line error."""
+    try:
+        return yaml.load(Path(config_path).read_text(), Loader=yaml.Loader)
+    except (ModuleNotFoundError, ImportError, AttributeError) as e:
+        name = getattr(e, "name", None) or str(e)
+        raise GStickerError(f"{config_path} was written by a method that is not installed here ({name}); "
+                            "install that method's package (pip install ...) and retry") from None
+    except yaml.YAMLError as e:
+        raise GStickerError(f"{config_path} is not a readable Nerfstudio config ({type(e).__name__}); "
+                            "restore the run's config.yml") from None
+
+
+def load_checkpoint_state(checkpoint: Path) -> Dict[str, Any]:
+    try:
+        state = torch.load(checkpoint, map_location="cpu")
+    except Exception as e:
+        raise GStickerError(f"checkpoint {checkpoint} is truncated or corrupt ({type(e).__name__}); "
+                            "copy it again or point at another step-N.ckpt") from None
+    if not isinstance(state, dict) or "pipeline" not in state:
+        raise GStickerError(f"{checkpoint} is not a Nerfstudio checkpoint (no 'pipeline' entry)")
+    return state
+
+
+def model_state_from_pipeline_state(pipeline_state: Dict[str, Any], prefix: str = "_model.") -> Dict[str, Any]:
+    out = {}
+    for k, v in pipeline_state.items():
+        k = k[len("module."):] if k.startswith("module.") else k
+        if k.startswith(prefix):
+            out[k[len(prefix):]] = v
+    return out
+
+
+def check_tcnn(model_config, model_state: Dict[str, Any]) -> None:
+    """A tinycudann checkpoint cannot be loaded into the torch implementation (different key layouts)."""
+    tcnn_layout = any(k.endswith(".params") for k in model_state)
+    if tcnn_layout and importlib.util.find_spec("tinycudann") is None:
+        raise GStickerError("the base was trained with tinycudann (tcnn key layout) and tinycudann is not "
+                            "installed here; install tinycudann (needs CUDA) or retrain the base with "
+                            "--pipeline.model.implementation torch")
+
+
+def strict_load(model: torch.nn.Module, model_state: Dict[str, Any], num_train_data: Optional[int] = None) -> None:
+    """Load every key, with matching shapes, or stop with a one-line reason."""
+    own = model.state_dict()
+    missing = [k for k in own if k not in model_state]
+    unexpected = [k for k in model_state if k not in own]
+    mismatched = [(k, tuple(own[k].shape), tuple(model_state[k].shape)) for k in own
+                  if k in model_state and hasattr(model_state[k], "shape") and own[k].shape != model_state[k].shape]
+    if mismatched:
+        k, a, b = mismatched[0]
+        if "appearance" in k and num_train_data is not None:
+            raise GStickerError(f"the data has {a[0]} training images but the base was trained on {b[0]} "
+                                "(appearance embedding size differs); pass --data with the base's dataset")
+        raise GStickerError(f"base weight {k} has shape {b} but the rebuilt base expects {a} "
+                            f"({len(mismatched)} mismatches); rebuild with the run's own config.yml, unmodified")
+    if missing or unexpected:
+        raise GStickerError(f"base checkpoint does not match its model: {len(missing)} missing keys "
+                            f"(e.g. {missing[:2]}), {len(unexpected)} unexpected (e.g. {unexpected[:2]}); "
+                            "use the checkpoint written by the same run as its config.yml")
+    model.load_state_dict(model_state, strict=True)
+
+
+def resolve_data_path(recorded: Optional[Path], override: Optional[Path]) -> Path:
+    if override is not None:
+        if not Path(override).exists():
+            raise GStickerError(f"--data {override} does not exist; pass the base's dataset folder")
+        return Path(override)
+    if recorded is None or not Path(recorded).exists():
+        raise GStickerError(f"the base's dataset {recorded} does not exist from here; pass --data with the "
+                            "folder that holds the base's training images")
+    return Path(recorded)
+
+
+def base_summary(config) -> Tuple[str, str]:
+    model_cfg = config.pipeline.model
+    return config.method_name, type(model_cfg).__name__

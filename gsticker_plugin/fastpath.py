@@ -1,0 +1,112 @@
+"""The fast path: the base is frozen, so its ray samples, densities and colours never change.
+
+For a pool of views (training cameras and novel orbit cameras) we render the base once, keep the clean
+image and, for the rays that hit something, the final samples (positions, deltas, base density, colour).
+A training step then only evaluates the sticker at gated samples and re-composites those rays: no base
+network runs inside the loop.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import List, Optional
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from nerfstudio.cameras.cameras import Cameras
+
+from gsticker_plugin.sticker import composite
+
+
+@dataclass
+class ViewCache:
+    """One pool view: the clean render and the samples of its active rays."""
+
+    image: Float[Tensor, "H W 3"]
+    active: Tensor  # [A] flat ray indices
+    positions: Tensor  # [A S 3]
+    deltas: Tensor  # [A S 1]
+    density: Tensor  # [A S 1] (float32: densities span orders of magnitude)
+    rgb: Tensor  # [A S 3]
+    novel: bool = False
+
+    @property
+    def hw(self):
+        return self.image.shape[0], self.image.shape[1]
+
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (self.image, self.active, self.positions, self.deltas,
+                                                         self.density, self.rgb))
+
+
+def orbit_cameras(cameras: Cameras, num: int, generator: torch.Generator, max_tilt_deg: float = 20.0) -> Cameras:
+    """Novel cameras: random training cameras rotated about the world z axis through the origin (any yaw)
+    and tilted by up to ``max_tilt_deg`` about the horizontal axis, keeping their intrinsics."""
+    n = cameras.shape[0]
+    idx = torch.randint(0, n, (num,), generator=generator)
+    c2w = cameras.camera_to_worlds[idx].clone()  # [num 3 4]
+    yaw = (torch.rand(num, generator=generator) * 2 - 1) * math.pi
+    tilt = (torch.rand(num, generator=generator) * 2 - 1) * math.radians(max_tilt_deg)
+    out = []
+    for i in range(num):
+        cz, sz = math.cos(yaw[i]), math.sin(yaw[i])
+        rz = torch.tensor([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+        pos = rz @ c2w[i, :, 3]
+        axis = torch.linalg.cross(pos, torch.tensor([0.0, 0.0, 1.0]))
+        if axis.norm() > 1e-6:
+            axis = axis / axis.norm()
+            k = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+            rt = torch.eye(3) + math.sin(tilt[i]) * k + (1 - math.cos(tilt[i])) * (k @ k)
+        else:
+            rt = torch.eye(3)
+        r = rt @ rz
+        out.append(torch.cat([r @ c2w[i, :, :3], (r @ c2w[i, :, 3:])], dim=1))
+    return Cameras(
+        camera_to_worlds=torch.stack(out),
+        fx=cameras.fx[idx], fy=cameras.fy[idx], cx=cameras.cx[idx], cy=cameras.cy[idx],
+        width=cameras.width[idx], height=cameras.height[idx], camera_type=cameras.camera_type[idx],
+    )
+
+
+@torch.no_grad()
+def cache_view(model, camera: Cameras, novel: bool, min_density: Optional[float] = None) -> ViewCache:
+    """Render one camera with the sticker off, recording the final field's samples."""
+    with model.capture_final_samples() as records:
+        outputs = model.get_outputs_for_camera(camera)
+    image = outputs["rgb"].detach().float().cpu()
+    h, w = image.shape[:2]
+    pos = torch.cat([r["positions"].reshape(-1, *r["positions"].shape[-2:]) for r in records]).cpu()
+    deltas = torch.cat([r["deltas"].reshape(-1, *r["deltas"].shape[-2:]) for r in records]).cpu()
+    density = torch.cat([r["density"].reshape(-1, *r["density"].shape[-2:]) for r in records]).float().cpu()
+    rgb = torch.cat([r["rgb"].reshape(-1, *r["rgb"].shape[-2:]) for r in records]).cpu()
+    if pos.shape[0] != h * w:
+        raise RuntimeError(f"captured {pos.shape[0]} rays for a {h}x{w} image; the base renders in a way the "
+                           "fast path does not understand: pass --pipeline.fast-path False")
+    thr = 0.0 if min_density is None else min_density
+    active = (density.squeeze(-1) > thr).any(dim=-1).nonzero().squeeze(-1)
+    return ViewCache(image=image, active=active, positions=pos[active].half(), deltas=deltas[active].float(),
+                     density=density[active], rgb=rgb[active].half(), novel=novel)
+
+
+def render_cached(view: ViewCache, wrap, message: Tensor, background: Tensor) -> tuple:
+    """Watermarked render of a cached view: the clean image plus the sticker's change on active rays.
+
+    Returns the image [H W 3] and the gate values psi at the active samples (for the sparsity loss).
+    """
+    h, w = view.hw
+    density = view.density
+    positions = view.positions.float()
+    delta, psi = wrap.delta(density, positions, message)
+    rgb = view.rgb.float()
+    marked, _ = composite(torch.relu(density + delta), rgb, view.deltas, background)
+    clean, _ = composite(density, rgb, view.deltas, background)
+    flat = view.image.reshape(-1, 3)
+    change = torch.zeros_like(flat).index_add(0, view.active, marked - clean)
+    return (flat + change).clamp(0.0, 1.0).reshape(h, w, 3), psi
+
+
+def pool_memory_mb(views: List[ViewCache]) -> float:
+    return sum(v.nbytes() for v in views) / 2**20

@@ -1,0 +1,81 @@
+"""The owner's secret heads: the *extractor* (one logit per bit) and the *classifier* (watermarked or not).
+
+Both read rendered RGB images. ``small`` is a right-sized strided CNN (tens of thousands of parameters: a
+100-200 px render does not need more); ``vgg16`` is the paper's backbone shape (torchvision's VGG16 layout,
+randomly initialised: no ImageNet weights exist offline) followed by average pooling and a linear layer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Tuple
+
+import torch
+from jaxtyping import Float
+from torch import Tensor, nn
+
+
+@dataclass
+class HeadConfig:
+    """Shape of the extractor and classifier networks."""
+
+    backbone: Literal["small", "vgg16"] = "small"
+    """small: strided CNN sized for <= 400 px renders; vgg16: the paper's (untrained) VGG16 feature stack."""
+    width: int = 32
+    """Channels of the first small-CNN stage (doubles every other stage)."""
+    depth: int = 5
+    """Number of stride-2 stages of the small CNN."""
+
+
+def small_backbone(width: int, depth: int) -> Tuple[nn.Module, int]:
+    layers = [nn.Conv2d(3, width, 3, padding=1), nn.GroupNorm(4, width), nn.GELU()]
+    ch = width
+    for i in range(depth):
+        out = min(width * 2 ** ((i + 1) // 2), 8 * width)
+        layers += [nn.Conv2d(ch, out, 3, stride=2, padding=1), nn.GroupNorm(4, out), nn.GELU()]
+        ch = out
+    return nn.Sequential(*layers), ch
+
+
+def vgg16_backbone() -> Tuple[nn.Module, int]:
+    from torchvision.models import vgg16
+
+    return vgg16(weights=None).features, 512
+
+
+class ConvHead(nn.Module):
+    """Backbone -> global average pooling -> linear layer with ``num_outputs`` logits."""
+
+    def __init__(self, config: HeadConfig, num_outputs: int) -> None:
+        super().__init__()
+        self.config = config
+        if config.backbone == "vgg16":
+            self.backbone, ch = vgg16_backbone()
+        else:
+            self.backbone, ch = small_backbone(config.width, config.depth)
+        self.head = nn.Linear(ch, num_outputs)
+
+    def forward(self, images: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B O"]:
+        x = (images - 0.5) * 2.0
+        return self.head(self.backbone(x).mean(dim=(-2, -1)))
+
+
+class Heads(nn.Module):
+    """Extractor D (num_bits logits) and classifier C (1 logit), kept together in the owner key."""
+
+    def __init__(self, config: HeadConfig, num_bits: int) -> None:
+        super().__init__()
+        self.config = config
+        self.num_bits = num_bits
+        self.extractor = ConvHead(config, num_bits)
+        self.classifier = ConvHead(config, 1)
+
+    def decode(self, images: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B K"]:
+        return self.extractor(images)
+
+    def classify(self, images: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B"]:
+        return self.classifier(images).squeeze(-1)
+
+
+def count_parameters(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())

@@ -1,0 +1,211 @@
+"""GeometrySticker model: a frozen base model whose rendering fields' density carries the sticker.
+
+The base (any stock model: nerfacto, vanilla-nerf, TensoRF, ...) is rebuilt from its own config and kept
+as ``self.base`` (frozen, always in eval mode). Rendering, metrics and images are the base's own, so stock
+``ns-viewer``, ``ns-render`` and ``ns-eval`` work unchanged; the watermark is only the density wrap.
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any, Dict, Iterator, List, Optional, Tuple, Type
+
+import torch
+import tyro
+from torch import Tensor, nn
+from torch.nn import Parameter
+
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.fields.base_field import Field
+from nerfstudio.models.base_model import Model, ModelConfig
+
+from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.sticker import DensityWrap, Gate, Sticker, WrapState
+
+
+@dataclass
+class GeometryStickerModelConfig(ModelConfig):
+    """Sticker and gate hyper-parameters; the base model config is filled in from the base run."""
+
+    _target: Type = field(default_factory=lambda: GeometryStickerModel)
+    enable_collider: bool = False
+    """The base applies its own collider."""
+    base_model: tyro.conf.Suppress[Optional[Any]] = None
+    """The base run's ModelConfig (copied from its config.yml; not a CLI option)."""
+    num_bits: int = 48
+    """Message length."""
+    sticker_hidden_dim: int = 64
+    """Width of the sticker MLP's two hidden layers."""
+    sticker_num_layers: int = 2
+    """Hidden layers of the sticker MLP."""
+    num_frequencies: int = 5
+    """Octaves of the positional encoding gamma(x) (3 + 6L dims)."""
+    gate_quantile: float = 0.5
+    """Gate centre mu = this weighted quantile of the base density over visible samples."""
+    beta_ratio: float = 0.1
+    """Initial gate width beta = beta_ratio * mu (then learned)."""
+    gate_threshold: float = 1e-3
+    """The sticker is evaluated only at samples whose psi exceeds this."""
+    wrap_proposal_networks: bool = False
+    """Also wrap nerfacto's proposal density fields (they only place samples; off by default)."""
+
+
+class GeometryStickerModel(Model):
+    """A frozen base model plus the sticker on the density of its rendering fields."""
+
+    config: GeometryStickerModelConfig
+
+    def populate_modules(self) -> None:
+        super().populate_modules()
+        if self.config.base_model is None:
+            raise GStickerError("this geometrysticker config has no base model; train it with "
+                                "`ns-train geometrysticker --load-checkpoint BASE_RUN/nerfstudio_models/step-N.ckpt`")
+        self.base: Model = self.config.base_model.setup(
+            scene_box=self.scene_box, num_train_data=self.num_train_data, **self.kwargs
+        )
+        self.base.requires_grad_(False)
+        self.base.eval()
+        self.sticker = Sticker(self.config.num_bits, self.config.num_frequencies,
+                               self.config.sticker_hidden_dim, self.config.sticker_num_layers)
+        self.register_buffer("message", torch.zeros(self.config.num_bits, dtype=torch.long))
+        self.wrap_state = WrapState(enabled=True)
+        self.gates = nn.ModuleDict()
+        self.wraps: List[DensityWrap] = []
+        for name, fld in self.rendering_fields():
+            gate = Gate()
+            self.gates[name.replace(".", "__")] = gate
+            aabb = getattr(fld, "aabb", None)
+            aabb = aabb if isinstance(aabb, Tensor) and aabb.shape == (2, 3) else self.scene_box.aabb
+            self.wraps.append(DensityWrap(fld, name, self.sticker, gate, self.wrap_state, aabb.detach().clone(),
+                                          self.config.gate_threshold))
+        if not self.wraps:
+            raise GStickerError(f"{type(self.base).__name__} has no density field that gsticker can wrap; "
+                                "use a NeRF-style base (nerfacto, vanilla-nerf, tensorf, instant-ngp)")
+        self._viewer_elements()
+
+    def _viewer_elements(self) -> None:
+        try:
+            from nerfstudio.viewer.viewer_elements import ViewerCheckbox
+        except Exception:  # pragma: no cover - viewer extras missing
+            return
+
+        def toggle(element) -> None:
+            self.wrap_state.enabled = bool(element.value)
+
+        self.viewer_sticker_on = ViewerCheckbox("Sticker on", True, cb_hook=toggle,
+                                                hint="Render with (on) or without (off) the ownership sticker")
+
+    # ------------------------------------------------------------------------------------------ structure
+    def rendering_fields(self) -> Iterator[Tuple[str, nn.Module]]:
+        """Density fields that produce rendered samples (outermost Field modules of the base)."""
+        taken: List[str] = []
+        for name, module in self.base.named_modules():
+            if not isinstance(module, Field) or not name:
+                continue
+            if any(name.startswith(t + ".") for t in taken):
+                continue
+            if name.startswith("proposal_networks") and not self.config.wrap_proposal_networks:
+                continue
+            taken.append(name)
+            yield name, module
+
+    @property
+    def final_wrap(self) -> DensityWrap:
+        """The field whose samples make the final image (vanilla-nerf: the fine field)."""
+        return self.wraps[-1]
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        self.base.eval()  # deterministic samples, no camera-optimizer or random-background behaviour
+        return self
+
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        return {"sticker": list(self.sticker.parameters()) + [g.log_beta for g in self.gates.values()]}
+
+    def get_training_callbacks(self, training_callback_attributes):
+        return []  # the base is frozen: none of its schedules apply
+
+    @property
+    def calibrated(self) -> bool:
+        return all(bool(g.calibrated) for g in self.gates.values())
+
+    def set_message(self, message: Tensor) -> None:
+        self.message.copy_(message.to(self.message))
+
+    @contextmanager
+    def sticker_enabled(self, enabled: bool):
+        old = self.wrap_state.enabled
+        self.wrap_state.enabled = enabled
+        try:
+            yield
+        finally:
+            self.wrap_state.enabled = old
+
+    # ------------------------------------------------------------------------------------------ rendering
+    def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Any]:
+        self.wrap_state.message = self.message
+        self.wrap_state.record = True
+        try:
+            outputs = self.base.forward(ray_bundle)
+        finally:
+            self.wrap_state.record = False
+        delta = self.final_wrap.last.get("delta") if self.wrap_state.enabled else None
+        rgb = outputs.get("rgb")
+        if isinstance(rgb, Tensor):
+            if delta is not None and delta.shape[0] == rgb.shape[0]:
+                # Sticker magnitude along each ray, in units of the gate's density scale.
+                outputs["sticker_delta"] = delta.abs().sum(dim=-2) / self.final_wrap.gate.scale
+            else:
+                outputs["sticker_delta"] = torch.zeros_like(rgb[..., :1])
+        self.final_wrap.last = {}
+        return outputs
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
+        return self.base.get_metrics_dict(outputs, batch)
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
+        return self.base.get_loss_dict(outputs, batch, metrics_dict)
+
+    def get_image_metrics_and_images(self, outputs, batch):
+        return self.base.get_image_metrics_and_images(outputs, batch)
+
+    # ------------------------------------------------------------------------------------------ capture
+    @contextmanager
+    def capture_final_samples(self):
+        """Record (positions, deltas, base density, rgb) of the final field's forward calls (sticker off)."""
+        fld = self.final_wrap.field
+        records: List[Dict[str, Tensor]] = []
+        original_forward = fld.forward
+
+        def forward(ray_samples, *args, **kwargs):
+            out = original_forward(ray_samples, *args, **kwargs)
+            from nerfstudio.field_components.field_heads import FieldHeadNames
+
+            records.append({
+                "positions": ray_samples.frustums.get_positions().detach(),
+                "deltas": ray_samples.deltas.detach(),
+                "density": out[FieldHeadNames.DENSITY].detach(),
+                "rgb": out[FieldHeadNames.RGB].detach(),
+            })
+            return out
+
+        object.__setattr__(fld, "forward", forward)
+        try:
+            with self.sticker_enabled(False):
+                yield records
+        finally:
+            del fld.__dict__["forward"]
+
+    def background_color(self) -> Tensor:
+        renderer = getattr(self.base, "renderer_rgb", None)
+        bg = getattr(renderer, "background_color", None)
+        if isinstance(bg, Tensor):
+            return bg.detach().float().reshape(3)
+        if bg == "white":
+            return torch.ones(3)
+        if bg == "black":
+            return torch.zeros(3)
+        raise GStickerError(f"the base's background '{bg}' is not supported by the fast trainer; retrain the "
+                            "base with --pipeline.model.background-color white (or black), or pass "
+                            "--pipeline.fast-path False")

@@ -1,0 +1,298 @@
+"""GeometrySticker pipeline: trains the sticker, the gate, the extractor and the classifier on a frozen base.
+
+The extractor and classifier (the *heads*) are the owner's secret: they are held outside the pipeline's
+module tree, so they never enter the shareable checkpoint; the trainer writes them into the owner key.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Literal, Mapping, Optional, Type
+
+import torch
+import torch.nn.functional as F
+import tyro
+from torch import Tensor
+
+from nerfstudio.data.datamanagers.base_datamanager import DataManagerConfig, VanillaDataManagerConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from gsticker_plugin import metrics
+from gsticker_plugin.attacks import RandomDistortion, RandomDistortionConfig
+from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.fastpath import ViewCache, cache_view, orbit_cameras, pool_memory_mb, render_cached
+from gsticker_plugin.heads import HeadConfig, Heads, count_parameters
+from gsticker_plugin.key import OwnerKey, message_from_owner_id, parse_message
+from gsticker_plugin.model import GeometryStickerModel, GeometryStickerModelConfig
+from gsticker_plugin.sticker import composite, sparsity_loss
+
+
+@dataclass
+class GeometryStickerPipelineConfig(VanillaPipelineConfig):
+    """Owner message, losses and the training strategy of the sticker stage."""
+
+    _target: Type = field(default_factory=lambda: GeometryStickerPipeline)
+    datamanager: DataManagerConfig = field(default_factory=VanillaDataManagerConfig)
+    """Replaced by the base run's data settings when training starts."""
+    model: GeometryStickerModelConfig = field(default_factory=GeometryStickerModelConfig)
+    heads: HeadConfig = field(default_factory=HeadConfig)
+    """Extractor and classifier networks (the owner's secret)."""
+    owner_id: str = "gsticker-owner"
+    """Owner ID; the 48-bit message is derived from it (sha256) unless --pipeline.message is given."""
+    message: Optional[str] = None
+    """The message as 0/1 characters (overrides --pipeline.owner-id)."""
+    key_path: Optional[Path] = None
+    """Where the owner key is written (default: beside the run folder, RUN.gskey). Keep it secret."""
+    base_run: tyro.conf.Suppress[Dict[str, Any]] = field(default_factory=dict)
+    """Reference to the base run (method, config, checkpoint and its sha256); filled in automatically."""
+    fast_path: bool = True
+    """Train on cached base samples (True) or re-render the base every step (False, for comparison)."""
+    pool_train_views: int = 48
+    """Training cameras rendered into the fast-path pool."""
+    pool_novel_views: int = 48
+    """Novel orbit cameras rendered into the pool (random poses around the training views)."""
+    monitor_views: int = 8
+    """Held-out novel views on which bit accuracy is reported during training."""
+    steps_per_monitor: int = 100
+    """Report held-out bit accuracy every this many steps."""
+    views_per_step: int = 4
+    """Views (fast path) or patches (naive path) per step."""
+    patch_size: int = 64
+    """Naive path: side of the square ray patch rendered per view each step."""
+    owner_message_prob: float = 0.0
+    """Share of training renders that carry the owner's message; the rest carry uniformly random messages.
+    Above 0 the extractor gains a prior toward the owner's bits (it would 'decode' them from clean images),
+    so the default trains on random messages only: the extractor has to read the message, it cannot print one."""
+    distortion: RandomDistortionConfig = field(default_factory=RandomDistortionConfig)
+    """Training-time distortions applied to renders before the extractor and classifier."""
+    target_psnr: float = 38.0
+    """PSNR budget of watermarked vs clean renders; the content loss rises steeply below it."""
+    content_weight: float = 1.0
+    """Weight of the content loss (MSE, in units of the PSNR budget)."""
+    msg_weight: float = 1.0
+    """Weight of the message loss (BCE-with-logits, extractor vs message)."""
+    negative_weight: float = 0.5
+    """Weight of the honesty loss: the extractor's logits on clean renders are pushed to 0 (p = 1/2)."""
+    cls_weight: float = 0.1
+    """Weight of the classifier loss (watermarked vs clean)."""
+    sparse_weight: float = 0.01
+    """Weight of the gate's sparsity loss."""
+    seed: int = 0
+    """Seed of the pool cameras, messages and distortions."""
+
+
+class GeometryStickerPipeline(VanillaPipeline):
+    """Frozen base + sticker; a fast training step on cached samples."""
+
+    config: GeometryStickerPipelineConfig
+    model: GeometryStickerModel
+
+    def __init__(self, config: GeometryStickerPipelineConfig, device: str, test_mode: Literal["test", "val", "inference"] = "val",
+                 world_size: int = 1, local_rank: int = 0, grad_scaler=None):
+        super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
+        self.owner_message = self.resolve_message(config)
+        self.model.set_message(self.owner_message)
+        # Heads: plain attribute, not a registered submodule (keeps them out of the shareable state dict).
+        self.__dict__["heads"] = Heads(config.heads, config.model.num_bits).to(device) if test_mode == "val" else None
+        self.distort = RandomDistortion(config.distortion)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.pool: List[ViewCache] = []
+        self.monitor: List[ViewCache] = []
+        self.history: List[Dict[str, float]] = []
+        self._t0: Optional[float] = None
+
+    @staticmethod
+    def resolve_message(config: GeometryStickerPipelineConfig) -> Tensor:
+        if config.message:
+            return parse_message(config.message, config.model.num_bits)
+        return message_from_owner_id(config.owner_id, config.model.num_bits)
+
+    @property
+    def heads(self) -> Optional[Heads]:
+        return self.__dict__.get("heads")
+
+    # ------------------------------------------------------------------------------------ state handling
+    def get_param_groups(self) -> Dict[str, List[torch.nn.Parameter]]:
+        groups = self.model.get_param_groups()
+        if self.heads is not None:
+            groups["heads"] = list(self.heads.parameters())
+        return groups
+
+    def load_state_dict(self, state_dict: Mapping[str, Any], strict: Optional[bool] = None):
+        """Strict, unlike the host's (which silently retries with strict=False)."""
+        model_state = {k[len("_model."):]: v for k, v in state_dict.items() if k.startswith("_model.")}
+        self.model.load_state_dict(model_state, strict=True)
+
+    def owner_key(self, training_state: Optional[Dict[str, Any]] = None, model_run: str = "") -> OwnerKey:
+        assert self.heads is not None
+        return OwnerKey(
+            owner_id=self.config.owner_id if not self.config.message else "",
+            message=self.owner_message.cpu(),
+            heads_config=dict(vars(self.config.heads)),
+            heads_state=self.heads.state_dict(),
+            base=dict(self.config.base_run),
+            model_run=model_run,
+            training_state=training_state or {},
+        )
+
+    # ------------------------------------------------------------------------------------ fast-path pool
+    @torch.no_grad()
+    def build_pool(self) -> None:
+        """Calibrate the gates (unless resumed) and render the pool views once, sticker off."""
+        from rich.progress import Progress
+
+        model = self.model
+        cams = self.datamanager.train_dataset.cameras
+        gen = torch.Generator().manual_seed(self.config.seed)
+        n_train = min(self.config.pool_train_views, cams.shape[0])
+        train_idx = torch.randperm(cams.shape[0], generator=gen)[:n_train]
+        novel = orbit_cameras(cams, self.config.pool_novel_views, gen)
+        held = orbit_cameras(cams, self.config.monitor_views, gen)
+        if not model.calibrated:
+            calib = [cache_view(model, cams[int(i): int(i) + 1].to(self.device), False) for i in train_idx[:4]]
+            dens = torch.cat([v.density.reshape(-1, 1) for v in calib])
+            w = torch.cat([composite(v.density, v.rgb.float(), v.deltas, model.background_color())[1].reshape(-1, 1)
+                           for v in calib])
+            for gate in model.gates.values():
+                gate.calibrate(dens, w, self.config.model.gate_quantile, self.config.model.beta_ratio)
+        mu = float(model.final_wrap.gate.mu)
+        t0 = time.time()
+        jobs = [(cams[int(i): int(i) + 1], False, self.pool) for i in train_idx]
+        jobs += [(novel[i: i + 1], True, self.pool) for i in range(novel.shape[0])]
+        jobs += [(held[i: i + 1], True, self.monitor) for i in range(held.shape[0])]
+        with Progress(console=CONSOLE, transient=True) as progress:
+            task = progress.add_task("Rendering the frozen base into the sticker pool", total=len(jobs))
+            for cam, is_novel, dest in jobs:
+                dest.append(cache_view(model, cam.to(self.device), is_novel, min_density=0.05 * mu))
+                progress.advance(task)
+        CONSOLE.print(f"[gsticker] pool: {len(self.pool)} views + {len(self.monitor)} held out, "
+                      f"{pool_memory_mb(self.pool + self.monitor):.0f} MiB, {time.time() - t0:.0f} s; "
+                      f"gate mu={mu:.4g}, beta={float(model.final_wrap.gate.beta):.4g}")
+
+    # ------------------------------------------------------------------------------------ training
+    def sample_messages(self, n: int) -> Tensor:
+        msgs = torch.randint(0, 2, (n, self.config.model.num_bits), generator=self.generator)
+        own = torch.rand(n, generator=self.generator) < self.config.owner_message_prob
+        msgs[own] = self.owner_message.cpu()
+        return msgs.to(self.device)
+
+    def render_batch_fast(self, messages: Tensor):
+        bg = self.model.background_color().to(self.device)
+        wrap = self.model.final_wrap
+        views = [self.pool[int(i)] for i in torch.randint(0, len(self.pool), (messages.shape[0],), generator=self.generator)]
+        marked, clean, psis = [], [], []
+        for view, msg in zip(views, messages):
+            img, psi = render_cached(view, wrap, msg, bg)
+            marked.append(img.permute(2, 0, 1))
+            clean.append(view.image.permute(2, 0, 1))
+            psis.append(psi.reshape(-1))
+        return torch.stack(marked), torch.stack(clean).to(self.device), torch.cat(psis)
+
+    def render_batch_naive(self, messages: Tensor):
+        """Comparison path: re-render a random patch of a random pool camera through the full base."""
+        cams = self.datamanager.train_dataset.cameras
+        p = self.config.patch_size
+        marked, clean, psis = [], [], []
+        for msg in messages:
+            i = int(torch.randint(0, cams.shape[0], (1,), generator=self.generator))
+            cam = cams[i: i + 1].to(self.device)
+            bundle = cam.generate_rays(camera_indices=0, keep_shape=True)
+            h, w = bundle.shape[:2]
+            y = int(torch.randint(0, max(1, h - p + 1), (1,), generator=self.generator))
+            x = int(torch.randint(0, max(1, w - p + 1), (1,), generator=self.generator))
+            patch = bundle[y: y + p, x: x + p].flatten()
+            self.model.wrap_state.message = msg
+            self.model.wrap_state.record = True
+            out = self.model.base.forward(patch)
+            self.model.wrap_state.record = False
+            with torch.no_grad(), self.model.sticker_enabled(False):
+                ref = self.model.base.forward(patch)["rgb"]
+            side = int(patch.shape[0] ** 0.5)
+            marked.append(out["rgb"].reshape(side, -1, 3).permute(2, 0, 1))
+            clean.append(ref.reshape(side, -1, 3).permute(2, 0, 1))
+            wrap = self.model.final_wrap
+            psis.append(torch.zeros(1, device=self.device))
+        return torch.stack(marked), torch.stack(clean), torch.cat(psis)
+
+    def losses(self, marked: Tensor, clean: Tensor, psi: Tensor, messages: Tensor) -> Dict[str, Tensor]:
+        heads = self.heads
+        assert heads is not None
+        cfg = self.config
+        mse = F.mse_loss(marked, clean)
+        budget = 10.0 ** (-cfg.target_psnr / 10.0)
+        content = mse / budget + 10.0 * F.relu(mse / budget - 1.0)
+        marked_d = self.distort(marked, cover=clean, generator=self.generator)
+        clean_d = self.distort(clean, generator=self.generator)
+        logits = heads.decode(marked_d)
+        neg_logits = heads.decode(clean_d)
+        cls = heads.classify(torch.cat([marked_d, clean_d]))
+        labels = torch.cat([torch.ones(marked.shape[0]), torch.zeros(clean.shape[0])]).to(cls)
+        self._last = {"logits": logits.detach(), "messages": messages, "mse": mse.detach()}
+        return {
+            "content_loss": cfg.content_weight * content,
+            "message_loss": cfg.msg_weight * F.binary_cross_entropy_with_logits(logits, messages.float()),
+            "negative_loss": cfg.negative_weight * F.binary_cross_entropy_with_logits(
+                neg_logits, torch.full_like(neg_logits, 0.5)),
+            "classifier_loss": cfg.cls_weight * F.binary_cross_entropy_with_logits(cls, labels),
+            "sparsity_loss": cfg.sparse_weight * sparsity_loss(psi),
+        }
+
+    def get_train_loss_dict(self, step: int):
+        if self.config.fast_path and not self.pool:
+            self.build_pool()
+        if not self.config.fast_path and not self.model.calibrated:
+            self.build_pool()
+        if self._t0 is None:
+            self._t0 = time.time()
+        self.model.train()
+        self.heads.train()
+        messages = self.sample_messages(self.config.views_per_step)
+        if self.config.fast_path:
+            marked, clean, psi = self.render_batch_fast(messages)
+        else:
+            marked, clean, psi = self.render_batch_naive(messages)
+        loss_dict = self.losses(marked, clean, psi, messages)
+        bits = metrics.decode_bits(self._last["logits"])
+        metrics_dict = {
+            "bit_acc": metrics.bit_accuracy(bits, messages).mean(),
+            "psnr_marked_vs_clean": -10.0 * torch.log10(self._last["mse"].clamp_min(1e-12)),
+            "gate_open_share": (psi > 0.5).float().mean() if psi.numel() else torch.tensor(0.0),
+            "gate_beta_over_mu": (self.model.final_wrap.gate.beta / self.model.final_wrap.gate.mu).detach(),
+        }
+        if self.config.fast_path and self.monitor and (step + 1) % self.config.steps_per_monitor == 0:
+            metrics_dict.update(self.monitor_metrics())
+            self.history.append({"step": step + 1, "seconds": time.time() - self._t0,
+                                 **{k: float(v) for k, v in metrics_dict.items()}})
+            CONSOLE.print(f"[gsticker] step {step + 1}: held-out bit acc {float(metrics_dict['heldout_bit_acc']):.4f} "
+                          f"(clean renders: {float(metrics_dict['heldout_clean_bit_acc']):.3f}), "
+                          f"PSNR marked/clean {float(metrics_dict['heldout_psnr']):.2f} dB, "
+                          f"{time.time() - self._t0:.0f} s")
+        return {}, loss_dict, metrics_dict
+
+    @torch.no_grad()
+    def monitor_metrics(self) -> Dict[str, Tensor]:
+        """Owner-message bit accuracy and PSNR on held-out novel views (fast-path renders, no distortion)."""
+        self.heads.eval()
+        bg = self.model.background_color().to(self.device)
+        owner = self.owner_message.to(self.device)
+        accs, clean_accs, psnrs = [], [], []
+        for view in self.monitor:
+            img, _ = render_cached(view, self.model.final_wrap, owner, bg)
+            marked, clean = img.permute(2, 0, 1)[None], view.image.permute(2, 0, 1)[None].to(self.device)
+            logits = self.heads.decode(torch.cat([marked, clean]))
+            bits = metrics.decode_bits(logits)
+            accs.append(metrics.bit_accuracy(bits[:1], owner))
+            clean_accs.append(metrics.bit_accuracy(bits[1:], owner))
+            psnrs.append(metrics.psnr(marked, clean))
+        self.heads.train()
+        return {"heldout_bit_acc": torch.cat(accs).mean(), "heldout_clean_bit_acc": torch.cat(clean_accs).mean(),
+                "heldout_psnr": torch.cat(psnrs).mean()}
+
+    def describe(self) -> str:
+        h = self.heads
+        return (f"sticker {count_parameters(self.model.sticker)} params, heads "
+                f"{count_parameters(h) if h is not None else 0} params ({self.config.heads.backbone})")

@@ -1,0 +1,194 @@
+"""The sticker (message MLP), the gate (Laplace-CDF cover selector) and the density wrap.
+
+``sigma~ = sigma + psi(sigma) * m(gamma(x), M)`` where
+
+* ``psi`` is the *gate*: a Laplace CDF of the base density around ``mu`` with learnable width ``beta``; it
+  selects the *cover media*, the samples near surfaces (high density);
+* ``m`` is the *sticker*: a small MLP of the positional encoding of the normalized sample position and the
+  message bits, scaled to the base's density scale (the gate's ``mu``) and bounded by ``tanh``.
+
+The wrap replaces ``get_density`` on a base field *instance* (not its class), so every path that computes
+density goes through it (``forward``, ``density_fn``, TensoRF's direct ``get_density`` calls), and the base
+field's state dict is untouched: the sticker and gates live in the GeometrySticker model, not in the field.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Dict, Optional, Tuple
+
+import torch
+from jaxtyping import Float
+from torch import Tensor, nn
+
+# ---------------------------------------------------------------------------------------------- pure functions
+
+
+def laplace_cdf_gate(sigma: Float[Tensor, "*bs 1"], mu: Tensor, beta: Tensor) -> Float[Tensor, "*bs 1"]:
+    """psi = 1/2 + 1/2 sign(sigma - mu) (1 - exp(-|sigma - mu| / beta)): the Laplace CDF at sigma."""
+    d = sigma - mu
+    return 0.5 + 0.5 * torch.sign(d) * (1.0 - torch.exp(-d.abs() / beta))
+
+
+def sparsity_loss(psi: Tensor, eps: float = 1e-4) -> Tensor:
+    """mean(log psi + log(1 - psi)): lowest when psi is 0 or 1 (clamped so it stays finite)."""
+    p = psi.clamp(eps, 1.0 - eps)
+    return (torch.log(p) + torch.log1p(-p)).mean() if p.numel() else psi.sum() * 0.0
+
+
+def positional_encoding(x: Float[Tensor, "*bs 3"], num_frequencies: int) -> Float[Tensor, "*bs enc"]:
+    """gamma(x) = [x, sin(2^k pi x), cos(2^k pi x)]_{k < L} for x in [0, 1]^3 (3 + 6L dims)."""
+    freqs = (2.0 ** torch.arange(num_frequencies, device=x.device, dtype=x.dtype)) * math.pi
+    xb = x[..., None] * freqs  # [*bs, 3, L]
+    enc = torch.cat([torch.sin(xb), torch.cos(xb)], dim=-1).flatten(-2)
+    return torch.cat([x, enc], dim=-1)
+
+
+def message_to_signs(message: Tensor) -> Tensor:
+    """0/1 bits -> -1/+1 float inputs for the sticker."""
+    return message.float() * 2.0 - 1.0
+
+
+def composite(
+    density: Float[Tensor, "R S 1"],
+    rgb: Float[Tensor, "R S 3"],
+    deltas: Float[Tensor, "R S 1"],
+    background: Float[Tensor, "3"],
+) -> Tuple[Float[Tensor, "R 3"], Float[Tensor, "R S 1"]]:
+    """Volume rendering (same quadrature as Nerfstudio's RaySamples.get_weights + RGBRenderer)."""
+    dd = deltas * density
+    alphas = 1.0 - torch.exp(-dd)
+    transmittance = torch.cumsum(dd[:, :-1], dim=-2)
+    transmittance = torch.cat([torch.zeros_like(transmittance[:, :1]), transmittance], dim=-2)
+    weights = alphas * torch.exp(-transmittance)
+    weights = torch.nan_to_num(weights)
+    acc = weights.sum(dim=-2)
+    color = (weights * rgb).sum(dim=-2) + background * (1.0 - acc)
+    return color, weights
+
+
+# ---------------------------------------------------------------------------------------------- modules
+
+
+class Gate(nn.Module):
+    """Laplace-CDF cover selector with a learnable width, calibrated to one base field's density scale."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("mu", torch.tensor(1.0))
+        self.register_buffer("scale", torch.tensor(1.0))
+        self.register_buffer("calibrated", torch.tensor(False))
+        self.log_beta = nn.Parameter(torch.tensor(0.0))
+
+    max_beta_ratio: float = 0.15
+    """beta never exceeds this share of mu: the gate stays a surface selector (and the fast path exact)."""
+
+    @property
+    def beta(self) -> Tensor:
+        return torch.minimum(torch.exp(self.log_beta), self.mu * self.max_beta_ratio)
+
+    @torch.no_grad()
+    def calibrate(self, density: Tensor, weights: Tensor, quantile: float = 0.5, beta_ratio: float = 0.1) -> None:
+        """Set mu to the weight-weighted ``quantile`` of the base density over visible samples.
+
+        Densities differ by orders of magnitude between bases (nerfacto's trunc_exp vs TensoRF's ReLU sums),
+        so mu (the gate centre) and the sticker amplitude are both expressed in this base's own units.
+        """
+        d = density.reshape(-1).float()
+        w = weights.reshape(-1).float()
+        keep = w > 1e-3
+        if keep.sum() < 16:
+            raise ValueError("cannot calibrate the gate: the base renders (almost) nothing from these views")
+        d, w = d[keep], w[keep]
+        order = torch.argsort(d)
+        cw = torch.cumsum(w[order], 0)
+        idx = torch.searchsorted(cw, quantile * cw[-1]).clamp(max=len(d) - 1)
+        mu = d[order][idx].clamp_min(1e-6)
+        self.mu.copy_(mu)
+        self.scale.copy_(mu)
+        self.log_beta.copy_(torch.log(mu * beta_ratio))
+        self.calibrated.fill_(True)
+
+    def forward(self, sigma: Tensor) -> Tensor:
+        return laplace_cdf_gate(sigma, self.mu, self.beta)
+
+
+class Sticker(nn.Module):
+    """Theta_m: [gamma(x), M] -> m, two hidden layers; output bounded by tanh (times the gate's scale)."""
+
+    def __init__(self, num_bits: int = 48, num_frequencies: int = 5, hidden_dim: int = 64, num_layers: int = 2):
+        super().__init__()
+        self.num_bits = num_bits
+        self.num_frequencies = num_frequencies
+        enc_dim = 3 + 6 * num_frequencies
+        # The message part of the first layer is constant per render: it is folded into a bias (see forward).
+        self.pos_in = nn.Linear(enc_dim, hidden_dim)
+        self.msg_in = nn.Linear(num_bits, hidden_dim, bias=False)
+        layers = []
+        for _ in range(num_layers - 1):
+            layers += [nn.ReLU(), nn.Linear(hidden_dim, hidden_dim)]
+        layers += [nn.ReLU(), nn.Linear(hidden_dim, 1)]
+        self.mlp = nn.Sequential(*layers)
+        nn.init.uniform_(self.mlp[-1].weight, -1e-3, 1e-3)
+        nn.init.zeros_(self.mlp[-1].bias)
+
+    def forward(self, positions01: Float[Tensor, "N 3"], message: Float[Tensor, "K"]) -> Float[Tensor, "N 1"]:
+        h = self.pos_in(positional_encoding(positions01, self.num_frequencies))
+        h = h + self.msg_in(message_to_signs(message))
+        return torch.tanh(self.mlp(h))
+
+
+@dataclass
+class WrapState:
+    """Mutable switches shared by all wrapped fields of one model."""
+
+    enabled: bool = True
+    message: Optional[Tensor] = None
+    record: bool = False
+
+
+class DensityWrap:
+    """Installs ``sigma + psi * scale * m`` on a field instance's ``get_density``; removable."""
+
+    def __init__(self, field: nn.Module, name: str, sticker: Sticker, gate: Gate, state: WrapState,
+                 aabb: Tensor, gate_threshold: float = 1e-3) -> None:
+        self.field = field
+        self.name = name
+        self.sticker = sticker
+        self.gate = gate
+        self.state = state
+        self.aabb = aabb
+        self.gate_threshold = gate_threshold
+        self.original: Callable = field.get_density
+        self.last: Dict[str, Tensor] = {}
+        object.__setattr__(field, "get_density", self.get_density)
+
+    def remove(self) -> None:
+        if self.field.__dict__.get("get_density") == self.get_density:
+            del self.field.__dict__["get_density"]
+
+    def normalize(self, positions: Tensor) -> Tensor:
+        lo, hi = self.aabb[0].to(positions), self.aabb[1].to(positions)
+        return ((positions - lo) / (hi - lo)).clamp(0.0, 1.0)
+
+    def delta(self, sigma: Tensor, positions: Tensor, message: Tensor) -> Tuple[Tensor, Tensor]:
+        """The density added at each sample (only evaluated where the gate is open), and psi."""
+        psi = self.gate(sigma)
+        out = torch.zeros_like(sigma)
+        open_ = (psi.detach() > self.gate_threshold).squeeze(-1)
+        if open_.any():
+            m = self.sticker(self.normalize(positions[open_]), message)
+            out[open_] = psi[open_] * self.gate.scale * m
+        return out, psi
+
+    def get_density(self, ray_samples, *args, **kwargs):
+        result = self.original(ray_samples, *args, **kwargs)
+        density, rest = (result[0], result[1:]) if isinstance(result, tuple) else (result, None)
+        if self.state.enabled and self.state.message is not None and self.gate.calibrated:
+            positions = ray_samples.frustums.get_positions()
+            delta, _ = self.delta(density, positions.reshape(*density.shape[:-1], 3), self.state.message)
+            if self.state.record:
+                self.last = {"delta": delta.detach()}
+            density = torch.relu(density + delta)
+        return (density, *rest) if rest is not None else density

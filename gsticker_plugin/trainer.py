@@ -1,0 +1,162 @@
+"""Trainer for ``ns-train geometrysticker``: loads a foreign base run strictly, saves without the secret heads.
+
+* ``--load-checkpoint BASE/nerfstudio_models/step-N.ckpt`` (or ``--load-dir``) of a *foreign* run (any stock
+  method): its config.yml rebuilds the base model and data settings, its weights are loaded strictly into
+  the frozen base, and training starts at step 0 of our own schedule.
+* The same flags pointing at one of *our* runs resume it (sticker, gates and optimizers from the
+  checkpoint, heads and their optimizer from the owner key).
+* Checkpoints are written atomically and hold no extractor/classifier weights; the owner key is written
+  beside the run folder at every save.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional, Type
+
+import torch
+
+from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from gsticker_plugin import base_run
+from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.key import OwnerKey, bits_to_str, file_sha256
+from gsticker_plugin.pipeline import GeometryStickerPipeline, GeometryStickerPipelineConfig
+
+
+@dataclass
+class GeometryStickerTrainerConfig(TrainerConfig):
+    """ns-train geometrysticker: stick an owner message onto a trained model's geometry."""
+
+    _target: Type = field(default_factory=lambda: GeometryStickerTrainer)
+    pipeline: GeometryStickerPipelineConfig = field(default_factory=GeometryStickerPipelineConfig)
+
+
+def copy_datamanager(base_config, data_override: Optional[Path]) -> VanillaDataManagerConfig:
+    """The base's dataparser and data path in a single-process VanillaDataManager (we sample no ray batches)."""
+    dm = base_config.pipeline.datamanager
+    dataparser = copy.deepcopy(dm.dataparser)
+    recorded = dm.data if getattr(dm, "data", None) is not None else getattr(dataparser, "data", None)
+    data = base_run.resolve_data_path(recorded, data_override)
+    dataparser.data = data
+    return VanillaDataManagerConfig(dataparser=dataparser, data=data, train_num_rays_per_batch=1024,
+                                    eval_num_rays_per_batch=1024, camera_res_scale_factor=dm.camera_res_scale_factor)
+
+
+class GeometryStickerTrainer(Trainer):
+    config: GeometryStickerTrainerConfig
+    pipeline: GeometryStickerPipeline
+
+    def __init__(self, config: GeometryStickerTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        super().__init__(config, local_rank, world_size)
+        self._checkpoint: Optional[Path] = None
+        self._resume = False
+
+    @property
+    def key_path(self) -> Path:
+        p = self.config.pipeline.key_path
+        return Path(p) if p is not None else self.base_dir.with_name(self.base_dir.name + ".gskey")
+
+    def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        cfg = self.config
+        pcfg = cfg.pipeline
+        ckpt = base_run.resolve_checkpoint(cfg.load_checkpoint, cfg.load_dir, cfg.load_step)
+        if ckpt is None and pcfg.model.base_model is None:
+            raise GStickerError("geometrysticker needs a trained base: pass --load-checkpoint "
+                                "BASE_RUN/nerfstudio_models/step-N.ckpt (any nerfacto, vanilla-nerf or tensorf run)")
+        GeometryStickerPipeline.resolve_message(pcfg)  # a malformed message stops here, before any work
+        if ckpt is not None:
+            run_cfg = base_run.load_run_config(base_run.run_config_path(ckpt))
+            if isinstance(run_cfg.pipeline, GeometryStickerPipelineConfig):
+                self._resume = True
+                pcfg.model.base_model = run_cfg.pipeline.model.base_model
+                pcfg.base_run = dict(run_cfg.pipeline.base_run)
+                pcfg.datamanager = run_cfg.pipeline.datamanager
+                if cfg.data is not None:
+                    pcfg.datamanager.data = pcfg.datamanager.dataparser.data = Path(cfg.data)
+                pcfg.owner_id, pcfg.message = run_cfg.pipeline.owner_id, run_cfg.pipeline.message
+                pcfg.key_path = run_cfg.pipeline.key_path or ckpt.resolve().parent.parent.with_name(
+                    ckpt.resolve().parent.parent.name + ".gskey")
+            else:
+                pcfg.model.base_model = run_cfg.pipeline.model
+                pcfg.datamanager = copy_datamanager(run_cfg, cfg.data)
+                pcfg.base_run = {
+                    "method": run_cfg.method_name,
+                    "model": type(run_cfg.pipeline.model).__name__,
+                    "config": str(base_run.run_config_path(ckpt)),
+                    "checkpoint": str(ckpt.resolve()),
+                    "checkpoint_sha256": file_sha256(ckpt),
+                }
+            self._checkpoint = ckpt
+        if pcfg.key_path is None:
+            pcfg.key_path = self.key_path
+        cfg.save_config()  # again, now with the base filled in: stock ns-viewer/ns-render rebuild from it
+        super().setup(test_mode)
+        CONSOLE.print(f"[gsticker] {self.pipeline.describe()}; message {bits_to_str(self.pipeline.owner_message)}")
+
+    def _load_checkpoint(self) -> None:
+        ckpt = self._checkpoint
+        if ckpt is None:
+            return
+        state = base_run.load_checkpoint_state(ckpt)
+        if not self._resume:
+            model_state = base_run.model_state_from_pipeline_state(state["pipeline"])
+            base_run.check_tcnn(self.config.pipeline.model.base_model, model_state)
+            base_run.strict_load(self.pipeline.model.base, model_state,
+                                 num_train_data=len(self.pipeline.datamanager.train_dataset))
+            self._start_step = 0
+            CONSOLE.print(f"[gsticker] base loaded strictly from {ckpt} (frozen); starting at step 0")
+            return
+        self.pipeline.load_pipeline(state["pipeline"], state["step"])
+        self.optimizers.load_optimizers(state["optimizers"])
+        if "schedulers" in state and self.config.load_scheduler:
+            self.optimizers.load_schedulers(state["schedulers"])
+        key = OwnerKey.load(self.key_path)
+        assert self.pipeline.heads is not None
+        self.pipeline.heads.load_state_dict(key.heads_state, strict=True)
+        ts = key.training_state
+        if "heads_optimizer" in ts:
+            self.optimizers.optimizers["heads"].load_state_dict(ts["heads_optimizer"])
+        if "heads_scheduler" in ts and "heads" in self.optimizers.schedulers:
+            self.optimizers.schedulers["heads"].load_state_dict(ts["heads_scheduler"])
+        self._start_step = state["step"] + 1
+        CONSOLE.print(f"[gsticker] resumed from {ckpt} (step {state['step']}) with heads from {self.key_path}")
+
+    def save_checkpoint(self, step: int) -> None:
+        """Shareable checkpoint without the heads (atomic), then the owner key (atomic)."""
+        self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        ckpt_path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
+        opts = self.optimizers
+        state = {
+            "step": step,
+            "pipeline": self.pipeline.state_dict(),
+            "optimizers": {k: v.state_dict() for k, v in opts.optimizers.items() if k != "heads"},
+            "schedulers": {k: v.state_dict() for k, v in opts.schedulers.items() if k != "heads"},
+            "scalers": self.grad_scaler.state_dict(),
+        }
+        assert not any("heads" in k for k in state["pipeline"]), "the heads must never enter the shareable model"
+        tmp = ckpt_path.with_suffix(".ckpt.tmp")
+        torch.save(state, tmp)
+        os.replace(tmp, ckpt_path)
+        training_state = {"step": step}
+        if "heads" in opts.optimizers:
+            training_state["heads_optimizer"] = opts.optimizers["heads"].state_dict()
+        if "heads" in opts.schedulers:
+            training_state["heads_scheduler"] = opts.schedulers["heads"].state_dict()
+        key = self.pipeline.owner_key(training_state, model_run=str(self.base_dir))
+        key.save(self.key_path)
+        if self.config.save_only_latest_checkpoint:
+            for f in self.checkpoint_dir.glob("*.ckpt"):
+                if f != ckpt_path:
+                    f.unlink()
+
+    def train(self) -> None:
+        super().train()
+        CONSOLE.rule("[gsticker] done")
+        CONSOLE.print(f"Watermarked model (shareable): {self.base_dir / 'config.yml'}")
+        CONSOLE.print(f"Owner key (secret, keep it apart): {self.key_path}")
