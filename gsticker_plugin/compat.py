@@ -71,7 +71,11 @@ def lpips_backbone_available(net_type: str = "alex", try_download: bool = True) 
         old = socket.getdefaulttimeout()
         socket.setdefaulttimeout(10)
         try:
-            weights.get_state_dict(progress=False)
+            import contextlib
+            import io
+
+            with contextlib.redirect_stderr(io.StringIO()):  # torch.hub announces the download it then fails
+                weights.get_state_dict(progress=False)
             ok = os.path.isfile(path)
         except Exception:  # offline: URLError, timeout, HTTP errors
             ok = False

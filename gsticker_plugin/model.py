@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Dict, Iterator, List, Optional, Tuple, Type
+from typing import Any, Dict, Iterator, List, Literal, Optional, Tuple, Type
 
 import torch
 import tyro
@@ -39,12 +39,18 @@ class GeometryStickerModelConfig(ModelConfig):
     """Width of the sticker MLP's two hidden layers."""
     sticker_num_layers: int = 2
     """Hidden layers of the sticker MLP."""
+    sticker_kind: Literal["bilinear", "concat"] = "bilinear"
+    """bilinear: per-bit learned 3D patterns flipped by the bits (fast to learn); concat: the paper's MLP of [gamma(x), M]."""
+    sticker_init_scale: float = 0.5
+    """Uniform init range of the sticker's output layer (its first renders must be visible to the extractor)."""
     num_frequencies: int = 5
     """Octaves of the positional encoding gamma(x) (3 + 6L dims)."""
     gate_quantile: float = 0.5
     """Gate centre mu = this weighted quantile of the base density over visible samples."""
     beta_ratio: float = 0.1
     """Initial gate width beta = beta_ratio * mu (then learned)."""
+    sticker_amplitude: float = 10.0
+    """Largest density change of the sticker, in units of mu (10 mu: about 30 dB at full strength on lego)."""
     gate_threshold: float = 1e-3
     """The sticker is evaluated only at samples whose psi exceeds this."""
     wrap_proposal_networks: bool = False
@@ -67,7 +73,8 @@ class GeometryStickerModel(Model):
         self.base.requires_grad_(False)
         self.base.eval()
         self.sticker = Sticker(self.config.num_bits, self.config.num_frequencies,
-                               self.config.sticker_hidden_dim, self.config.sticker_num_layers)
+                               self.config.sticker_hidden_dim, self.config.sticker_num_layers,
+                               self.config.sticker_init_scale, self.config.sticker_kind)
         self.register_buffer("message", torch.zeros(self.config.num_bits, dtype=torch.long))
         self.wrap_state = WrapState(enabled=True)
         self.gates = nn.ModuleDict()

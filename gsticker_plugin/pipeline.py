@@ -73,6 +73,9 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     """PSNR budget of watermarked vs clean renders; the content loss rises steeply below it."""
     content_weight: float = 1.0
     """Weight of the content loss (MSE, in units of the PSNR budget)."""
+    warmup_steps: int = 200
+    """No content loss and no distortions for these first steps, then both ramp in over as many steps: the
+    extractor first finds the (initially strong) sticker signal, which the content loss then trims to budget."""
     msg_weight: float = 1.0
     """Weight of the message loss (BCE-with-logits, extractor vs message)."""
     negative_weight: float = 0.5
@@ -83,6 +86,8 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     """Weight of the gate's sparsity loss."""
     seed: int = 0
     """Seed of the pool cameras, messages and distortions."""
+    pool_cache: Optional[Path] = None
+    """Optional file to keep the rendered pool in (reused when base checkpoint, cameras and sizes match)."""
 
 
 class GeometryStickerPipeline(VanillaPipeline):
@@ -158,8 +163,20 @@ class GeometryStickerPipeline(VanillaPipeline):
             w = torch.cat([composite(v.density, v.rgb.float(), v.deltas, model.background_color())[1].reshape(-1, 1)
                            for v in calib])
             for gate in model.gates.values():
-                gate.calibrate(dens, w, self.config.model.gate_quantile, self.config.model.beta_ratio)
+                gate.calibrate(dens, w, self.config.model.gate_quantile, self.config.model.beta_ratio,
+                               self.config.model.sticker_amplitude)
         mu = float(model.final_wrap.gate.mu)
+        cache_id = {"base": self.config.base_run.get("checkpoint_sha256", ""), "seed": self.config.seed,
+                    "train": n_train, "novel": self.config.pool_novel_views, "held": self.config.monitor_views,
+                    "mu": round(mu, 6)}
+        path = self.config.pool_cache
+        if path is not None and Path(path).is_file():
+            saved = torch.load(path, map_location="cpu", weights_only=False)
+            if saved.get("id") == cache_id:
+                self.pool = [ViewCache(**v) for v in saved["pool"]]
+                self.monitor = [ViewCache(**v) for v in saved["monitor"]]
+                CONSOLE.print(f"[gsticker] pool reused from {path} ({len(self.pool)} views)")
+                return
         t0 = time.time()
         jobs = [(cams[int(i): int(i) + 1], False, self.pool) for i in train_idx]
         jobs += [(novel[i: i + 1], True, self.pool) for i in range(novel.shape[0])]
@@ -172,6 +189,11 @@ class GeometryStickerPipeline(VanillaPipeline):
         CONSOLE.print(f"[gsticker] pool: {len(self.pool)} views + {len(self.monitor)} held out, "
                       f"{pool_memory_mb(self.pool + self.monitor):.0f} MiB, {time.time() - t0:.0f} s; "
                       f"gate mu={mu:.4g}, beta={float(model.final_wrap.gate.beta):.4g}")
+        if path is not None:
+            tmp = Path(str(path) + ".tmp")
+            torch.save({"id": cache_id, "pool": [vars(v) for v in self.pool],
+                        "monitor": [vars(v) for v in self.monitor]}, tmp)
+            tmp.replace(path)
 
     # ------------------------------------------------------------------------------------ training
     def sample_messages(self, n: int) -> Tensor:
@@ -218,22 +240,27 @@ class GeometryStickerPipeline(VanillaPipeline):
             psis.append(torch.zeros(1, device=self.device))
         return torch.stack(marked), torch.stack(clean), torch.cat(psis)
 
-    def losses(self, marked: Tensor, clean: Tensor, psi: Tensor, messages: Tensor) -> Dict[str, Tensor]:
+    def losses(self, marked: Tensor, clean: Tensor, psi: Tensor, messages: Tensor, step: int = 10**9) -> Dict[str, Tensor]:
         heads = self.heads
         assert heads is not None
         cfg = self.config
         mse = F.mse_loss(marked, clean)
         budget = 10.0 ** (-cfg.target_psnr / 10.0)
         content = mse / budget + 10.0 * F.relu(mse / budget - 1.0)
-        marked_d = self.distort(marked, cover=clean, generator=self.generator)
-        clean_d = self.distort(clean, generator=self.generator)
+        # Warm-up: no content loss and no distortions for warmup_steps, then both ramp in over as many steps.
+        ramp = min(1.0, max(0.0, (step + 1 - cfg.warmup_steps) / max(1, cfg.warmup_steps)))
+        if ramp > 0 and float(torch.rand(1, generator=self.generator)) < ramp:
+            marked_d = self.distort(marked, cover=clean, generator=self.generator)
+            clean_d = self.distort(clean, generator=self.generator)
+        else:
+            marked_d, clean_d = marked, clean
         logits = heads.decode(marked_d)
         neg_logits = heads.decode(clean_d)
         cls = heads.classify(torch.cat([marked_d, clean_d]))
         labels = torch.cat([torch.ones(marked.shape[0]), torch.zeros(clean.shape[0])]).to(cls)
         self._last = {"logits": logits.detach(), "messages": messages, "mse": mse.detach()}
         return {
-            "content_loss": cfg.content_weight * content,
+            "content_loss": cfg.content_weight * ramp * content,
             "message_loss": cfg.msg_weight * F.binary_cross_entropy_with_logits(logits, messages.float()),
             "negative_loss": cfg.negative_weight * F.binary_cross_entropy_with_logits(
                 neg_logits, torch.full_like(neg_logits, 0.5)),
@@ -255,7 +282,7 @@ class GeometryStickerPipeline(VanillaPipeline):
             marked, clean, psi = self.render_batch_fast(messages)
         else:
             marked, clean, psi = self.render_batch_naive(messages)
-        loss_dict = self.losses(marked, clean, psi, messages)
+        loss_dict = self.losses(marked, clean, psi, messages, step)
         bits = metrics.decode_bits(self._last["logits"])
         metrics_dict = {
             "bit_acc": metrics.bit_accuracy(bits, messages).mean(),

@@ -89,8 +89,10 @@ class Gate(nn.Module):
         return torch.minimum(torch.exp(self.log_beta), self.mu * self.max_beta_ratio)
 
     @torch.no_grad()
-    def calibrate(self, density: Tensor, weights: Tensor, quantile: float = 0.5, beta_ratio: float = 0.1) -> None:
-        """Set mu to the weight-weighted ``quantile`` of the base density over visible samples.
+    def calibrate(self, density: Tensor, weights: Tensor, quantile: float = 0.5, beta_ratio: float = 0.1,
+                  amplitude: float = 10.0) -> None:
+        """Set mu to the weight-weighted ``quantile`` of the base density over visible samples, and the sticker's
+        largest density change to ``amplitude * mu``.
 
         Densities differ by orders of magnitude between bases (nerfacto's trunc_exp vs TensoRF's ReLU sums),
         so mu (the gate centre) and the sticker amplitude are both expressed in this base's own units.
@@ -106,7 +108,7 @@ class Gate(nn.Module):
         idx = torch.searchsorted(cw, quantile * cw[-1]).clamp(max=len(d) - 1)
         mu = d[order][idx].clamp_min(1e-6)
         self.mu.copy_(mu)
-        self.scale.copy_(mu)
+        self.scale.copy_(mu * amplitude)
         self.log_beta.copy_(torch.log(mu * beta_ratio))
         self.calibrated.fill_(True)
 
@@ -115,28 +117,43 @@ class Gate(nn.Module):
 
 
 class Sticker(nn.Module):
-    """Theta_m: [gamma(x), M] -> m, two hidden layers; output bounded by tanh (times the gate's scale)."""
+    """Theta_m: sample position and message bits -> density offset m in [-1, 1].
 
-    def __init__(self, num_bits: int = 48, num_frequencies: int = 5, hidden_dim: int = 64, num_layers: int = 2):
+    ``kind="concat"`` is the paper's layout: an MLP of [gamma(x), M] (two hidden layers).
+    ``kind="bilinear"`` (default) keeps the same MLP trunk on gamma(x) but mixes the message in linearly:
+    ``m = tanh(<f(gamma(x)), 2M - 1> / sqrt(K))``, i.e. every bit owns a learned 3D pattern on the cover
+    media and its sign flips that pattern. The extractor then faces a (nearly) linear decoding problem,
+    which it learns in a few hundred steps instead of thousands (docs/geometrysticker.md).
+    """
+
+    def __init__(self, num_bits: int = 48, num_frequencies: int = 5, hidden_dim: int = 64, num_layers: int = 2,
+                 init_scale: float = 0.1, kind: str = "bilinear"):
         super().__init__()
+        if kind not in ("concat", "bilinear"):
+            raise ValueError(f"unknown sticker kind {kind!r}; use 'bilinear' or 'concat'")
+        self.kind = kind
         self.num_bits = num_bits
         self.num_frequencies = num_frequencies
         enc_dim = 3 + 6 * num_frequencies
-        # The message part of the first layer is constant per render: it is folded into a bias (see forward).
+        # concat: the message part of the first layer is constant per render, folded into a bias.
         self.pos_in = nn.Linear(enc_dim, hidden_dim)
-        self.msg_in = nn.Linear(num_bits, hidden_dim, bias=False)
+        self.msg_in = nn.Linear(num_bits, hidden_dim, bias=False) if kind == "concat" else None
         layers = []
         for _ in range(num_layers - 1):
             layers += [nn.ReLU(), nn.Linear(hidden_dim, hidden_dim)]
-        layers += [nn.ReLU(), nn.Linear(hidden_dim, 1)]
+        layers += [nn.ReLU(), nn.Linear(hidden_dim, 1 if kind == "concat" else num_bits)]
         self.mlp = nn.Sequential(*layers)
-        nn.init.uniform_(self.mlp[-1].weight, -1e-3, 1e-3)
+        # Start visible enough for the extractor to get a gradient; the content loss then shrinks it.
+        nn.init.uniform_(self.mlp[-1].weight, -init_scale, init_scale)
         nn.init.zeros_(self.mlp[-1].bias)
 
     def forward(self, positions01: Float[Tensor, "N 3"], message: Float[Tensor, "K"]) -> Float[Tensor, "N 1"]:
         h = self.pos_in(positional_encoding(positions01, self.num_frequencies))
-        h = h + self.msg_in(message_to_signs(message))
-        return torch.tanh(self.mlp(h))
+        signs = message_to_signs(message)
+        if self.msg_in is not None:
+            return torch.tanh(self.mlp(h + self.msg_in(signs)))
+        basis = self.mlp(h)  # [N K]
+        return torch.tanh(basis @ signs[:, None] / math.sqrt(self.num_bits))
 
 
 @dataclass
