@@ -23,8 +23,13 @@ class HeadConfig:
     """small: strided CNN sized for <= 400 px renders; vgg16: the paper's (untrained) VGG16 feature stack."""
     width: int = 32
     """Channels of the first small-CNN stage (doubles every other stage)."""
-    depth: int = 5
+    depth: int = 4
     """Number of stride-2 stages of the small CNN."""
+    pooling: Literal["grid", "avg"] = "avg"
+    """avg: global average pooling (the paper's); grid: average-pool to grid x grid cells and read them out with a
+    linear layer (keeps where a pattern is)."""
+    grid: int = 4
+    """Cells per side of the grid pooling."""
 
 
 def small_backbone(width: int, depth: int) -> Tuple[nn.Module, int]:
@@ -53,11 +58,16 @@ class ConvHead(nn.Module):
             self.backbone, ch = vgg16_backbone()
         else:
             self.backbone, ch = small_backbone(config.width, config.depth)
-        self.head = nn.Linear(ch, num_outputs)
+        cells = config.grid * config.grid if config.pooling == "grid" else 1
+        self.head = nn.Linear(ch * cells, num_outputs)
 
     def forward(self, images: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B O"]:
-        x = (images - 0.5) * 2.0
-        return self.head(self.backbone(x).mean(dim=(-2, -1)))
+        x = self.backbone((images - 0.5) * 2.0)
+        if self.config.pooling == "grid":
+            x = nn.functional.adaptive_avg_pool2d(x, self.config.grid).flatten(1)
+        else:
+            x = x.mean(dim=(-2, -1))
+        return self.head(x)
 
 
 class Heads(nn.Module):

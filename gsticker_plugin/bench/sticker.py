@@ -1,0 +1,153 @@
+"""Sticker-stage speed benchmark: fast path vs naive re-rendering vs a paper-faithful configuration.
+
+    python -m gsticker_plugin.bench.sticker \
+        --load-checkpoint ../shared/checkpoints/lego100-nerfacto-small/nerfacto/base/nerfstudio_models/step-000002999.ckpt \
+        --output docs/bench-sticker.md
+
+Runs, in one process on the same base and the same held-out views, each configuration for a wall-clock
+budget, and prints steps/s and the time to >= 99% held-out bit accuracy (owner message, no attack).
+(a) fast: cached base samples, small extractor (the default);
+(b) naive: the base re-rendered every step (random 64x64 ray patches), small extractor;
+(c) paper: cached samples, VGG16-shaped extractor and classifier (randomly initialised: no weights offline).
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+import torch
+import tyro
+
+
+@dataclass
+class StickerBenchConfig:
+    """Compare training strategies of the sticker stage on one base."""
+
+    load_checkpoint: Path = Path("../shared/checkpoints/lego100-nerfacto-small/nerfacto/base/nerfstudio_models/step-000002999.ckpt")
+    """Base run checkpoint."""
+    data: Optional[Path] = None
+    """Dataset, if the base's recorded path does not exist from here."""
+    variants: Tuple[str, ...] = ("fast", "naive", "paper")
+    """Which configurations to run."""
+    seconds: float = 300.0
+    """Wall-clock training budget per configuration (pool rendering excluded and reported apart)."""
+    max_steps: int = 3000
+    """Step cap per configuration."""
+    steps_per_monitor: int = 50
+    """Held-out bit accuracy is measured every this many steps."""
+    pool_train_views: int = 24
+    pool_novel_views: int = 24
+    monitor_views: int = 8
+    pool_cache: Optional[Path] = Path("outputs/bench-sticker/pool.pt")
+    """Rendered pool kept here so every variant (and reruns) use the same views."""
+    output: Path = Path("docs/bench-sticker.md")
+    """Markdown report (a JSON file is written beside it)."""
+
+
+def variant_overrides(name: str) -> Dict[str, object]:
+    if name == "fast":
+        return {"fast_path": True}
+    if name == "naive":
+        return {"fast_path": False}
+    if name == "paper":
+        return {"fast_path": True, "heads.backbone": "vgg16"}
+    raise ValueError(f"unknown variant {name!r}; use fast, naive or paper")
+
+
+def run_variant(cfg: StickerBenchConfig, name: str) -> Dict[str, object]:
+    from method_configs.geometrysticker import geometrysticker_config
+
+    tcfg = geometrysticker_config(cfg.max_steps)
+    tcfg.load_checkpoint = cfg.load_checkpoint
+    tcfg.data = cfg.data
+    tcfg.machine.device_type = "cuda" if torch.cuda.is_available() else "cpu"
+    tcfg.output_dir = Path("outputs/bench-sticker")
+    tcfg.experiment_name = name
+    tcfg.set_timestamp()
+    p = tcfg.pipeline
+    p.pool_train_views, p.pool_novel_views, p.monitor_views = cfg.pool_train_views, cfg.pool_novel_views, cfg.monitor_views
+    p.steps_per_monitor = cfg.steps_per_monitor
+    p.pool_cache = cfg.pool_cache
+    for k, v in variant_overrides(name).items():
+        obj = p
+        *path, last = k.split(".")
+        for part in path:
+            obj = getattr(obj, part)
+        setattr(obj, last, v)
+    if cfg.pool_cache is not None:
+        cfg.pool_cache.parent.mkdir(parents=True, exist_ok=True)
+    trainer = tcfg.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    pipe = trainer.pipeline
+    t_pool = time.time()
+    if not pipe.pool and not pipe.monitor:
+        pipe.build_pool()
+    pool_seconds = time.time() - t_pool
+    if not p.fast_path:
+        p.steps_per_monitor = cfg.steps_per_monitor  # naive steps are slow: monitored explicitly below
+    opt = trainer.optimizers
+    t0 = time.time()
+    curve: List[Dict[str, float]] = []
+    step = 0
+    reached: Optional[float] = None
+    while step < cfg.max_steps and time.time() - t0 < cfg.seconds:
+        opt.zero_grad_all()
+        _, loss_dict, _ = pipe.get_train_loss_dict(step)
+        sum(loss_dict.values()).backward()
+        opt.optimizer_step_all()
+        opt.scheduler_step_all(step)
+        step += 1
+        if step % cfg.steps_per_monitor == 0:
+            elapsed = time.time() - t0
+            m = pipe.monitor_metrics()
+            curve.append({"step": step, "seconds": elapsed, **{k: float(v) for k, v in m.items()}})
+            print(f"  [{name}] step {step} {elapsed:.0f}s held-out bit acc {curve[-1]['heldout_bit_acc']:.4f} "
+                  f"psnr {curve[-1]['heldout_psnr']:.2f}", flush=True)
+            if reached is None and curve[-1]["heldout_bit_acc"] >= 0.99:
+                reached = elapsed
+    seconds = time.time() - t0
+    return {
+        "variant": name, "steps": step, "train_seconds": seconds, "steps_per_second": step / max(seconds, 1e-9),
+        "pool_seconds": pool_seconds, "seconds_to_99": reached, "final": curve[-1] if curve else {},
+        "heads_parameters": sum(q.numel() for q in pipe.heads.parameters()), "curve": curve,
+    }
+
+
+def write_report(cfg: StickerBenchConfig, results: List[Dict[str, object]]) -> None:
+    cfg.output.parent.mkdir(parents=True, exist_ok=True)
+    dev = torch.cuda.get_device_name(0) if torch.cuda.is_available() else f"CPU ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)"
+    lines = [
+        "# Sticker-stage speed: fast path vs naive vs paper-faithful",
+        "",
+        f"Command: `python -m gsticker_plugin.bench.sticker --load-checkpoint {cfg.load_checkpoint} --seconds {cfg.seconds:g}`",
+        f"Device: {dev}; torch {torch.__version__}; date {time.strftime('%Y-%m-%d')}.",
+        f"Budget {cfg.seconds:g} s of training per variant; held-out bit accuracy on {cfg.monitor_views} novel views, owner message, no attack.",
+        "",
+        "| variant | extractor params | steps/s | steps | time to >= 99% bits | final held-out bit acc | final PSNR marked vs clean | pool render (s) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        fin = r["final"] or {}
+        t99 = f"{r['seconds_to_99']:.0f} s" if r["seconds_to_99"] is not None else "not reached"
+        lines.append(f"| {r['variant']} | {r['heads_parameters']:,} | {r['steps_per_second']:.2f} | {r['steps']} | {t99} | "
+                     f"{fin.get('heldout_bit_acc', float('nan')):.4f} | {fin.get('heldout_psnr', float('nan')):.2f} dB | {r['pool_seconds']:.0f} |")
+    cfg.output.write_text("\n".join(lines) + "\n")
+    cfg.output.with_suffix(".json").write_text(json.dumps(results, indent=2))
+    print("\n".join(lines))
+
+
+def main(cfg: StickerBenchConfig) -> None:
+    results = []
+    for name in cfg.variants:
+        print(f"== {name}", flush=True)
+        results.append(run_variant(cfg, name))
+        write_report(cfg, results)
+
+
+if __name__ == "__main__":
+    main(tyro.cli(StickerBenchConfig))
