@@ -153,11 +153,37 @@ class GeometryStickerModel(Model):
     def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Any]:
         self.wrap_state.message = self.message
         self.wrap_state.record = True
+        # TensoRF's final field evaluates density only on the rays of a mask (forward(..., mask=acc_mask)):
+        # remember it, to put the recorded per-sample delta back on all rays.
+        fld = self.final_wrap.field
+        inner = fld.__dict__.get("forward")  # an instance override (capture_final_samples) or None
+        call = inner if inner is not None else type(fld).forward.__get__(fld)
+        masks: List[Any] = []
+
+        def forward(ray_samples, *args, **kwargs):
+            masks.append(kwargs.get("mask"))
+            return call(ray_samples, *args, **kwargs)
+
+        object.__setattr__(fld, "forward", forward)
         try:
             outputs = self.base.forward(ray_bundle)
         finally:
             self.wrap_state.record = False
+            if inner is not None:
+                object.__setattr__(fld, "forward", inner)
+            else:
+                del fld.__dict__["forward"]
+        if "rgb" not in outputs and isinstance(outputs.get("rgb_fine"), Tensor):
+            outputs["rgb"] = outputs["rgb_fine"]  # vanilla-nerf names its final image rgb_fine
         delta = self.final_wrap.last.get("delta") if self.wrap_state.enabled else None
+        mask = masks[-1] if masks else None
+        if delta is not None and isinstance(mask, Tensor) and mask.dtype == torch.bool and not bool(mask.all()):
+            if delta.shape[0] == int(mask.sum()):
+                full = delta.new_zeros((mask.shape[0], *delta.shape[1:]))
+                full[mask] = delta
+                delta = full
+            else:
+                delta = None  # the final field evaluated no density (the record is an earlier call's)
         rgb = outputs.get("rgb")
         if isinstance(rgb, Tensor):
             if delta is not None and delta.shape[0] == rgb.shape[0]:

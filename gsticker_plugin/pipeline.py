@@ -175,7 +175,7 @@ class GeometryStickerPipeline(VanillaPipeline):
             if saved.get("id") == cache_id:
                 self.pool = [ViewCache(**v) for v in saved["pool"]]
                 self.monitor = [ViewCache(**v) for v in saved["monitor"]]
-                CONSOLE.print(f"[gsticker] pool reused from {path} ({len(self.pool)} views)")
+                CONSOLE.print(f"\\[gsticker] pool reused from {path} ({len(self.pool)} views)")
                 return
         t0 = time.time()
         jobs = [(cams[int(i): int(i) + 1], False, self.pool) for i in train_idx]
@@ -186,7 +186,7 @@ class GeometryStickerPipeline(VanillaPipeline):
             for cam, is_novel, dest in jobs:
                 dest.append(cache_view(model, cam.to(self.device), is_novel, min_density=0.05 * mu))
                 progress.advance(task)
-        CONSOLE.print(f"[gsticker] pool: {len(self.pool)} views + {len(self.monitor)} held out, "
+        CONSOLE.print(f"\\[gsticker] pool: {len(self.pool)} views + {len(self.monitor)} held out, "
                       f"{pool_memory_mb(self.pool + self.monitor):.0f} MiB, {time.time() - t0:.0f} s; "
                       f"gate mu={mu:.4g}, beta={float(model.final_wrap.gate.beta):.4g}")
         if path is not None:
@@ -226,16 +226,18 @@ class GeometryStickerPipeline(VanillaPipeline):
             h, w = bundle.shape[:2]
             y = int(torch.randint(0, max(1, h - p + 1), (1,), generator=self.generator))
             x = int(torch.randint(0, max(1, w - p + 1), (1,), generator=self.generator))
-            patch = bundle[y: y + p, x: x + p].flatten()
+            patch2d = bundle[y: y + p, x: x + p]
+            ph, pw = patch2d.shape[:2]  # smaller than p where the image is
+            patch = patch2d.flatten()
             self.model.wrap_state.message = msg
             self.model.wrap_state.record = True
             out = self.model.base.forward(patch)
             self.model.wrap_state.record = False
             with torch.no_grad(), self.model.sticker_enabled(False):
-                ref = self.model.base.forward(patch)["rgb"]
-            side = int(patch.shape[0] ** 0.5)
-            marked.append(out["rgb"].reshape(side, -1, 3).permute(2, 0, 1))
-            clean.append(ref.reshape(side, -1, 3).permute(2, 0, 1))
+                ref = self.model.base.forward(patch)
+            rgb_key = "rgb" if "rgb" in out else "rgb_fine"  # vanilla-nerf: rgb_coarse / rgb_fine
+            marked.append(out[rgb_key].reshape(ph, pw, 3).permute(2, 0, 1))
+            clean.append(ref[rgb_key].reshape(ph, pw, 3).permute(2, 0, 1))
             wrap = self.model.final_wrap
             psis.append(torch.zeros(1, device=self.device))
         return torch.stack(marked), torch.stack(clean), torch.cat(psis)
@@ -294,7 +296,7 @@ class GeometryStickerPipeline(VanillaPipeline):
             metrics_dict.update(self.monitor_metrics())
             self.history.append({"step": step + 1, "seconds": time.time() - self._t0,
                                  **{k: float(v) for k, v in metrics_dict.items()}})
-            CONSOLE.print(f"[gsticker] step {step + 1}: held-out bit acc {float(metrics_dict['heldout_bit_acc']):.4f} "
+            CONSOLE.print(f"\\[gsticker] step {step + 1}: held-out bit acc {float(metrics_dict['heldout_bit_acc']):.4f} "
                           f"(clean renders: {float(metrics_dict['heldout_clean_bit_acc']):.3f}), "
                           f"PSNR marked/clean {float(metrics_dict['heldout_psnr']):.2f} dB, "
                           f"{time.time() - self._t0:.0f} s")

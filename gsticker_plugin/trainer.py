@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional, Type
@@ -48,6 +49,13 @@ def copy_datamanager(base_config, data_override: Optional[Path]) -> VanillaDataM
                                     eval_num_rays_per_batch=1024, camera_res_scale_factor=dm.camera_res_scale_factor)
 
 
+def exit_with_error(error: GStickerError) -> None:
+    """One line ``error: <message>`` on stderr, exit status 2 (the plugin's convention for bad input)."""
+    sys.stderr.write(f"error: {error}\n")
+    sys.stderr.flush()
+    raise SystemExit(2)
+
+
 class GeometryStickerTrainer(Trainer):
     config: GeometryStickerTrainerConfig
     pipeline: GeometryStickerPipeline
@@ -63,6 +71,17 @@ class GeometryStickerTrainer(Trainer):
         return Path(p) if p is not None else self.base_dir.with_name(self.base_dir.name + ".gskey")
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        """Stock setup around a strict load of the base (or of our run, to resume).
+
+        Bad input (GStickerError) stops ``ns-train`` here, before any training: one line ``error: ...`` on
+        stderr and exit status 2, instead of a traceback.
+        """
+        try:
+            self._setup(test_mode)
+        except GStickerError as e:
+            exit_with_error(e)
+
+    def _setup(self, test_mode: Literal["test", "val", "inference"]) -> None:
         cfg = self.config
         pcfg = cfg.pipeline
         ckpt = base_run.resolve_checkpoint(cfg.load_checkpoint, cfg.load_dir, cfg.load_step)
@@ -74,14 +93,20 @@ class GeometryStickerTrainer(Trainer):
             run_cfg = base_run.load_run_config(base_run.run_config_path(ckpt))
             if isinstance(run_cfg.pipeline, GeometryStickerPipelineConfig):
                 self._resume = True
-                pcfg.model.base_model = run_cfg.pipeline.model.base_model
+                # The trained shapes (sticker, gates, heads) are the run's own, whatever the CLI defaults say.
+                pcfg.model = run_cfg.pipeline.model
+                pcfg.heads = run_cfg.pipeline.heads
                 pcfg.base_run = dict(run_cfg.pipeline.base_run)
                 pcfg.datamanager = run_cfg.pipeline.datamanager
                 if cfg.data is not None:
                     pcfg.datamanager.data = pcfg.datamanager.dataparser.data = Path(cfg.data)
                 pcfg.owner_id, pcfg.message = run_cfg.pipeline.owner_id, run_cfg.pipeline.message
-                pcfg.key_path = run_cfg.pipeline.key_path or ckpt.resolve().parent.parent.with_name(
-                    ckpt.resolve().parent.parent.name + ".gskey")
+                # --pipeline.key-path, else the recorded key if it is there, else the one beside the run folder.
+                recorded = run_cfg.pipeline.key_path
+                run_dir = ckpt.resolve().parent.parent
+                pcfg.key_path = pcfg.key_path or (
+                    recorded if recorded is not None and Path(recorded).is_file()
+                    else run_dir.with_name(run_dir.name + ".gskey"))
             else:
                 pcfg.model.base_model = run_cfg.pipeline.model
                 pcfg.datamanager = copy_datamanager(run_cfg, cfg.data)
@@ -97,7 +122,7 @@ class GeometryStickerTrainer(Trainer):
             pcfg.key_path = self.key_path
         cfg.save_config()  # again, now with the base filled in: stock ns-viewer/ns-render rebuild from it
         super().setup(test_mode)
-        CONSOLE.print(f"[gsticker] {self.pipeline.describe()}; message {bits_to_str(self.pipeline.owner_message)}")
+        CONSOLE.print(f"\\[gsticker] {self.pipeline.describe()}; message {bits_to_str(self.pipeline.owner_message)}")
 
     def _load_checkpoint(self) -> None:
         ckpt = self._checkpoint
@@ -110,7 +135,7 @@ class GeometryStickerTrainer(Trainer):
             base_run.strict_load(self.pipeline.model.base, model_state,
                                  num_train_data=len(self.pipeline.datamanager.train_dataset))
             self._start_step = 0
-            CONSOLE.print(f"[gsticker] base loaded strictly from {ckpt} (frozen); starting at step 0")
+            CONSOLE.print(f"\\[gsticker] base loaded strictly from {ckpt} (frozen); starting at step 0")
             return
         self.pipeline.load_pipeline(state["pipeline"], state["step"])
         self.optimizers.load_optimizers(state["optimizers"])
@@ -125,7 +150,7 @@ class GeometryStickerTrainer(Trainer):
         if "heads_scheduler" in ts and "heads" in self.optimizers.schedulers:
             self.optimizers.schedulers["heads"].load_state_dict(ts["heads_scheduler"])
         self._start_step = state["step"] + 1
-        CONSOLE.print(f"[gsticker] resumed from {ckpt} (step {state['step']}) with heads from {self.key_path}")
+        CONSOLE.print(f"\\[gsticker] resumed from {ckpt} (step {state['step']}) with heads from {self.key_path}")
 
     def save_checkpoint(self, step: int) -> None:
         """Shareable checkpoint without the heads (atomic), then the owner key (atomic)."""
@@ -139,7 +164,8 @@ class GeometryStickerTrainer(Trainer):
             "schedulers": {k: v.state_dict() for k, v in opts.schedulers.items() if k != "heads"},
             "scalers": self.grad_scaler.state_dict(),
         }
-        assert not any("heads" in k for k in state["pipeline"]), "the heads must never enter the shareable model"
+        # (a prefix check: base fields have their own "heads", e.g. vanilla-nerf's field_coarse.field_heads)
+        assert not any(k.split(".")[0] == "heads" for k in state["pipeline"]), "the heads must never enter the shareable model"
         tmp = ckpt_path.with_suffix(".ckpt.tmp")
         torch.save(state, tmp)
         os.replace(tmp, ckpt_path)
@@ -156,7 +182,10 @@ class GeometryStickerTrainer(Trainer):
                     f.unlink()
 
     def train(self) -> None:
-        super().train()
-        CONSOLE.rule("[gsticker] done")
+        try:
+            super().train()
+        except GStickerError as e:  # e.g. a base background the fast path cannot composite
+            exit_with_error(e)
+        CONSOLE.rule("\\[gsticker] done")
         CONSOLE.print(f"Watermarked model (shareable): {self.base_dir / 'config.yml'}")
         CONSOLE.print(f"Owner key (secret, keep it apart): {self.key_path}")
