@@ -9,6 +9,9 @@ budget, and prints steps/s and the time to >= 99% held-out bit accuracy (owner m
 (a) fast: cached base samples, small extractor (the default);
 (b) naive: the base re-rendered every step (random 64x64 ray patches), small extractor;
 (c) paper: cached samples, VGG16-shaped extractor and classifier (randomly initialised: no weights offline).
+Optional (d) owner: the fast path trained on the owner's fixed message only, as the authors' released code did;
+its "clean" column (the same extractor on unwatermarked renders of the held-out views) shows whether it reads the
+mark or prints a constant.
 """
 
 from __future__ import annotations
@@ -47,6 +50,8 @@ class StickerBenchConfig:
     """Rendered pool kept here so every variant (and reruns) use the same views."""
     output: Path = Path("docs/bench-sticker.md")
     """Markdown report (a JSON file is written beside it)."""
+    append: bool = False
+    """Keep the variants already in the JSON beside --output and add (or replace) these."""
 
 
 def variant_overrides(name: str) -> Dict[str, object]:
@@ -56,7 +61,9 @@ def variant_overrides(name: str) -> Dict[str, object]:
         return {"fast_path": False}
     if name == "paper":
         return {"fast_path": True, "heads.backbone": "vgg16"}
-    raise ValueError(f"unknown variant {name!r}; use fast, naive or paper")
+    if name == "owner":  # the authors' released code: one fixed message (an honesty check, not a recommendation)
+        return {"fast_path": True, "owner_message_prob": 1.0}
+    raise ValueError(f"unknown variant {name!r}; use fast, naive, paper or owner")
 
 
 def run_variant(cfg: StickerBenchConfig, name: str) -> Dict[str, object]:
@@ -107,7 +114,7 @@ def run_variant(cfg: StickerBenchConfig, name: str) -> Dict[str, object]:
             m = pipe.monitor_metrics()
             curve.append({"step": step, "seconds": elapsed, **{k: float(v) for k, v in m.items()}})
             print(f"  [{name}] step {step} {elapsed:.0f}s held-out bit acc {curve[-1]['heldout_bit_acc']:.4f} "
-                  f"psnr {curve[-1]['heldout_psnr']:.2f}", flush=True)
+                  f"(clean {curve[-1]['heldout_clean_bit_acc']:.4f}) psnr {curve[-1]['heldout_psnr']:.2f}", flush=True)
             if reached is None and curve[-1]["heldout_bit_acc"] >= 0.99:
                 reached = elapsed
     seconds = time.time() - t0
@@ -124,25 +131,30 @@ def write_report(cfg: StickerBenchConfig, results: List[Dict[str, object]]) -> N
     lines = [
         "# Sticker-stage speed: fast path vs naive vs paper-faithful",
         "",
-        f"Command: `python -m gsticker_plugin.bench.sticker --load-checkpoint {cfg.load_checkpoint} --seconds {cfg.seconds:g}`",
+        f"Command: `python -m gsticker_plugin.bench.sticker --load-checkpoint {cfg.load_checkpoint} --seconds {cfg.seconds:g} "
+        f"--variants {' '.join(cfg.variants)} --output {cfg.output}`",
         f"Device: {dev}; torch {torch.__version__}; date {time.strftime('%Y-%m-%d')}.",
         f"Budget {cfg.seconds:g} s of training per variant; held-out bit accuracy on {cfg.monitor_views} novel views, owner message, no attack.",
         "",
-        "| variant | extractor params | steps/s | steps | time to >= 99% bits | final held-out bit acc | final PSNR marked vs clean | pool render (s) |",
-        "|---|---|---|---|---|---|---|---|",
+        "| variant | heads params | steps/s | steps | time to >= 99% bits | final held-out bit acc | same, clean renders (chance = 0.5) | final PSNR marked vs clean | pool render (s) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         fin = r["final"] or {}
         t99 = f"{r['seconds_to_99']:.0f} s" if r["seconds_to_99"] is not None else "not reached"
         lines.append(f"| {r['variant']} | {r['heads_parameters']:,} | {r['steps_per_second']:.2f} | {r['steps']} | {t99} | "
-                     f"{fin.get('heldout_bit_acc', float('nan')):.4f} | {fin.get('heldout_psnr', float('nan')):.2f} dB | {r['pool_seconds']:.0f} |")
+                     f"{fin.get('heldout_bit_acc', float('nan')):.4f} | {fin.get('heldout_clean_bit_acc', float('nan')):.4f} | "
+                     f"{fin.get('heldout_psnr', float('nan')):.2f} dB | {r['pool_seconds']:.0f} |")
     cfg.output.write_text("\n".join(lines) + "\n")
     cfg.output.with_suffix(".json").write_text(json.dumps(results, indent=2))
     print("\n".join(lines))
 
 
 def main(cfg: StickerBenchConfig) -> None:
-    results = []
+    results: List[Dict[str, object]] = []
+    js = cfg.output.with_suffix(".json")
+    if cfg.append and js.is_file():
+        results = [r for r in json.loads(js.read_text()) if r["variant"] not in cfg.variants]
     for name in cfg.variants:
         print(f"== {name}", flush=True)
         results.append(run_variant(cfg, name))
