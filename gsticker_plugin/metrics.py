@@ -266,6 +266,78 @@ def views_needed(n_views: int, min_share: float = 0.5) -> int:
     return next(v for v in range(n_views + 1) if v / n_views >= min_share)
 
 
+def vote_pvalue(matches: Sequence[int], k: int, min_share: float = 0.5) -> float:
+    """Model-level p-value of the per-view vote of :func:`combine_view_decisions`, valid under any dependence.
+
+    The vote at per-view level ``a`` flags the model when at least :func:`views_needed` ``(n, min_share)`` views
+    reach ``min_matches_for_fpr(k, a)`` matches; its false-positive rate is at most ``a / min_share``
+    (:func:`combined_fpr_bound`). The smallest model-level level ``alpha`` at which the vote flags the model is
+    ``P(X >= t) / min_share``, where ``t`` is the ``views_needed``-th largest match count (``X ~ Binomial(k,
+    1/2)``), clamped to 1. The rejection regions are nested in ``alpha``, so ``P(p <= alpha) <= alpha`` under
+    the null: this is a proper p-value, fit for :func:`bonferroni` / :func:`holm` across keys.
+    """
+    m = sorted((int(x) for x in torch.as_tensor(matches).reshape(-1).tolist()), reverse=True)
+    if not m:
+        raise ValueError("vote_pvalue: no views given; render and test at least one view")
+    t = m[views_needed(len(m), min_share) - 1]
+    return min(1.0, binomial_tail_pvalue(t, k) / min_share)
+
+
+def vote_statistic(matches: Sequence[int], min_share: float = 0.5) -> int:
+    """The match count that the vote hinges on: the :func:`views_needed`-th largest per-view match count."""
+    m = sorted((int(x) for x in torch.as_tensor(matches).reshape(-1).tolist()), reverse=True)
+    if not m:
+        raise ValueError("vote_statistic: no views given")
+    return m[views_needed(len(m), min_share) - 1]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# empirical null
+# ----------------------------------------------------------------------------------------------------------------
+def empirical_threshold(null_matches: Sequence[int], fpr: float, k: int) -> int:
+    """Smallest ``m`` that at most a share ``fpr`` of the observed null match counts reached.
+
+    ``null_matches`` are per-view match counts of *unmarked* renders/images decoded with the owner's key.
+    With ``n`` null samples and ``fpr < 1/n`` this is one more than the largest null count seen (the empirical
+    exceedance rate is then 0). On its own it certifies nothing below about ``3/n`` (rule of three: the 95 %
+    upper confidence bound on the exceedance probability of a threshold none of ``n`` samples reached, see
+    :func:`clopper_pearson_upper`); it is used to make the binomial threshold *stricter* when the extractor's
+    null is not at chance, never looser. Returns ``k + 1`` ("never") when even ``k`` matches were too frequent.
+    """
+    t = [int(x) for x in torch.as_tensor(null_matches).reshape(-1).tolist()]
+    if not t:
+        raise ValueError("empirical_threshold: the null is empty; decode at least one unmarked view")
+    if not fpr >= 0:
+        raise ValueError(f"fpr must be >= 0, got {fpr!r}")
+    n = len(t)
+    for m in range(0, k + 2):
+        if sum(1 for x in t if x >= m) <= fpr * n:
+            return m
+    return k + 1
+
+
+def clopper_pearson_upper(x: int, n: int, confidence: float = 0.95) -> float:
+    """One-sided Clopper-Pearson upper confidence bound on a rate observed as ``x`` events in ``n`` trials.
+
+    The ``p`` with ``P(Binomial(n, p) <= x) = 1 - confidence`` (found by bisection on the exact tail); 1.0 when
+    ``x >= n``. For ``x = 0`` it is ``1 - (1 - confidence)^(1/n)``, about ``3/n`` at 95 % ("rule of three").
+    """
+    if n <= 0 or not 0 <= x:
+        raise ValueError(f"clopper_pearson_upper: need n > 0 and x >= 0, got x={x}, n={n}")
+    if x >= n:
+        return 1.0
+    alpha = 1.0 - confidence
+    lo, hi = 0.0, 1.0
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        cdf = 1.0 - binomial_tail_pvalue(x + 1, n, mid)  # P(X <= x)
+        if cdf > alpha:
+            lo = mid
+        else:
+            hi = mid
+    return hi
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # image quality
 # ----------------------------------------------------------------------------------------------------------------
