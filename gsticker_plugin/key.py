@@ -70,6 +70,22 @@ def _canonical_hash(obj: Any, h: "hashlib._Hash") -> None:
         h.update(json.dumps(obj, sort_keys=True, default=str).encode())
 
 
+def plain(obj: Any) -> Any:
+    """Containers of tensors and Python scalars only (numpy scalars and arrays converted): what
+    ``torch.load(weights_only=True)`` reads back without any allow-list."""
+    if isinstance(obj, dict):
+        return {k: plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(plain(v) for v in obj)
+    if isinstance(obj, Tensor):
+        return obj.detach().cpu()
+    if type(obj).__module__ == "numpy":
+        import numpy as np
+
+        return torch.from_numpy(np.ascontiguousarray(obj)) if isinstance(obj, np.ndarray) else obj.item()
+    return obj
+
+
 def fingerprint(payload: Dict[str, Any]) -> str:
     h = hashlib.sha256()
     _canonical_hash({k: v for k, v in payload.items() if k != "fingerprint"}, h)
@@ -113,10 +129,10 @@ class OwnerKey:
             "message": self.message.to(torch.long).cpu(),
             "heads_config": dict(self.heads_config),
             "heads_state": {k: v.detach().cpu() for k, v in self.heads_state.items()},
-            "base": dict(self.base),
+            "base": plain(dict(self.base)),
             "model_run": self.model_run,
-            "null": self.null,
-            "training_state": self.training_state,
+            "null": plain(self.null),
+            "training_state": plain(self.training_state),
             "created": self.created,
         }
         p["fingerprint"] = fingerprint(p)
