@@ -1,0 +1,3 @@
+from gsticker_plugin.evaluation.cli import entrypoint
+
+entrypoint()

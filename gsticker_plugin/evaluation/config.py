@@ -1,0 +1,262 @@
+"""The evaluation protocol: one YAML file (``method_configs/eval/*.yaml``) loaded into dataclasses.
+
+Relative paths in the YAML are resolved against the current working directory (like every ``ns-*`` command):
+run ``ns-gsticker-eval`` from the repository root. Unknown keys are refused (a typo must not silently fall
+back to a default), and every value is checked before anything runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+from gsticker_plugin.errors import GStickerError
+
+# The paper's numbers (Blender column; method.md). Kept here so that the tables print them beside ours.
+PAPER = {
+    "no_attack": 100.0,
+    "noise": 99.25,
+    "rotate": 98.87,
+    "crop": 98.75,
+    "blur": 99.88,
+    "hue_jitter": 99.33,
+    "clip_recolor": 99.50,
+    "palette_recolor": 99.40,
+    "color_baselines_after_recolor": "50-54",
+    "psnr_wm_vs_original": 32.39,
+    "ssim_wm_vs_original": 0.9713,
+    "lpips_wm_vs_original": 0.0503,
+    "psnr_vs_gt": {"vanilla-nerf": 27.44, "instant-ngp": 28.59, "tensorf": 29.18},
+}
+REFERENCE_COLORS = ("green", "yellow", "orange", "red", "pink", "magenta", "purple", "blue", "dodger blue", "cyan")
+ALL_STAGES = ("scene", "bases", "sticker", "renders", "quality", "distortions", "curves", "recolor",
+              "false_positives", "speed", "report")
+
+
+@dataclass
+class SceneSpec:
+    data: Optional[Path] = None
+    """An existing Blender-format dataset folder."""
+    generate: Optional[Dict[str, Any]] = None
+    """Or: generate the embedded scene with ns-gsticker-scene (keys: resolution, num_train, num_val, num_test, seed)."""
+
+
+@dataclass
+class BaseSpec:
+    name: str
+    """Row label and folder name (e.g. nerfacto, tensorf, vanilla-nerf)."""
+    config: Optional[Path] = None
+    """An existing base run (RUN/config.yml). When absent, the base is trained with ``preset``."""
+    preset: Optional[str] = None
+    """ns-train method used to train the base (gsticker-nerfacto-small, gsticker-tensorf-small, vanilla-nerf)."""
+    steps: int = 2000
+    """Training steps of the base when it is trained here."""
+    args: List[str] = field(default_factory=list)
+    """Extra ns-train arguments for the base."""
+    paper_key: Optional[str] = None
+    """Which of the paper's per-base PSNRs this row is compared with (vanilla-nerf, instant-ngp, tensorf)."""
+
+
+@dataclass
+class StickerSpec:
+    steps: int = 1000
+    """ns-train geometrysticker steps."""
+    owner_id: str = "eval-owner"
+    args: List[str] = field(default_factory=list)
+    """Extra ns-train geometrysticker arguments (pool sizes, monitor cadence, ...)."""
+
+
+@dataclass
+class DistortionRow:
+    label: str
+    """Row label (the paper's label where there is one)."""
+    spec: str
+    """Attack spec for gsticker_plugin.attacks.parse_attack_spec ('' = no attack), e.g. 'noise=0.1'."""
+    paper: Optional[float] = None
+    """The paper's bit accuracy (%) for this row, when it reports one."""
+
+
+@dataclass
+class FinetuneSpec:
+    steps: int = 50
+    color: Optional[str] = "blue"
+    """Palette edit target (entry recolor.palette_entry set to this color); or hue_shift."""
+    hue_shift: Optional[float] = None
+    rays_per_step: int = 512
+
+
+@dataclass
+class RecolorSpec:
+    palette_entry: int = 0
+    """Index of the palette entry (ordered by pixel share) that each reference color replaces."""
+    colors: List[str] = field(default_factory=lambda: list(REFERENCE_COLORS))
+    model_hue: List[float] = field(default_factory=lambda: [0.25, 0.5])
+    """Model-level hue shifts (turns) applied with ns-recolor hue."""
+    image_hue_jitter: Optional[float] = 0.5
+    """Image-level hue jitter range (turns): each image shifted by U(-j, j) (per seed); null = skip."""
+    finetune: Optional[FinetuneSpec] = field(default_factory=FinetuneSpec)
+    keep_runs: bool = False
+    """Keep the recolored runs (otherwise deleted once rendered; their renders are cached)."""
+
+
+@dataclass
+class FalsePositiveSpec:
+    random_images: int = 64
+    ground_truth: bool = True
+    """Decode the scene's ground-truth test images (unmarked photos of the same scene)."""
+    other_runs: List[Dict[str, Any]] = field(default_factory=list)
+    """Unwatermarked runs of this or other scenes: [{name, config, data (optional)}]."""
+    other_images: List[Path] = field(default_factory=list)
+    """Folders of unmarked images (other scenes)."""
+
+
+@dataclass
+class Protocol:
+    name: str
+    output_dir: Path
+    scene: SceneSpec
+    bases: List[BaseSpec]
+    sticker: StickerSpec = field(default_factory=StickerSpec)
+    num_views: int = 8
+    """Test views rendered per model (evenly spaced over the test split)."""
+    seeds: List[int] = field(default_factory=lambda: [0, 1, 2])
+    """Seeds of the distortions' randomness (noise, cropout position, hue jitter); models are trained once."""
+    fpr: float = 1e-6
+    """Per-view false-positive rate of the verdict (48 bits: >= 41 matches)."""
+    min_share: float = 0.5
+    """Share of views that must pass for a model-level verdict (as ns-verify-owner)."""
+    distortions: List[DistortionRow] = field(default_factory=list)
+    curves: Dict[str, List[float]] = field(default_factory=dict)
+    """Where-it-breaks curves: attack name -> strengths."""
+    recolor: Optional[RecolorSpec] = field(default_factory=RecolorSpec)
+    false_positives: FalsePositiveSpec = field(default_factory=FalsePositiveSpec)
+    device: str = "cpu"
+    source: Optional[Path] = None
+    """The YAML file this protocol came from."""
+
+
+def _build(cls, data: Any, where: str):
+    if data is None:
+        return None
+    if not isinstance(data, dict):
+        raise GStickerError(f"{where}: expected a mapping of {cls.__name__} fields, got {type(data).__name__}")
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise GStickerError(f"{where}: unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(names))}")
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        v = data[f.name]
+        sub = {"scene": SceneSpec, "sticker": StickerSpec, "recolor": RecolorSpec, "finetune": FinetuneSpec,
+               "false_positives": FalsePositiveSpec}.get(f.name)
+        if sub is not None and cls in (Protocol, RecolorSpec):
+            v = _build(sub, v, f"{where}.{f.name}")
+        elif f.name == "bases" and cls is Protocol:
+            if not isinstance(v, list) or not v:
+                raise GStickerError(f"{where}.bases: give a non-empty list of bases")
+            v = [_build(BaseSpec, b, f"{where}.bases[{i}]") for i, b in enumerate(v)]
+        elif f.name == "distortions" and cls is Protocol:
+            v = [_build(DistortionRow, r, f"{where}.distortions[{i}]") for i, r in enumerate(v or [])]
+        elif f.name in ("output_dir", "data", "config") and v is not None:
+            v = Path(str(v))
+        elif f.name == "other_images":
+            v = [Path(str(p)) for p in (v or [])]
+        kwargs[f.name] = v
+    try:
+        return cls(**kwargs)
+    except TypeError as e:
+        raise GStickerError(f"{where}: {e}") from None
+
+
+def validate(p: Protocol) -> None:
+    from gsticker_plugin import attacks
+
+    if (p.scene.data is None) == (p.scene.generate is None):
+        raise GStickerError("scene: give exactly one of scene.data (a dataset folder) or scene.generate (settings)")
+    names = [b.name for b in p.bases]
+    if len(set(names)) != len(names):
+        raise GStickerError(f"bases: names must be distinct, got {names}")
+    for b in p.bases:
+        if b.config is None and not b.preset:
+            raise GStickerError(f"bases[{b.name}]: give config (an existing run) or preset (an ns-train method)")
+        if b.config is not None and not Path(b.config).is_file():
+            raise GStickerError(f"bases[{b.name}].config {b.config} does not exist (paths are relative to the "
+                                "current folder: run from the repository root)")
+    if p.num_views < 1:
+        raise GStickerError(f"num_views must be >= 1, got {p.num_views}")
+    if not p.seeds:
+        raise GStickerError("seeds: give at least one seed")
+    if not 0 < p.fpr < 1 or not 0 < p.min_share <= 1:
+        raise GStickerError(f"fpr must be in (0,1) and min_share in (0,1], got {p.fpr}, {p.min_share}")
+    try:
+        for r in p.distortions:
+            attacks.parse_attack_spec(r.spec)
+        for name, strengths in p.curves.items():
+            if name not in attacks.ATTACKS:
+                raise ValueError(f"curves: unknown attack {name!r}; use one of {', '.join(attacks.ATTACK_NAMES)}")
+            if not strengths:
+                raise ValueError(f"curves.{name}: give at least one strength")
+            for s in strengths:
+                attacks.check_strength(name, float(s))
+    except ValueError as e:
+        raise GStickerError(str(e)) from None
+    if p.recolor is not None:
+        from gsticker_plugin.recolor import palette as P
+
+        try:
+            for c in p.recolor.colors:
+                P.parse_color(c)
+            for s in p.recolor.model_hue:
+                P.check_hue_shift(float(s))
+        except Exception as e:
+            raise GStickerError(f"recolor: {e}") from None
+        ft = p.recolor.finetune
+        if ft is not None and (ft.color is None) == (ft.hue_shift is None):
+            raise GStickerError("recolor.finetune: give exactly one of color or hue_shift")
+
+
+def load_protocol(path: Path, output_dir: Optional[Path] = None, data: Optional[Path] = None) -> Protocol:
+    """Read and check a protocol YAML; ``output_dir``/``data`` override the file's values."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise GStickerError(f"--config {path} does not exist; pass a protocol YAML such as method_configs/eval/smoke.yaml")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise GStickerError(f"{path} is not valid YAML ({str(e).splitlines()[0]})") from None
+    if not isinstance(raw, dict):
+        raise GStickerError(f"{path}: expected a mapping at the top level")
+    raw.setdefault("name", path.stem)
+    raw.setdefault("output_dir", f"outputs/eval/{raw['name']}")
+    for key in ("scene", "bases"):
+        if key not in raw:
+            raise GStickerError(f"{path}: missing required key {key!r}")
+    p = _build(Protocol, raw, path.name)
+    p.source = path
+    if output_dir is not None:
+        p.output_dir = Path(output_dir)
+    if data is not None:
+        p.scene = SceneSpec(data=Path(data))
+    if p.scene.data is not None and not Path(p.scene.data).is_dir():
+        raise GStickerError(f"scene.data {p.scene.data} is not a folder (paths are relative to the current folder)")
+    validate(p)
+    return p
+
+
+def to_plain(obj: Any) -> Any:
+    """Dataclasses/Paths as JSON-friendly values."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, dict):
+        return {str(k): to_plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_plain(v) for v in obj]
+    return obj

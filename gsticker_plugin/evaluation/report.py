@@ -1,0 +1,280 @@
+"""results.md (tables beside the paper's numbers) and charts/*.png (matplotlib, Agg) from results.json."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+from gsticker_plugin.evaluation.config import PAPER
+
+
+def paper_numbers() -> Dict[str, Any]:
+    return dict(PAPER, source="docs: ../shared/docs/method.md (Blender column, 48 bits, V100)")
+
+
+# ---------------------------------------------------------------------------------------------- formatting
+def pct(x: Any, std: Optional[float] = None) -> str:
+    if not isinstance(x, (int, float)):
+        return "-"
+    s = f"{100 * x:.1f}"
+    return s + (f" ± {100 * std:.1f}" if std else "")
+
+
+def num(x: Any, digits: int = 2) -> str:
+    if x == "inf":
+        return "inf"
+    if not isinstance(x, (int, float)) or (isinstance(x, float) and math.isnan(x)):
+        return "-" if x is None else str(x)
+    return f"{x:.{digits}f}"
+
+
+def paper(x: Any) -> str:
+    return "-" if x is None else (f"{x:g}" if isinstance(x, (int, float)) else str(x))
+
+
+def table(header: List[str], rows: List[List[str]]) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    out += ["| " + " | ".join(str(c).replace("|", "/") for c in r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+# ---------------------------------------------------------------------------------------------- markdown
+def markdown(r: Dict[str, Any]) -> str:
+    p = r["protocol"]
+    m = r["machine"]
+    src = p.get("source") or "?"
+    lines = [f"# Evaluation: {p['name']}", "",
+             f"Command: `ns-gsticker-eval --config {src}" + (f" --output-dir {p['output_dir']}`" if p.get("output_dir") else "`"),
+             f"Machine: {m['cpu']}, {m['cores']} cores (torch threads {m['torch_threads']}, OMP_NUM_THREADS="
+             f"{m['omp_num_threads']}), CUDA {'yes' if m['cuda'] else 'no'}; torch {m['torch']}, nerfstudio {m['nerfstudio']}, "
+             f"Python {m['python']}. Date: {r['date']}.", "",
+             f"Scene: `{r.get('scene', {}).get('data', '?')}`; bases: {', '.join(b['name'] for b in p['bases'])}; "
+             f"{p['num_views']} test views per model (evenly spaced over the test split); seeds {p['seeds']} (distortion "
+             f"randomness only; every model is trained once); sticker {p['sticker']['steps']} steps, owner id "
+             f"`{p['sticker']['owner_id']}`.",
+             f"Verdict: a view passes with >= {r['threshold']} of 48 matching bits (per-view FPR {p['fpr']:g} under "
+             f"Binomial(48, 1/2)); a model is flagged when >= {p['min_share']:g} of its views pass (as `ns-verify-owner`).",
+             "Paper numbers: Blender column of ../shared/docs/method.md. Bit accuracies in %.", ""]
+    lines += _quality(r) + _distortions(r) + _recolor(r) + _fp(r) + _curves(r) + _speed(r)
+    lines += ["## Not measured by this protocol", "",
+              "- CLIP-guided recolor (paper: 99.50): no CLIP model offline.",
+              "- Color-branch baselines (CopyRNeRF, StegaNeRF, HiDDeN+NeRF; paper 50-54 after recolor): not implemented yet.",
+              "- LLFF scenes.", ""]
+    return "\n".join(lines)
+
+
+def _quality(r) -> List[str]:
+    q = r.get("quality")
+    if not q:
+        return []
+    lp = q.get("lpips", "")
+    rows = []
+    for b in r["protocol"]["bases"]:
+        x = q.get(b["name"])
+        if not x:
+            continue
+        pk = b.get("paper_key")
+        pp = PAPER["psnr_vs_gt"].get(pk) if pk else None
+        rows.append([b["name"], num(x["base_vs_gt"]["psnr"]), num(x["wm_vs_gt"]["psnr"]), num(x["wm_vs_gt"]["ssim"], 4),
+                     num(x["wm_vs_gt"].get("lpips"), 4) if "lpips" in x["wm_vs_gt"] else "unavailable",
+                     num(x["wm_vs_unwm"]["psnr"]), num(x["wm_vs_unwm"]["ssim"], 4),
+                     num(x["wm_vs_unwm"].get("lpips"), 4) if "lpips" in x["wm_vs_unwm"] else "unavailable",
+                     pct(x["decode_watermarked"]["bit_acc"]), f"{x['decode_watermarked']['views_passing']}/{x['decode_watermarked']['views']}",
+                     pct(x["decode_sticker_off"]["bit_acc"]),
+                     f"{pp:g} ({pk})" if pp else "-"])
+    rows.append(["paper (Blender)", "-", "-", "-", "-", f"{PAPER['psnr_wm_vs_original']:g}", f"{PAPER['ssim_wm_vs_original']:g}",
+                 f"{PAPER['lpips_wm_vs_original']:g}", "100", "-", "-", "27.44 / 28.59 / 29.18 (NeRF / InstantNGP / TensoRF)"])
+    return ["## Bases: quality and bit accuracy without attack", "",
+            table(["base", "PSNR base vs GT", "PSNR wm vs GT", "SSIM wm vs GT", "LPIPS wm vs GT", "PSNR wm vs unwm",
+                   "SSIM wm vs unwm", "LPIPS wm vs unwm", "bit acc (wm)", "views passing", "bit acc (sticker off)",
+                   "paper PSNR vs GT"], rows), "",
+            f"unwm = the same watermarked run rendered with its sticker off. LPIPS: {lp}. The paper's per-base PSNRs are for its "
+            "own training budgets; nerfacto is compared with InstantNGP (both hash-grid models).", ""]
+
+
+def _distortions(r) -> List[str]:
+    d = r.get("distortions")
+    if not d:
+        return []
+    rows = [[x["label"], f"`{x['spec'] or '-'}`", pct(x["bit_acc"], x["bit_acc_seed_std"]), pct(x["share_passing"]),
+             pct(x["verdict_rate"]), num(x["attack_psnr"]), paper(x["paper"])] for x in d["rows"]]
+    defs = [f"- `{x['spec']}`: {x['definition'].replace('``', '`')}" for x in d["rows"] if x["spec"]]
+    return ["## Distortions (image-level, on the watermarked renders)", "",
+            table(["attack", "spec", "bit acc (± over seeds)", "views passing", "verdict rate", "PSNR attacked vs clean", "paper"], rows),
+            "", "Exact definitions (from `gsticker_plugin.attacks`):", "", *defs, ""]
+
+
+def _recolor(r) -> List[str]:
+    d = r.get("recolor")
+    if not d:
+        return []
+    rows = [[x["label"], pct(x["bit_acc"]), pct(x["share_passing"]), pct(x["verdict_rate"]), pct(x["null_bit_acc"]),
+             pct(x["null_share_passing"]), num(x["psnr"]), num(x["ssim"], 4), paper(x["paper"])] for x in d["rows"]]
+    return ["## Recolor", "",
+            table(["edit", "bit acc", "views passing", "verdict rate", "null bit acc (base, same edit)",
+                   "null views passing", "PSNR wm-rec vs unwm-rec", "SSIM", "paper"], rows), "",
+            f"Palette edits replace entry {d['palette_entry']} (entries ordered by pixel share) with each reference color "
+            "(`ns-recolor palette --set`); model-level hue is `ns-recolor hue --shift`; the fine-tune is `ns-recolor finetune` "
+            "(the attacker trains the color branch). The same edit is applied to the watermarked run and to the unwatermarked "
+            "base run; PSNR/SSIM compare the two recolored renders. Paper: palette 99.40, hue jitter 99.33 (the paper gives "
+            "no number for model-level hue or the fine-tune).", ""]
+
+
+def _fp(r) -> List[str]:
+    d = r.get("false_positives")
+    if not d:
+        return []
+    rows = [[s["name"], s["kind"], str(s["views"]), str(s["passing"]), num(s["fpr"], 3), str(s["max_matches"]),
+             pct(s["bit_acc"]), "flagged" if s["verdict"] else "no"] for s in d["sources"]]
+    up = d.get("fpr_upper_95")
+    return ["## False positives (owner key on unwatermarked models and images)", "",
+            table(["source", "kind", "views", "views passing", "empirical FPR", "max matches", "mean bit acc", "model verdict"], rows),
+            "", f"All null views: {d['passing']} of {d['views']} pass at >= {d['threshold']} matches: empirical per-view FPR "
+            f"{num(d['empirical_fpr'], 4)} (95% upper bound {num(up, 4)}; target {d['fpr_target']:g}). Unwatermarked models flagged: "
+            f"{d['models_flagged']} of {d['models']}. {d['note']}.", ""]
+
+
+def _curves(r) -> List[str]:
+    d = r.get("curves")
+    if not d:
+        return []
+    out = ["## Where it breaks (bit accuracy and verdict vs attack strength)", "", d["note"], ""]
+    rows = []
+    for name, c in d["curves"].items():
+        pts = "; ".join(f"{p['strength']:g}: {pct(p['bit_acc_mean'], p['bit_acc_std'])} / {pct(p['verdict_rate'])}" for p in c["points"])
+        rows.append([name, pts, paper(c["bit_acc_below_90_at"]), paper(c["verdict_fails_at"])])
+    out += [table(["attack", "strength: bit acc (± over seeds) / verdict rate", "bit acc < 90 % from", "verdict fails from"], rows),
+            "", "Chart: `charts/curves.png`.", ""]
+    return out
+
+
+def _speed(r) -> List[str]:
+    d = r.get("speed")
+    if not d:
+        return []
+    rows = []
+    for b in r["protocol"]["bases"]:
+        x = d.get(b["name"])
+        if not x:
+            continue
+        last = x["monitor"][-1] if x["monitor"] else None
+        rows.append([b["name"], str(x["steps"]), num(x["train_seconds"], 0) if x["train_seconds"] is not None else "(trained earlier)",
+                     f"{last['step']}: {pct(last['heldout_bit_acc'])} (clean {pct(last['clean_bit_acc'])})" if last else "none logged",
+                     pct(x["final_bit_acc"]), num(x["final_psnr_wm_vs_unwm"])])
+    return ["## Speed vs accuracy (sticker stage)", "",
+            table(["base", "steps", "wall s (incl. setup)", "last held-out monitor", "final bit acc (test renders)", "final PSNR wm vs unwm"], rows),
+            "", d["note"] + ". Chart: `charts/speed.png`.", ""]
+
+
+# ---------------------------------------------------------------------------------------------- charts
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def chart_curves(r, path: Path) -> Optional[Path]:
+    d = r.get("curves")
+    if not d or not d["curves"]:
+        return None
+    plt = _plt()
+    n = len(d["curves"])
+    fig, axes = plt.subplots(1, n, figsize=(3.6 * n, 3.2), squeeze=False)
+    for ax, (name, c) in zip(axes[0], d["curves"].items()):
+        s = [p["strength"] for p in c["points"]]
+        mu = [100 * p["bit_acc_mean"] for p in c["points"]]
+        sd = [100 * p["bit_acc_std"] for p in c["points"]]
+        ax.plot(s, mu, "o-", label="bit acc (mean over seeds)")
+        ax.fill_between(s, [a - b for a, b in zip(mu, sd)], [a + b for a, b in zip(mu, sd)], alpha=0.25)
+        ax.plot(s, [100 * p["verdict_rate"] for p in c["points"]], "s--", label="verdict rate")
+        ax.axhline(90, color="gray", lw=0.8, ls=":")
+        ax.axhline(50, color="red", lw=0.8, ls=":")
+        if c["bit_acc_below_90_at"] is not None:
+            ax.axvline(c["bit_acc_below_90_at"], color="orange", lw=0.8)
+        ax.set_title(name)
+        ax.set_xlabel("strength")
+        ax.set_ylim(-2, 102)
+    axes[0][0].set_ylabel("%")
+    axes[0][0].legend(fontsize=7, loc="lower left")
+    fig.suptitle(f"{r['protocol']['name']}: where it breaks ({len(d['seeds'])} seed(s); dotted: 90 % and chance)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def chart_recolor(r, path: Path) -> Optional[Path]:
+    d = r.get("recolor")
+    if not d or not d["rows"]:
+        return None
+    plt = _plt()
+    rows = d["rows"]
+    fig, ax = plt.subplots(figsize=(max(5, 0.7 * len(rows) + 2), 3.6))
+    x = list(range(len(rows)))
+    ax.bar([i - 0.2 for i in x], [100 * (row["bit_acc"] or 0) for row in rows], 0.4, label="watermarked run")
+    ax.bar([i + 0.2 for i in x], [100 * (row["null_bit_acc"] or 0) for row in rows], 0.4, label="unwatermarked base (null)")
+    for i, row in enumerate(rows):
+        if row["paper"] is not None:
+            ax.plot([i - 0.4, i + 0.4], [row["paper"]] * 2, "k-", lw=1.5)
+    ax.axhline(50, color="red", lw=0.8, ls=":")
+    ax.set_xticks(x)
+    ax.set_xticklabels([row["name"] for row in rows], rotation=45, ha="right", fontsize=7)
+    ax.set_ylabel("bit accuracy %")
+    ax.set_ylim(0, 102)
+    ax.legend(fontsize=7)
+    ax.set_title(f"{r['protocol']['name']}: bit accuracy after recolor (black: paper)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def chart_speed(r, path: Path) -> Optional[Path]:
+    d = r.get("speed")
+    if not d:
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5, 3.4))
+    for b in r["protocol"]["bases"]:
+        x = d.get(b["name"])
+        if not x:
+            continue
+        mon = x["monitor"]
+        if mon:
+            line, = ax.plot([m["seconds"] / 60 for m in mon], [100 * m["heldout_bit_acc"] for m in mon], "o-",
+                            label=f"{b['name']} held-out (fast path)")
+            ax.plot([m["seconds"] / 60 for m in mon], [100 * m["clean_bit_acc"] for m in mon], ":", color=line.get_color(),
+                    label=f"{b['name']} clean renders")
+        if x["final_bit_acc"] is not None and x["train_seconds"] is not None:
+            ax.plot([x["train_seconds"] / 60], [100 * x["final_bit_acc"]], "*", ms=12, label=f"{b['name']} final (test renders)")
+    if not any(d.get(b["name"], {}).get("monitor") for b in r["protocol"]["bases"]):
+        ax.text(0.5, 0.5, "no held-out history logged", transform=ax.transAxes, ha="center", fontsize=8)
+    ax.axhline(50, color="red", lw=0.8, ls=":")
+    ax.set_xlabel("sticker training time (min)")
+    ax.set_ylabel("bit accuracy %")
+    ax.set_ylim(0, 102)
+    ax.legend(fontsize=6)
+    ax.set_title(f"{r['protocol']['name']}: speed vs accuracy", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def write_all(results: Dict[str, Any], out: Path) -> Dict[str, Any]:
+    charts = out / "charts"
+    charts.mkdir(parents=True, exist_ok=True)
+    made = {}
+    for name, fn in (("curves", chart_curves), ("recolor", chart_recolor), ("speed", chart_speed)):
+        p = fn(results, charts / f"{name}.png")
+        if p is not None:
+            made[name] = str(p)
+    md = markdown(results)
+    if made:
+        md += "\n## Charts\n\n" + "\n".join(f"![{k}](charts/{Path(v).name})" for k, v in made.items()) + "\n"
+    (out / "results.md").write_text(md)
+    return made

@@ -1,0 +1,641 @@
+"""Runs the evaluation protocol stage by stage; every stage is skipped when its output exists (resumable).
+
+Layout of ``output_dir``::
+
+    scene/                      generated scene (when the protocol generates one)
+    runs/<base>/<method>/base/  bases trained here;  runs/<base>/geometrysticker/watermarked/ (+ .gskey)
+    recolored/<base>/<edit>/    ns-recolor runs (deleted once rendered unless recolor.keep_runs)
+    cache/*.pt                  rendered views (so stages can be re-run without re-rendering)
+    stages/<stage>.json         each stage's numbers; results.json is their union
+    logs/                       ns-train / ns-gsticker-scene logs
+    results.json, results.md, charts/*.png
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.evaluation.config import Protocol, to_plain
+
+
+def _bin(name: str) -> str:
+    cand = Path(sys.executable).with_name(name)
+    return str(cand) if cand.exists() else (shutil.which(name) or name)
+
+
+def _tqdm(iterable, desc: str, enabled: bool, total: Optional[int] = None):
+    if not enabled:
+        return iterable
+    from tqdm import tqdm
+
+    return tqdm(iterable, desc=desc, total=total, leave=False, file=sys.stderr)
+
+
+def finite_or_none(x: float) -> Any:
+    """JSON has no inf/nan: inf -> "inf", nan -> None."""
+    x = float(x)
+    if math.isnan(x):
+        return None
+    if math.isinf(x):
+        return "inf" if x > 0 else "-inf"
+    return x
+
+
+class Runner:
+    def __init__(self, protocol: Protocol, progress: bool = True, redo: Sequence[str] = (), log: Callable[[str], None] = print):
+        self.p = protocol
+        self.out = Path(protocol.output_dir)
+        self.progress = progress
+        self.redo = set(redo)
+        self.say = log
+        self.device = torch.device(protocol.device)
+        for d in ("stages", "cache", "logs", "charts", "runs"):
+            (self.out / d).mkdir(parents=True, exist_ok=True)
+        self.timings: Dict[str, float] = {}
+        from gsticker_plugin import metrics
+
+        self.threshold = metrics.min_matches_for_fpr(48, protocol.fpr)
+
+    # ------------------------------------------------------------------------------------------ plumbing
+    def stage_path(self, name: str) -> Path:
+        return self.out / "stages" / f"{name}.json"
+
+    def stage(self, name: str, fn: Callable[[], Dict[str, Any]]) -> Dict[str, Any]:
+        path = self.stage_path(name)
+        if path.is_file() and name not in self.redo:
+            self.say(f"[eval] {name}: done earlier ({path})")
+            return json.loads(path.read_text())
+        self.say(f"[eval] {name} ...")
+        t0 = time.time()
+        res = fn()
+        res = dict(res)
+        res["seconds"] = round(time.time() - t0, 2)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(res, indent=1, default=str))
+        os.replace(tmp, path)
+        self.say(f"[eval] {name}: {res['seconds']:.0f} s")
+        return res
+
+    def run_cmd(self, cmd: List[str], log_name: str) -> None:
+        log = self.out / "logs" / f"{log_name}.log"
+        self.say("  $ " + " ".join(cmd))
+        env = dict(os.environ, PYTHONWARNINGS="ignore", COLUMNS="250")
+        t0 = time.time()
+        with open(log, "w") as f:
+            proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env=env)
+        if proc.returncode != 0:
+            sys.stderr.write("\n".join(log.read_text(errors="replace").splitlines()[-15:]) + "\n")
+            raise GStickerError(f"{Path(cmd[0]).name} {' '.join(cmd[1:2])} failed (exit {proc.returncode}); "
+                                f"its last lines are above, the full log is {log}")
+        self.say(f"    done in {time.time() - t0:.0f} s (log: {log})")
+
+    def cached(self, name: str, fn: Callable[[], Dict[str, Tensor]]) -> Dict[str, Tensor]:
+        path = self.out / "cache" / f"{name}.pt"
+        if path.is_file():
+            return torch.load(path, map_location="cpu", weights_only=True)
+        res = fn()
+        tmp = path.with_suffix(".tmp")
+        torch.save(res, tmp)
+        os.replace(tmp, path)
+        return res
+
+    # ------------------------------------------------------------------------------------------ paths
+    @property
+    def scene_dir(self) -> Path:
+        return Path(self.p.scene.data) if self.p.scene.data is not None else self.out / "scene"
+
+    def base_config(self, name: str) -> Path:
+        spec = next(b for b in self.p.bases if b.name == name)
+        if spec.config is not None:
+            return Path(spec.config)
+        return self.out / "runs" / name / spec.preset / "base" / "config.yml"
+
+    def wm_dir(self, name: str) -> Path:
+        return self.out / "runs" / name / "geometrysticker" / "watermarked"
+
+    def key_path(self, name: str) -> Path:
+        return self.wm_dir(name).with_name("watermarked.gskey")
+
+    @staticmethod
+    def latest_ckpt(run_dir: Path) -> Optional[Path]:
+        ckpts = sorted((run_dir / "nerfstudio_models").glob("step-*.ckpt"))
+        return ckpts[-1] if ckpts else None
+
+    # ------------------------------------------------------------------------------------------ models
+    def load(self, config: Path):
+        from gsticker_plugin.verify import load_run
+
+        with contextlib.redirect_stdout(sys.stderr):
+            _, pipeline, _ = load_run(Path(config), data=self.scene_dir, device=self.device)
+        return pipeline
+
+    @torch.no_grad()
+    def render(self, pipeline, desc: str, sticker: Optional[bool] = None) -> Dict[str, Tensor]:
+        """``num_views`` test views, evenly spaced over the test split: rgb and ground truth (on white), [N H W 3]."""
+        import warnings
+
+        warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
+        dataset = pipeline.datamanager.eval_dataset
+        n = len(dataset)
+        idx = sorted({int(round(j * (n - 1) / max(1, self.p.num_views - 1))) for j in range(min(self.p.num_views, n))})
+        model = pipeline.model
+        ctx = model.sticker_enabled(sticker) if (sticker is not None and hasattr(model, "sticker_enabled")) else contextlib.nullcontext()
+        rgbs, gts = [], []
+        with ctx:
+            for i in _tqdm(idx, f"rendering {desc}", self.progress):
+                cam = dataset.cameras[i: i + 1].to(model.device)
+                rgbs.append(model.get_outputs_for_camera(cam)["rgb"].float().clamp(0, 1).cpu())
+                img = dataset.get_image_float32(i)
+                if img.shape[-1] == 4:
+                    img = img[..., :3] * img[..., 3:] + (1.0 - img[..., 3:])
+                gts.append(img[..., :3].float())
+        return {"rgb": torch.stack(rgbs), "gt": torch.stack(gts), "indices": torch.tensor(idx)}
+
+    def key(self, name: str):
+        from gsticker_plugin.key import OwnerKey
+
+        return OwnerKey.load(self.key_path(name))
+
+    def decode(self, key, images_nhw3: Tensor) -> Dict[str, Any]:
+        """Per-view numbers and their summary for one set of views."""
+        from gsticker_plugin import metrics
+        from gsticker_plugin.evaluate import decode_images
+
+        d = decode_images(key, images_nhw3.float().clamp(0, 1))
+        m = [int(x) for x in d.matches.tolist()]
+        passing = [x >= self.threshold for x in m]
+        vote = metrics.combine_view_decisions(passing, self.p.min_share)
+        acc = d.bit_acc.float()
+        return {
+            "views": len(m),
+            "bit_acc": float(acc.mean()),
+            "bit_acc_std": float(acc.std(unbiased=False)) if len(m) > 1 else 0.0,
+            "matches": m,
+            "views_passing": sum(passing),
+            "share_passing": sum(passing) / len(m),
+            "verdict": bool(vote.passed),
+            "vote_pvalue": float(metrics.vote_pvalue(m, key.num_bits, self.p.min_share)),
+        }
+
+    @staticmethod
+    def image_metrics(a: Tensor, b: Tensor, lpips=None) -> Dict[str, Any]:
+        from gsticker_plugin import metrics
+
+        a4, b4 = a.permute(0, 3, 1, 2).float(), b.permute(0, 3, 1, 2).float()
+        psnr = metrics.psnr(a4, b4)
+        res = {"psnr": finite_or_none(psnr.mean()), "psnr_min": finite_or_none(psnr.min()),
+               "ssim": float(metrics.ssim(a4, b4).mean())}
+        if lpips is not None:
+            res["lpips"] = lpips(a4, b4)
+        return res
+
+    # ------------------------------------------------------------------------------------------ stages
+    def stage_scene(self) -> Dict[str, Any]:
+        if self.p.scene.data is not None:
+            return {"data": str(self.p.scene.data), "generated": False}
+        g = dict(self.p.scene.generate or {})
+        scene = self.out / "scene"
+        if not (scene / "transforms_test.json").is_file():
+            cmd = [_bin("ns-gsticker-scene"), "--output-dir", str(scene)]
+            for k, v in g.items():
+                cmd += [f"--{k.replace('_', '-')}", str(v)]
+            if scene.exists():
+                cmd.append("--overwrite")
+            self.run_cmd(cmd, "scene")
+        return {"data": str(scene), "generated": True, "settings": g}
+
+    def stage_bases(self) -> Dict[str, Any]:
+        res = {}
+        for b in self.p.bases:
+            cfg = self.base_config(b.name)
+            if b.config is None and self.latest_ckpt(cfg.parent) is None:
+                t0 = time.time()
+                self.run_cmd([_bin("ns-train"), b.preset, "--machine.device-type", self.p.device, "--vis", "tensorboard",
+                              "--output-dir", str(self.out / "runs"), "--experiment-name", b.name, "--timestamp", "base",
+                              "--max-num-iterations", str(b.steps), "--steps-per-save", str(b.steps),
+                              *[str(a) for a in b.args], "--data", str(self.scene_dir)], f"base-{b.name}")
+                res[b.name] = {"config": str(cfg), "trained_here": True, "steps": b.steps,
+                               "train_seconds": round(time.time() - t0, 1)}
+            else:
+                res[b.name] = {"config": str(cfg), "trained_here": b.config is None}
+            if self.latest_ckpt(cfg.parent) is None:
+                raise GStickerError(f"base {b.name}: no checkpoint in {cfg.parent / 'nerfstudio_models'}")
+            res[b.name]["checkpoint"] = str(self.latest_ckpt(cfg.parent))
+        return res
+
+    def stage_sticker(self) -> Dict[str, Any]:
+        res = {}
+        s = self.p.sticker
+        for b in self.p.bases:
+            wm = self.wm_dir(b.name)
+            log = f"sticker-{b.name}"
+            if not self.key_path(b.name).is_file() or self.latest_ckpt(wm) is None:
+                t0 = time.time()
+                self.run_cmd([_bin("ns-train"), "geometrysticker", "--machine.device-type", self.p.device, "--vis",
+                              "tensorboard", "--output-dir", str(self.out / "runs"), "--experiment-name", b.name,
+                              "--timestamp", "watermarked", "--max-num-iterations", str(s.steps),
+                              "--pipeline.owner-id", s.owner_id, *[str(a) for a in s.args],
+                              "--load-checkpoint", str(self.latest_ckpt(self.base_config(b.name).parent)),
+                              "--data", str(self.scene_dir)], log)
+                secs = round(time.time() - t0, 1)
+            else:
+                secs = None
+            res[b.name] = {"config": str(wm / "config.yml"), "key": str(self.key_path(b.name)), "steps": s.steps,
+                           "train_seconds": secs, "monitor": parse_monitor_log(self.out / "logs" / f"{log}.log")}
+        return res
+
+    def stage_renders(self) -> Dict[str, Any]:
+        res = {}
+        for b in self.p.bases:
+            def wm_views(b=b):
+                pipe = self.load(self.wm_dir(b.name) / "config.yml")
+                on = self.render(pipe, f"{b.name} watermarked", sticker=True)
+                off = self.render(pipe, f"{b.name} sticker off", sticker=False)
+                return {"watermarked": on["rgb"], "sticker_off": off["rgb"], "gt": on["gt"], "indices": on["indices"]}
+
+            def base_views(b=b):
+                t0 = time.time()
+                r = self.render(self.load(self.base_config(b.name)), f"{b.name} base")
+                return {"rgb": r["rgb"], "seconds_per_view": torch.tensor((time.time() - t0) / r["rgb"].shape[0])}
+
+            w = self.cached(f"{b.name}-wm", wm_views)
+            base = self.cached(f"{b.name}-base", base_views)
+            res[b.name] = {"views": int(w["watermarked"].shape[0]), "size": list(w["watermarked"].shape[1:3]),
+                           "indices": w["indices"].tolist(), "base_seconds_per_view": float(base["seconds_per_view"])}
+        return res
+
+    def views(self, name: str) -> Dict[str, Tensor]:
+        paths = [self.out / "cache" / f"{name}-wm.pt", self.out / "cache" / f"{name}-base.pt"]
+        if not all(p.is_file() for p in paths):
+            raise GStickerError(f"the renders of base {name} are missing ({paths[0]}); run the renders stage first")
+        w = torch.load(paths[0], map_location="cpu", weights_only=True)
+        w["base"] = torch.load(paths[1], map_location="cpu", weights_only=True)["rgb"]
+        return w
+
+    def stage_quality(self) -> Dict[str, Any]:
+        from gsticker_plugin import compat
+
+        compat.apply()
+        lp = lpips_fn()
+        res = {"lpips": "available" if lp is not None else "unavailable (AlexNet weights not in the torch cache; offline)"}
+        for b in self.p.bases:
+            v = self.views(b.name)
+            key = self.key(b.name)
+            res[b.name] = {
+                "wm_vs_gt": self.image_metrics(v["watermarked"], v["gt"], lp),
+                "unwm_vs_gt": self.image_metrics(v["sticker_off"], v["gt"], lp),
+                "base_vs_gt": self.image_metrics(v["base"], v["gt"], lp),
+                "wm_vs_unwm": self.image_metrics(v["watermarked"], v["sticker_off"], lp),
+                "base_vs_sticker_off": self.image_metrics(v["base"], v["sticker_off"]),
+                "decode_watermarked": self.decode(key, v["watermarked"]),
+                "decode_sticker_off": self.decode(key, v["sticker_off"]),
+            }
+        return res
+
+    @property
+    def primary(self) -> str:
+        return self.p.bases[0].name
+
+    def attacked(self, wm: Tensor, clean: Tensor, spec, seed: int) -> Tensor:
+        from gsticker_plugin.attacks import apply_attacks
+
+        if isinstance(spec, str) and not spec.strip():
+            return wm
+        g = torch.Generator().manual_seed(seed)
+        x = apply_attacks(wm.permute(0, 3, 1, 2).float(), spec, generator=g, cover=clean.permute(0, 3, 1, 2).float())
+        return x.permute(0, 2, 3, 1).clamp(0, 1)
+
+    def stage_distortions(self) -> Dict[str, Any]:
+        v = self.views(self.primary)
+        key = self.key(self.primary)
+        rows = []
+        for r in _tqdm(self.p.distortions, "distortions", self.progress):
+            per_seed = []
+            for seed in self.p.seeds:
+                x = self.attacked(v["watermarked"], v["sticker_off"], r.spec, seed)
+                d = self.decode(key, x)
+                d["attack_psnr"] = self.image_metrics(x, v["watermarked"])["psnr"]
+                per_seed.append({"seed": seed, **d})
+            accs = torch.tensor([s["bit_acc"] for s in per_seed])
+            rows.append({"label": r.label, "spec": r.spec, "paper": r.paper, "definition": describe_spec(r.spec),
+                         "bit_acc": float(accs.mean()), "bit_acc_seed_std": float(accs.std(unbiased=False)),
+                         "share_passing": float(sum(s["share_passing"] for s in per_seed) / len(per_seed)),
+                         "verdict_rate": float(sum(s["verdict"] for s in per_seed) / len(per_seed)),
+                         "attack_psnr": per_seed[0]["attack_psnr"], "per_seed": per_seed})
+        return {"base": self.primary, "rows": rows, "threshold": self.threshold}
+
+    def stage_curves(self) -> Dict[str, Any]:
+        from gsticker_plugin.attacks import ATTACKS
+
+        v = self.views(self.primary)
+        key = self.key(self.primary)
+        curves = {}
+        for name, strengths in self.p.curves.items():
+            pts = []
+            for s in _tqdm(strengths, f"curve {name}", self.progress):
+                accs, shares, verdicts = [], [], []
+                for seed in self.p.seeds:
+                    d = self.decode(key, self.attacked(v["watermarked"], v["sticker_off"], [(name, float(s))], seed))
+                    accs.append(d["bit_acc"])
+                    shares.append(d["share_passing"])
+                    verdicts.append(float(d["verdict"]))
+                a = torch.tensor(accs)
+                pts.append({"strength": float(s), "bit_acc_mean": float(a.mean()), "bit_acc_std": float(a.std(unbiased=False)),
+                            "bit_acc_per_seed": accs, "share_passing_mean": sum(shares) / len(shares),
+                            "verdict_rate": sum(verdicts) / len(verdicts)})
+            below = next((p["strength"] for p in pts if p["bit_acc_mean"] < 0.9), None)
+            fails = next((p["strength"] for p in pts if p["verdict_rate"] < 0.5), None)
+            curves[name] = {"points": pts, "bit_acc_below_90_at": below, "verdict_fails_at": fails,
+                            "randomized": name in ("noise", "crop"), "definition": describe_spec(f"{name}=1")}
+        return {"base": self.primary, "seeds": list(self.p.seeds), "curves": curves,
+                "note": "seeds change the distortions' randomness only (noise samples, cropout rectangle); rotation, "
+                        "blur, JPEG, resize and a fixed hue shift are deterministic, so their spread over seeds is 0. "
+                        "The models are trained once."}
+
+    def recolor_variants(self) -> List[Dict[str, Any]]:
+        rc = self.p.recolor
+        out = []
+        for c in rc.colors:
+            out.append({"name": f"palette-{c.replace(' ', '')}", "kind": "palette", "label": f"palette {rc.palette_entry} -> {c}",
+                        "argv": ["palette", "--set", f"{rc.palette_entry}={c}"]})
+        for h in rc.model_hue:
+            out.append({"name": f"hue-{h:+g}", "kind": "model_hue", "label": f"model-level hue {h:+g}",
+                        "argv": ["hue", "--shift", str(h)]})
+        ft = rc.finetune
+        if ft is not None:
+            tgt = ["--set", f"{rc.palette_entry}={ft.color}"] if ft.color is not None else ["--hue-shift", str(ft.hue_shift)]
+            what = f"palette {rc.palette_entry} -> {ft.color}" if ft.color is not None else f"hue {ft.hue_shift:+g}"
+            out.append({"name": "finetune", "kind": "finetune", "label": f"attacker's color fine-tune ({what}, {ft.steps} steps)",
+                        "argv": ["finetune", *tgt, "--steps", str(ft.steps), "--rays-per-step", str(ft.rays_per_step)]})
+        return out
+
+    def recolored_views(self, variant: Dict[str, Any], which: str) -> Tensor:
+        """Renders of one ns-recolor edit of the watermarked run (``wm``) or of the base run (``base``)."""
+        def make():
+            from gsticker_plugin.recolor import cli
+
+            src = self.wm_dir(self.primary) / "config.yml" if which == "wm" else self.base_config(self.primary)
+            dest = self.out / "recolored" / self.primary / variant["name"] / which
+            if dest.exists():
+                shutil.rmtree(dest)
+            argv = [variant["argv"][0], "--load-config", str(src), "--output-dir", str(dest), "--data", str(self.scene_dir),
+                    *variant["argv"][1:]]
+            self.say("  $ ns-recolor " + " ".join(argv))
+            with contextlib.redirect_stdout(sys.stderr):
+                rc = cli.run(argv)
+            if rc != 0:
+                raise GStickerError(f"ns-recolor {' '.join(argv)} failed (exit {rc})")
+            (cfg,) = list(dest.glob("*/*/*/config.yml"))
+            r = self.render(self.load(cfg), f"{variant['name']} ({which})")
+            if not self.p.recolor.keep_runs:
+                shutil.rmtree(dest)
+            return {"rgb": r["rgb"]}
+
+        return self.cached(f"recolor-{self.primary}-{variant['name']}-{which}", make)["rgb"]
+
+    def stage_recolor(self) -> Dict[str, Any]:
+        from gsticker_plugin.attacks import hue_shift
+
+        key = self.key(self.primary)
+        v = self.views(self.primary)
+        rows = []
+        jitter = self.p.recolor.image_hue_jitter
+        if jitter is not None:
+            per_seed, null_seed, quality = [], [], []
+            for seed in self.p.seeds:
+                g = torch.Generator().manual_seed(seed)
+                shifts = (torch.rand(v["watermarked"].shape[0], generator=g) * 2 - 1) * abs(float(jitter))
+
+                def jit(x):  # as ns-recolor hue --image-level: per-image shift, written as 8-bit PNG
+                    y = hue_shift(x.permute(0, 3, 1, 2).float(), shifts).permute(0, 2, 3, 1)
+                    return (y * 255).round() / 255
+
+                a, b = jit(v["watermarked"]), jit(v["base"])
+                per_seed.append(self.decode(key, a))
+                null_seed.append(self.decode(key, b))
+                quality.append(self.image_metrics(a, b))
+            rows.append(self._recolor_row({"name": "image-hue-jitter", "kind": "image_hue",
+                                           "label": f"image-level hue jitter U(-{abs(jitter):g}, {abs(jitter):g})"},
+                                          per_seed, null_seed, quality, paper=99.33))
+        for var in _tqdm(self.recolor_variants(), "recolor", self.progress):
+            a, b = self.recolored_views(var, "wm"), self.recolored_views(var, "base")
+            paper = 99.40 if var["kind"] == "palette" else None
+            rows.append(self._recolor_row(var, [self.decode(key, a)], [self.decode(key, b)], [self.image_metrics(a, b)], paper))
+        return {"base": self.primary, "rows": rows, "palette_entry": self.p.recolor.palette_entry,
+                "note": "bit accuracy of the watermarked run after the edit; 'null' = the same edit of the unwatermarked base "
+                        "decoded with the owner key; PSNR/SSIM = watermarked-recolored vs unwatermarked-recolored render"}
+
+    @staticmethod
+    def _recolor_row(var, per_seed, null_seed, quality, paper) -> Dict[str, Any]:
+        def mean(xs, k):
+            vals = [x[k] for x in xs if isinstance(x[k], (int, float))]
+            return float(sum(vals) / len(vals)) if vals else (xs[0][k] if xs else None)
+
+        return {"name": var["name"], "kind": var["kind"], "label": var["label"], "paper": paper,
+                "bit_acc": mean(per_seed, "bit_acc"), "share_passing": mean(per_seed, "share_passing"),
+                "verdict_rate": sum(float(s["verdict"]) for s in per_seed) / len(per_seed),
+                "null_bit_acc": mean(null_seed, "bit_acc"), "null_share_passing": mean(null_seed, "share_passing"),
+                "psnr": mean(quality, "psnr"), "ssim": mean(quality, "ssim"),
+                "per_seed": per_seed, "null_per_seed": null_seed}
+
+    def stage_false_positives(self) -> Dict[str, Any]:
+        from gsticker_plugin import metrics
+        from gsticker_plugin.verify import images_views, random_views
+
+        key = self.key(self.primary)
+        fp = self.p.false_positives
+        sources: List[Dict[str, Any]] = []
+
+        def add(name: str, kind: str, images: Tensor, note: str = "") -> None:
+            d = self.decode(key, images)
+            sources.append({"name": name, "kind": kind, "note": note, "views": d["views"],
+                            "passing": d["views_passing"], "fpr": d["views_passing"] / d["views"],
+                            "max_matches": max(d["matches"]), "bit_acc": d["bit_acc"], "verdict": d["verdict"],
+                            "matches": d["matches"]})
+
+        for b in self.p.bases:
+            v = self.views(b.name)
+            add(f"{b.name} base run", "unwatermarked model", v["base"])
+            add(f"{b.name} watermarked run, sticker off", "unwatermarked model", v["sticker_off"])
+        if fp.ground_truth:
+            add("ground-truth test images", "images", self.views(self.primary)["gt"], "photos of the same scene")
+        for o in fp.other_runs:
+            name, cfg = o.get("name", Path(o["config"]).parent.name), Path(o["config"])
+            data = Path(o["data"]) if o.get("data") else None
+
+            def render_other(cfg=cfg, data=data, name=name):
+                from gsticker_plugin.verify import load_run
+
+                with contextlib.redirect_stdout(sys.stderr):
+                    _, pipe, _ = load_run(cfg, data=data, device=self.device)
+                return {"rgb": self.render(pipe, name)["rgb"]}
+
+            add(name, "unwatermarked model", self.cached(f"other-{re.sub(r'[^A-Za-z0-9_.-]', '_', name)}", render_other)["rgb"],
+                str(cfg))
+        for folder in fp.other_images:
+            vs = images_views(Path(folder), 400, 16, 10**9, progress=False)
+            if vs.views:
+                ims = [x.image for x in vs.views]
+                same = all(i.shape == ims[0].shape for i in ims)
+                if same:
+                    add(f"images {folder}", "images", torch.stack(ims).permute(0, 2, 3, 1))
+                else:
+                    for i, im in enumerate(ims):
+                        add(f"images {folder} #{i}", "images", im.permute(1, 2, 0)[None])
+        recolor = self.stage_path("recolor")
+        if recolor.is_file():
+            for row in json.loads(recolor.read_text())["rows"]:
+                for s in row["null_per_seed"][:1]:
+                    m = s["matches"]
+                    sources.append({"name": f"base recolored: {row['label']}", "kind": "unwatermarked model",
+                                    "note": "from the recolor stage", "views": len(m),
+                                    "passing": sum(x >= self.threshold for x in m),
+                                    "fpr": sum(x >= self.threshold for x in m) / len(m), "max_matches": max(m),
+                                    "bit_acc": s["bit_acc"], "verdict": s["verdict"], "matches": m})
+        if fp.random_images > 0:
+            size = int(self.views(self.primary)["watermarked"].shape[1])
+            rv = random_views(fp.random_images, size, seed=self.p.seeds[0])
+            add(f"{fp.random_images} random images", "random images", torch.stack([x.image for x in rv.views]).permute(0, 2, 3, 1),
+                "noise, smooth noise, flat colors, gradients")
+        n = sum(s["views"] for s in sources)
+        x = sum(s["passing"] for s in sources)
+        models = [s for s in sources if s["kind"] == "unwatermarked model"]
+        return {"threshold": self.threshold, "fpr_target": self.p.fpr, "sources": sources,
+                "views": n, "passing": x, "empirical_fpr": x / n if n else None,
+                "fpr_upper_95": metrics.clopper_pearson_upper(x, n) if n else None,
+                "models": len(models), "models_flagged": sum(bool(s["verdict"]) for s in models),
+                "note": "views of one model are not independent; the Clopper-Pearson bound treats them as if they "
+                        "were and is therefore optimistic; the model-level count is the honest one"}
+
+    def stage_speed(self) -> Dict[str, Any]:
+        st = json.loads(self.stage_path("sticker").read_text())
+        q = json.loads(self.stage_path("quality").read_text()) if self.stage_path("quality").is_file() else {}
+        res = {}
+        for b in self.p.bases:
+            mon = st.get(b.name, {}).get("monitor", [])
+            res[b.name] = {"train_seconds": st.get(b.name, {}).get("train_seconds"), "steps": st.get(b.name, {}).get("steps"),
+                           "monitor": mon,
+                           "final_bit_acc": q.get(b.name, {}).get("decode_watermarked", {}).get("bit_acc"),
+                           "final_psnr_wm_vs_unwm": q.get(b.name, {}).get("wm_vs_unwm", {}).get("psnr")}
+        usable = any(r["monitor"] for r in res.values())
+        res["note"] = ("held-out history: the '[gsticker] step N: held-out bit acc ...' lines ns-train geometrysticker prints "
+                       "every --pipeline.steps-per-monitor steps (fast-path renders of held-out novel views, owner message, "
+                       "no attack); final = real renders of the test views") if usable else (
+            "no held-out history in the sticker logs (the monitor did not run: fewer steps than "
+            "--pipeline.steps-per-monitor, or the run was trained elsewhere); only the final point is plotted")
+        return res
+
+    # ------------------------------------------------------------------------------------------ all
+    def run(self, stages: Sequence[str]) -> Dict[str, Any]:
+        from gsticker_plugin.evaluation import report
+
+        t0 = time.time()
+        fns = {"scene": self.stage_scene, "bases": self.stage_bases, "sticker": self.stage_sticker,
+               "renders": self.stage_renders, "quality": self.stage_quality, "distortions": self.stage_distortions,
+               "curves": self.stage_curves, "recolor": self.stage_recolor, "false_positives": self.stage_false_positives,
+               "speed": self.stage_speed}
+        want = [s for s in fns if s in stages]
+        if self.p.recolor is None and "recolor" in want:
+            want.remove("recolor")
+        if not self.p.curves and "curves" in want:
+            want.remove("curves")
+        if not self.p.distortions and "distortions" in want:
+            want.remove("distortions")
+        for i, s in enumerate(want):
+            self.say(f"[eval] stage {i + 1}/{len(want)}: {s}")
+            self.stage(s, fns[s])
+        results = {"protocol": to_plain(self.p), "threshold": self.threshold, "machine": machine_info(),
+                   "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "paper": report.paper_numbers()}
+        for s in fns:
+            if self.stage_path(s).is_file():
+                results[s] = json.loads(self.stage_path(s).read_text())
+        results["wall_seconds_this_invocation"] = round(time.time() - t0, 1)
+        (self.out / "results.json").write_text(json.dumps(results, indent=1, default=str))
+        if "report" in stages:
+            report.write_all(results, self.out)
+        return results
+
+
+def lpips_fn():
+    """LPIPS(a, b) on [B 3 H W] in [0, 1], or None when its AlexNet weights are unavailable (offline)."""
+    from gsticker_plugin import compat
+
+    if not compat.lpips_backbone_available("alex"):
+        return None
+    from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
+
+    m = LearnedPerceptualImagePatchSimilarity(net_type="alex", normalize=True)
+    if not compat.lpips_is_available(m):
+        return None
+    return lambda a, b: float(m(a.clamp(0, 1), b.clamp(0, 1)))
+
+
+_MONITOR = re.compile(r"step (\d+): held-out bit acc ([\d.]+) \(clean renders: ([\d.]+)\), PSNR marked/clean ([\d.inf-]+) dB, (\d+) s")
+
+
+def parse_monitor_log(log: Path) -> List[Dict[str, float]]:
+    """The held-out monitor lines of an ``ns-train geometrysticker`` log."""
+    if not log.is_file():
+        return []
+    text = re.sub(r"\x1b\[[0-9;]*m", "", log.read_text(errors="replace"))
+    out = []
+    for m in _MONITOR.finditer(text):
+        out.append({"step": int(m.group(1)), "heldout_bit_acc": float(m.group(2)), "clean_bit_acc": float(m.group(3)),
+                    "psnr": float(m.group(4)), "seconds": float(m.group(5))})
+    return out
+
+
+def describe_spec(spec: str) -> str:
+    """The exact definition of each attack of a spec, from gsticker_plugin.attacks' docstrings."""
+    import inspect
+
+    from gsticker_plugin import attacks
+
+    fns = {"noise": attacks.gaussian_noise, "rotate": attacks.rotate, "crop": attacks.cropout,
+           "blur": attacks.gaussian_blur, "hue": attacks.hue_shift, "jpeg": attacks.jpeg, "resize": attacks.resize}
+    if not spec.strip():
+        return "no attack"
+    parts = []
+    for name, _ in attacks.parse_attack_spec(spec):
+        doc = inspect.getdoc(fns[name]) or ""
+        first = " ".join(doc.split("\n\n")[0].split())
+        parts.append(f"{name}: {first}")
+    extra = " (cropout: the rectangle is replaced by the unwatermarked render of the same view)" if "crop" in spec else ""
+    return "; ".join(parts) + extra
+
+
+def machine_info() -> Dict[str, Any]:
+    import platform
+
+    cpu = platform.processor() or ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        import nerfstudio  # noqa: F401
+        from importlib.metadata import version
+
+        ns = version("nerfstudio")
+    except Exception:
+        ns = "?"
+    return {"cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+            "nerfstudio": ns, "python": platform.python_version(), "cuda": torch.cuda.is_available(),
+            "omp_num_threads": os.environ.get("OMP_NUM_THREADS")}
