@@ -1,0 +1,174 @@
+"""``ns-gsticker-eval``: the smoke protocol end to end (method_configs/eval/smoke.yaml) on the tiny scene.
+
+Checks that the pipeline runs and writes what it promises (results.json, results.md, charts/*.png), that the
+numbers are in range and that every configured attack/color has its row. It does not check scores: the smoke
+models are trained for seconds. About a minute on 2 CPU cores.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SMOKE = REPO_ROOT / "method_configs" / "eval" / "smoke.yaml"
+BIN = Path(sys.executable).parent
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env.update({"GSTICKER_NO_DOWNLOAD": "1", "COLUMNS": "200", "PYTHONWARNINGS": "ignore"})
+    return env
+
+
+def _script(name: str) -> str:
+    path = BIN / name
+    if not path.exists():
+        pytest.fail(f"console script {name} is not installed next to {sys.executable} (pip install -e .)")
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def smoke(tiny_scene: Path, tmp_path_factory) -> dict:
+    out = tmp_path_factory.mktemp("eval") / "smoke"
+    cmd = [_script("ns-gsticker-eval"), "--config", str(SMOKE), "--output-dir", str(out), "--data", str(tiny_scene),
+           "--no-progress"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=_env(), cwd=REPO_ROOT)
+    assert proc.returncode == 0, f"exit {proc.returncode}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    return {"out": out, "stdout": proc.stdout, "cmd": cmd, "results": json.loads((out / "results.json").read_text())}
+
+
+def _protocol():
+    from gsticker_plugin.evaluation.config import load_protocol
+
+    return load_protocol(SMOKE)
+
+
+def _acc(x) -> None:
+    assert isinstance(x, float) and 0.0 <= x <= 1.0, x
+
+
+def _psnr(x) -> None:
+    assert x == "inf" or (isinstance(x, float) and math.isfinite(x)), x
+
+
+@pytest.mark.slow
+def test_files_written(smoke):
+    out = smoke["out"]
+    for name in ("results.json", "results.md", "charts/curves.png", "charts/recolor.png", "charts/speed.png"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    for stage in ("scene", "bases", "sticker", "renders", "quality", "distortions", "curves", "recolor",
+                  "false_positives", "speed"):
+        assert (out / "stages" / f"{stage}.json").is_file(), stage
+        assert stage in smoke["results"], stage
+    assert list((out / "runs" / "nerfacto" / "geometrysticker").glob("watermarked.gskey"))
+    assert not (out / "recolored" / "nerfacto" / "palette-green" / "wm").exists()  # deleted once rendered
+
+
+@pytest.mark.slow
+def test_pngs_are_images(smoke):
+    from PIL import Image
+
+    for png in (smoke["out"] / "charts").glob("*.png"):
+        with Image.open(png) as im:
+            im.verify()
+        with Image.open(png) as im:
+            assert im.format == "PNG" and im.size[0] > 100 and im.size[1] > 100
+
+
+@pytest.mark.slow
+def test_numbers_in_range(smoke):
+    r = smoke["results"]
+    p = _protocol()
+    assert r["threshold"] == 41  # 48 bits at per-view FPR 1e-6
+    q = r["quality"]["nerfacto"]
+    for k in ("wm_vs_gt", "unwm_vs_gt", "base_vs_gt", "wm_vs_unwm"):
+        _psnr(q[k]["psnr"])
+        assert -1.0 <= q[k]["ssim"] <= 1.0
+    assert r["quality"]["lpips"] in ("available",) or r["quality"]["lpips"].startswith("unavailable")
+    for d in ("decode_watermarked", "decode_sticker_off"):
+        _acc(q[d]["bit_acc"])
+        assert len(q[d]["matches"]) == q[d]["views"] == p.num_views
+        assert all(0 <= m <= 48 for m in q[d]["matches"])
+    rows = r["distortions"]["rows"]
+    assert [x["label"] for x in rows] == [x.label for x in p.distortions]
+    for x in rows:
+        _acc(x["bit_acc"])
+        assert 0.0 <= x["share_passing"] <= 1.0 and 0.0 <= x["verdict_rate"] <= 1.0
+        assert len(x["per_seed"]) == len(p.seeds)
+        _psnr(x["attack_psnr"])
+    assert rows[0]["attack_psnr"] == "inf"  # the no-attack row
+    curves = r["curves"]["curves"]
+    assert set(curves) == set(p.curves)
+    for name, c in curves.items():
+        assert [pt["strength"] for pt in c["points"]] == [float(s) for s in p.curves[name]]
+        for pt in c["points"]:
+            _acc(pt["bit_acc_mean"])
+            assert pt["bit_acc_std"] >= 0 and 0.0 <= pt["verdict_rate"] <= 1.0
+    rec = r["recolor"]["rows"]
+    names = [x["name"] for x in rec]
+    assert names[0] == "image-hue-jitter"
+    for c in p.recolor.colors:
+        assert f"palette-{c.replace(' ', '')}" in names
+    assert "finetune" in names and any(n.startswith("hue-") for n in names)
+    for x in rec:
+        _acc(x["bit_acc"])
+        _acc(x["null_bit_acc"])
+        _psnr(x["psnr"])
+        assert -1.0 <= x["ssim"] <= 1.0
+    fp = r["false_positives"]
+    assert 0.0 <= fp["empirical_fpr"] <= 1.0 and fp["empirical_fpr"] <= fp["fpr_upper_95"] <= 1.0
+    assert fp["views"] == sum(s["views"] for s in fp["sources"])
+    assert any(s["kind"] == "random images" and s["views"] == p.false_positives.random_images for s in fp["sources"])
+    for s in fp["sources"]:
+        assert 0.0 <= s["fpr"] <= 1.0 and 0 <= s["max_matches"] <= 48
+    sp = r["speed"]["nerfacto"]
+    assert sp["steps"] == p.sticker.steps
+    for m in sp["monitor"]:  # parsed from the ns-train log; the smoke run monitors every 5 steps
+        _acc(m["heldout_bit_acc"])
+    assert len(sp["monitor"]) == p.sticker.steps // 5
+
+
+@pytest.mark.slow
+def test_tables_have_every_row(smoke):
+    md = (smoke["out"] / "results.md").read_text()
+    p = _protocol()
+    for section in ("## Bases", "## Distortions", "## Recolor", "## False positives", "## Where it breaks",
+                    "## Speed vs accuracy"):
+        assert section in md, section
+    for row in p.distortions:
+        assert f"| {row.label} |" in md, row.label
+    for c in p.recolor.colors:
+        assert f"palette {p.recolor.palette_entry} -> {c} |" in md, c
+    for name in p.curves:
+        assert f"| {name} |" in md, name
+    assert "99.25" in md and "32.39" in md  # the paper's numbers beside ours
+    assert "Machine:" in md and "Command: `ns-gsticker-eval --config" in md
+
+
+@pytest.mark.slow
+def test_resume_skips_finished_stages(smoke):
+    proc = subprocess.run(smoke["cmd"], capture_output=True, text=True, timeout=300, env=_env(), cwd=REPO_ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.count("done earlier") == 10, proc.stdout
+    assert "$ " not in proc.stdout  # nothing trained, generated or recolored again
+
+
+def test_bad_protocol_is_one_error_line(tmp_path, capsys):
+    from gsticker_plugin.evaluation import cli
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(SMOKE.read_text() + "\nnum_veiws: 3\n")
+    assert cli.run(["--config", str(bad), "--output-dir", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "num_veiws" in err[0]
+    bad.write_text(SMOKE.read_text().replace('spec: "blur=1"', 'spec: "crop=2"'))
+    assert cli.run(["--config", str(bad), "--output-dir", str(tmp_path / "out")]) == 2
+    assert "crop" in capsys.readouterr().err
+    assert cli.run(["--config", str(tmp_path / "missing.yaml")]) == 2
