@@ -101,7 +101,7 @@ def _distortions(r) -> List[str]:
              pct(x["verdict_rate"]), num(x["attack_psnr"]), paper(x["paper"])] for x in d["rows"]]
     defs = [f"- `{x['spec']}`: {x['definition'].replace('``', '`')}" for x in d["rows"] if x["spec"]]
     return ["## Distortions (image-level, on the watermarked renders)", "",
-            table(["attack", "spec", "bit acc (± over seeds)", "views passing", "verdict rate", "PSNR attacked vs clean", "paper"], rows),
+            table(["attack", "spec", "bit acc (± over seeds)", "views passing %", "verdict rate %", "PSNR attacked vs clean", "paper"], rows),
             "", "Exact definitions (from `gsticker_plugin.attacks`):", "", *defs, ""]
 
 
@@ -112,8 +112,8 @@ def _recolor(r) -> List[str]:
     rows = [[x["label"], pct(x["bit_acc"]), pct(x["share_passing"]), pct(x["verdict_rate"]), pct(x["null_bit_acc"]),
              pct(x["null_share_passing"]), num(x["psnr"]), num(x["ssim"], 4), paper(x["paper"])] for x in d["rows"]]
     return ["## Recolor", "",
-            table(["edit", "bit acc", "views passing", "verdict rate", "null bit acc (base, same edit)",
-                   "null views passing", "PSNR wm-rec vs unwm-rec", "SSIM", "paper"], rows), "",
+            table(["edit", "bit acc", "views passing %", "verdict rate %", "null bit acc (base, same edit)",
+                   "null views passing %", "PSNR wm-rec vs unwm-rec", "SSIM", "paper"], rows), "",
             f"Palette edits replace entry {d['palette_entry']} (entries ordered by pixel share) with each reference color "
             "(`ns-recolor palette --set`); model-level hue is `ns-recolor hue --shift`; the fine-tune is `ns-recolor finetune` "
             "(the attacker trains the color branch). The same edit is applied to the watermarked run and to the unwatermarked "
@@ -132,14 +132,14 @@ def _fp(r) -> List[str]:
             table(["source", "kind", "views", "views passing", "empirical FPR", "max matches", "mean bit acc", "model verdict"], rows),
             "", f"All null views: {d['passing']} of {d['views']} pass at >= {d['threshold']} matches: empirical per-view FPR "
             f"{num(d['empirical_fpr'], 4)} (95% upper bound {num(up, 4)}; target {d['fpr_target']:g}). Unwatermarked models flagged: "
-            f"{d['models_flagged']} of {d['models']}. {d['note']}.", ""]
+            f"{d['models_flagged']} of {d['models']}. {d['note'][:1].upper() + d['note'][1:]}.", ""]
 
 
 def _curves(r) -> List[str]:
     d = r.get("curves")
     if not d:
         return []
-    out = ["## Where it breaks (bit accuracy and verdict vs attack strength)", "", d["note"], ""]
+    out = ["## Where it breaks (bit accuracy and verdict vs attack strength)", "", d["note"][:1].upper() + d["note"][1:], ""]
     rows = []
     for name, c in d["curves"].items():
         pts = "; ".join(f"{p['strength']:g}: {pct(p['bit_acc_mean'], p['bit_acc_std'])} / {pct(p['verdict_rate'])}" for p in c["points"])
@@ -250,7 +250,7 @@ def chart_speed(r, path: Path) -> Optional[Path]:
             ax.plot([m["seconds"] / 60 for m in mon], [100 * m["clean_bit_acc"] for m in mon], ":", color=line.get_color(),
                     label=f"{b['name']} clean renders")
         if x["final_bit_acc"] is not None and x["train_seconds"] is not None:
-            ax.plot([x["train_seconds"] / 60], [100 * x["final_bit_acc"]], "*", ms=12, label=f"{b['name']} final (test renders)")
+            ax.plot([x["train_seconds"] / 60], [100 * x["final_bit_acc"]], "*", ms=12, label=f"{b['name']} final (test renders; time incl. setup)")
     if not any(d.get(b["name"], {}).get("monitor") for b in r["protocol"]["bases"]):
         ax.text(0.5, 0.5, "no held-out history logged", transform=ax.transAxes, ha="center", fontsize=8)
     ax.axhline(50, color="red", lw=0.8, ls=":")
