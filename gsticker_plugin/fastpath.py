@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import List, Optional
+from typing import Dict, List, Optional
 
 import torch
 from jaxtyping import Float
@@ -72,10 +72,17 @@ def orbit_cameras(cameras: Cameras, num: int, generator: torch.Generator, max_ti
 
 
 @torch.no_grad()
-def cache_view(model, camera: Cameras, novel: bool, min_density: Optional[float] = None) -> ViewCache:
-    """Render one camera with the sticker off, recording the final field's samples."""
+def cache_view(model, camera: Cameras, novel: bool, min_density: Optional[float] = None,
+               outputs_into: Optional[Dict[str, Tensor]] = None, full_precision: bool = False) -> ViewCache:
+    """Render one camera with the sticker off, recording the final field's samples.
+
+    ``outputs_into``: a dict that receives the render's outputs (accumulation, depth, ...), CPU float.
+    ``full_precision``: keep positions and colours in float32 (the training pool stores them in half).
+    """
     with model.capture_final_samples() as records:
         outputs = model.get_outputs_for_camera(camera)
+    if outputs_into is not None:
+        outputs_into.update({k: v.detach().float().cpu() for k, v in outputs.items() if isinstance(v, Tensor)})
     image = outputs["rgb"].detach().float().cpu()
     h, w = image.shape[:2]
     pos = torch.cat([r["positions"].reshape(-1, *r["positions"].shape[-2:]) for r in records]).cpu()
@@ -87,8 +94,9 @@ def cache_view(model, camera: Cameras, novel: bool, min_density: Optional[float]
                            "fast path does not understand: pass --pipeline.fast-path False")
     thr = 0.0 if min_density is None else min_density
     active = (density.squeeze(-1) > thr).any(dim=-1).nonzero().squeeze(-1)
-    return ViewCache(image=image, active=active, positions=pos[active].half(), deltas=deltas[active].float(),
-                     density=density[active], rgb=rgb[active].half(), novel=novel)
+    low = (lambda t: t.float()) if full_precision else (lambda t: t.half())
+    return ViewCache(image=image, active=active, positions=low(pos[active]), deltas=deltas[active].float(),
+                     density=density[active], rgb=low(rgb[active]), novel=novel)
 
 
 def render_cached(view: ViewCache, wrap, message: Tensor, background: Tensor) -> tuple:

@@ -1,7 +1,10 @@
 """The owner key: the secret half of a GeometrySticker watermark, stored apart from the shareable model.
 
-It holds the message bits, the extractor and classifier weights, a reference to the base run, and a
-sha256 fingerprint over all of it (tamper check). Written atomically (temporary file + rename).
+It holds the message bits, the extractor and classifier weights, a reference to the base run, (version 2) the
+*geometry reference* -- the sticker's configuration and weights, the gates' state, the wrapped fields and their
+position normalization -- for the informed geometric decoder (gsticker_plugin.geometry), and a sha256 fingerprint
+over all of it (tamper check). Written atomically (temporary file + rename). Version-1 keys (no geometry
+reference) still load; ``ns-verify-owner export-key`` adds the reference from the watermarked run.
 """
 
 from __future__ import annotations
@@ -22,7 +25,8 @@ from torch import Tensor
 from gsticker_plugin.errors import GStickerError
 
 KEY_FORMAT = "gsticker-owner-key"
-KEY_VERSION = 1
+KEY_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 KEY_SUFFIX = ".gskey"
 
 
@@ -116,6 +120,11 @@ class OwnerKey:
     null: Optional[Dict[str, Any]] = None
     training_state: Dict[str, Any] = field(default_factory=dict)
     created: float = field(default_factory=time.time)
+    geometry: Optional[Dict[str, Any]] = None
+    """The geometry reference (sticker config and state, gates' state, fields, aabbs; see
+    :func:`gsticker_plugin.geometry.geometry_reference`); None in a version-1 key."""
+    version: int = KEY_VERSION
+    """The version the key was read as (saving always writes the current version)."""
 
     @property
     def num_bits(self) -> int:
@@ -134,6 +143,7 @@ class OwnerKey:
             "null": plain(self.null),
             "training_state": plain(self.training_state),
             "created": self.created,
+            "geometry": plain(self.geometry),
         }
         p["fingerprint"] = fingerprint(p)
         return p
@@ -170,15 +180,16 @@ class OwnerKey:
         if not isinstance(p, dict) or p.get("format") != KEY_FORMAT:
             raise GStickerError(f"{path} is not a gsticker owner key (wrong format); pass the .gskey file "
                                 "written by `ns-train geometrysticker`")
-        if p.get("version") != KEY_VERSION:
+        if p.get("version") not in READABLE_VERSIONS:
             raise GStickerError(f"{path} is an owner key of version {p.get('version')}, this gsticker reads "
-                                f"version {KEY_VERSION}; use the gsticker release that wrote it")
+                                f"versions {', '.join(map(str, READABLE_VERSIONS))}; use the gsticker release that wrote it")
         if p.get("fingerprint") != fingerprint(p):
             raise GStickerError(f"{path} failed its fingerprint check (tampered or corrupted); use your "
                                 "original copy of the owner key")
         return cls(owner_id=p["owner_id"], message=p["message"], heads_config=p["heads_config"],
                    heads_state=p["heads_state"], base=p["base"], model_run=p["model_run"], null=p["null"],
-                   training_state=p.get("training_state") or {}, created=p["created"])
+                   training_state=p.get("training_state") or {}, created=p["created"],
+                   geometry=p.get("geometry") if p["version"] >= 2 else None, version=int(p["version"]))
 
     def build_heads(self):
         from gsticker_plugin.heads import HeadConfig, Heads

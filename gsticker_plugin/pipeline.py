@@ -25,6 +25,7 @@ from gsticker_plugin import metrics
 from gsticker_plugin.attacks import RandomDistortion, RandomDistortionConfig
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import ViewCache, cache_view, orbit_cameras, pool_memory_mb, render_cached
+from gsticker_plugin.geometry import geometry_reference
 from gsticker_plugin.heads import HeadConfig, Heads, count_parameters
 from gsticker_plugin.key import OwnerKey, message_from_owner_id, parse_message
 from gsticker_plugin.model import GeometryStickerModel, GeometryStickerModelConfig
@@ -142,6 +143,7 @@ class GeometryStickerPipeline(VanillaPipeline):
             base=dict(self.config.base_run),
             model_run=model_run,
             training_state=training_state or {},
+            geometry=geometry_reference(self.model),
         )
 
     # ------------------------------------------------------------------------------------ fast-path pool

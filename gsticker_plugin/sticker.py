@@ -50,6 +50,15 @@ def message_to_signs(message: Tensor) -> Tensor:
     return message.float() * 2.0 - 1.0
 
 
+def render_weights(density: Float[Tensor, "R S 1"], deltas: Float[Tensor, "R S 1"]) -> Float[Tensor, "R S 1"]:
+    """Per-sample weights (same quadrature as Nerfstudio's RaySamples.get_weights)."""
+    dd = deltas * density
+    alphas = 1.0 - torch.exp(-dd)
+    transmittance = torch.cumsum(dd[:, :-1], dim=-2)
+    transmittance = torch.cat([torch.zeros_like(transmittance[:, :1]), transmittance], dim=-2)
+    return torch.nan_to_num(alphas * torch.exp(-transmittance))
+
+
 def composite(
     density: Float[Tensor, "R S 1"],
     rgb: Float[Tensor, "R S 3"],
@@ -57,12 +66,7 @@ def composite(
     background: Float[Tensor, "3"],
 ) -> Tuple[Float[Tensor, "R 3"], Float[Tensor, "R S 1"]]:
     """Volume rendering (same quadrature as Nerfstudio's RaySamples.get_weights + RGBRenderer)."""
-    dd = deltas * density
-    alphas = 1.0 - torch.exp(-dd)
-    transmittance = torch.cumsum(dd[:, :-1], dim=-2)
-    transmittance = torch.cat([torch.zeros_like(transmittance[:, :1]), transmittance], dim=-2)
-    weights = alphas * torch.exp(-transmittance)
-    weights = torch.nan_to_num(weights)
+    weights = render_weights(density, deltas)
     acc = weights.sum(dim=-2)
     color = (weights * rgb).sum(dim=-2) + background * (1.0 - acc)
     return color, weights
@@ -147,13 +151,21 @@ class Sticker(nn.Module):
         nn.init.uniform_(self.mlp[-1].weight, -init_scale, init_scale)
         nn.init.zeros_(self.mlp[-1].bias)
 
-    def forward(self, positions01: Float[Tensor, "N 3"], message: Float[Tensor, "K"]) -> Float[Tensor, "N 1"]:
+    def features(self, positions01: Float[Tensor, "N 3"]) -> Float[Tensor, "N F"]:
+        """The message-independent part: concat: the first layer's position term [N hidden]; bilinear: the
+        per-bit 3D patterns [N K]."""
         h = self.pos_in(positional_encoding(positions01, self.num_frequencies))
-        signs = message_to_signs(message)
+        return h if self.msg_in is not None else self.mlp(h)
+
+    def mix(self, features: Float[Tensor, "N F"], signs: Float[Tensor, "K"]) -> Float[Tensor, "N 1"]:
+        """The sticker from :meth:`features` and message *signs* (+-1 for bits; any value in [-1, 1] is allowed,
+        which makes the sticker a differentiable function of a continuous message, see gsticker_plugin.geometry)."""
         if self.msg_in is not None:
-            return torch.tanh(self.mlp(h + self.msg_in(signs)))
-        basis = self.mlp(h)  # [N K]
-        return torch.tanh(basis @ signs[:, None] / math.sqrt(self.num_bits))
+            return torch.tanh(self.mlp(features + self.msg_in(signs)))
+        return torch.tanh(features @ signs[:, None] / math.sqrt(self.num_bits))
+
+    def forward(self, positions01: Float[Tensor, "N 3"], message: Float[Tensor, "K"]) -> Float[Tensor, "N 1"]:
+        return self.mix(self.features(positions01), message_to_signs(message))
 
 
 @dataclass

@@ -66,7 +66,17 @@ class VerifyConfig:
     sampled_share: float = 0.5
     """Share of the rendered views taken from sampled orbit poses; the rest are the run's own train/eval cameras."""
     data: Optional[Path] = None
-    """Dataset folder of the run, when the path recorded in its config.yml does not exist from here."""
+    """Dataset folder of the run, when the path recorded in its config.yml does not exist from here (also used for
+    the owner's base run under --decode geometry when its recorded dataset does not exist and --base-data is unset)."""
+    decode: Literal["auto", "geometry", "extractor"] = "auto"
+    """geometry: informed decoding from the suspect model's accumulation/depth, given the owner's unwatermarked base
+    run (needs a version-2 key and --load-config; model-level only); extractor: the key's CNN reads the message
+    from RGB renders or images (blind); auto: geometry when a model and keys with a reachable base are given,
+    else extractor."""
+    base_config: Optional[Path] = None
+    """The owner's base run (config.yml) for --decode geometry, when the path recorded in the key moved."""
+    base_data: Optional[Path] = None
+    """Dataset folder of the owner's base run, when its recorded one does not exist from here (default: --data)."""
     fpr: float = 1e-6
     """Per-view false-positive rate of the binomial test (1e-6 = at least 41 of 48 bits)."""
     min_share: float = 0.5
@@ -476,9 +486,17 @@ def decode_views(key: OwnerKey, views: Views, device: torch.device) -> Dict[str,
             "pvalues": metrics.binomial_tail_pvalues(m, key.num_bits), "scores": torch.stack(scores)}
 
 
-def null_summary(key: OwnerKey, fpr: float) -> Optional[Dict[str, Any]]:
-    """The key's stored empirical null, and the per-view threshold it implies at ``fpr``."""
-    null = key.null
+def decoder_null(key: OwnerKey, decoder: str) -> Optional[Dict[str, Any]]:
+    """The empirical null stored for ``decoder``: the extractor's in ``key.null``, the geometric decoder's in
+    ``key.geometry["null"]`` (each decoder is only ever compared with its own null)."""
+    if decoder == "geometry":
+        return (key.geometry or {}).get("null")
+    return key.null
+
+
+def null_summary(key: OwnerKey, fpr: float, decoder: str = "extractor") -> Optional[Dict[str, Any]]:
+    """The key's stored empirical null for ``decoder``, and the per-view threshold it implies at ``fpr``."""
+    null = decoder_null(key, decoder)
     if not null or not null.get("matches"):
         return None
     m = [int(x) for x in null["matches"]]
@@ -500,11 +518,11 @@ def null_summary(key: OwnerKey, fpr: float) -> Optional[Dict[str, Any]]:
     }
 
 
-def key_result(key: OwnerKey, key_path: Path, dec: Dict[str, Tensor], views: Views, fpr: float,
-               min_share: float) -> Dict[str, Any]:
+def key_result(key: OwnerKey, key_path: Path, dec: Dict[str, Any], views: Views, fpr: float,
+               min_share: float, decoder: str = "extractor") -> Dict[str, Any]:
     k = key.num_bits
     m_theo = metrics.min_matches_for_fpr(k, fpr)
-    emp = null_summary(key, fpr)
+    emp = null_summary(key, fpr, decoder)
     m_emp = emp["threshold"] if emp else None
     m_star = max(m_theo, m_emp) if m_emp is not None else m_theo
     matches = dec["matches"]
@@ -516,15 +534,18 @@ def key_result(key: OwnerKey, key_path: Path, dec: Dict[str, Tensor], views: Vie
     t_stat = metrics.vote_statistic(matches, min_share)
     per_view_fpr_used = metrics.binomial_tail_pvalue(m_star, k)
     if emp is not None:
-        exceed = sum(1 for x in key.null["matches"] if int(x) >= m_star)
+        exceed = sum(1 for x in decoder_null(key, decoder)["matches"] if int(x) >= m_star)
         emp["exceed_at_used_threshold"] = exceed
         emp["exceed_upper95_at_used_threshold"] = metrics.clopper_pearson_upper(exceed, emp["n"])
+    scores = dec.get("scores")
+    geo = dec.get("geometry")
     per_view = []
     for i, v in enumerate(views.views):
         per_view.append({
             "name": v.name, "matches": int(matches[i]), "num_bits": k, "bit_accuracy": float(dec["bit_acc"][i]),
-            "pvalue": float(dec["pvalues"][i]), "score": float(dec["scores"][i]), "passed": bool(passed[i]),
-            "decoded": bits_to_str(dec["bits"][i]), **({"note": v.note} if v.note else {}),
+            "pvalue": float(dec["pvalues"][i]), "score": float(scores[i]) if scores is not None else None,
+            "passed": bool(passed[i]), "decoded": bits_to_str(dec["bits"][i]), **({"note": v.note} if v.note else {}),
+            **({"geometry": geo[i]} if geo is not None else {}),
         })
     mlist = sorted(int(x) for x in matches.tolist())
     return {
@@ -538,8 +559,12 @@ def key_result(key: OwnerKey, key_path: Path, dec: Dict[str, Tensor], views: Vie
         "model_pvalue": p_model, "vote_statistic": t_stat,
         "matches_min": mlist[0], "matches_median": mlist[n // 2], "matches_max": mlist[-1],
         "mean_bit_accuracy": float(dec["bit_acc"].float().mean()),
-        "mean_score": float(dec["scores"].float().mean()),
+        "mean_score": float(scores.float().mean()) if scores is not None else None,
+        "decoder": decoder,
         "empirical_null": emp,
+        **({"null_note": ("the key's empirical null was measured with the extractor and does not apply to the "
+                          "geometric decoder; run `ns-verify-owner calibrate --decode geometry` to measure its own")}
+           if decoder == "geometry" and emp is None and key.null else {}),
         "per_view": per_view,
     }
 
@@ -583,12 +608,18 @@ def summary_text(report: Dict[str, Any]) -> str:
     if inp["skipped"]:
         desc += f"; {len(inp['skipped'])} skipped (listed in report.json)"
     lines.append("  input: " + desc)
-    if report["settings"]["attack"]:
+    dec = report.get("decoder") or {}
+    if dec:
+        lines.append(f"  decoder: {dec['kind']} ({dec['description']})")
+        for note in dec.get("notes", []):
+            lines.append(f"    note: {note}")
+    if report["settings"]["attack"] and dec.get("kind") != "geometry":
         lines.append(f"  attack before decoding: {report['settings']['attack']}")
     for r in report["keys"]:
         t = r["thresholds"]
+        calib = "ns-verify-owner calibrate" + (" --decode geometry" if r.get("decoder") == "geometry" else "")
         emp = (f"empirical {t['empirical']} from {r['empirical_null']['n']} null views"
-               if r["empirical_null"] else "no empirical null (run ns-verify-owner calibrate)")
+               if r["empirical_null"] else f"no empirical null for this decoder (run {calib})")
         lines.append(f"  key {r['owner_id']} ({r['key']}): {r['verdict'].upper()}")
         lines.append(f"    {r['views_passing']}/{r['views']} views pass ({100 * r['share_passing']:.0f} %; needs "
                      f"{r['views_needed']} = {100 * r['min_share']:.0f} %) at >= {t['used']}/{r['num_bits']} matches "
@@ -596,7 +627,9 @@ def summary_text(report: Dict[str, Any]) -> str:
         best = max(r["per_view"], key=lambda v: v["matches"])
         lines.append(f"    matches min/median/max {r['matches_min']}/{r['matches_median']}/{r['matches_max']} of "
                      f"{r['num_bits']} (best view {best['name']}: p = {_fmt_p(best['pvalue'])}); mean bit accuracy "
-                     f"{r['mean_bit_accuracy']:.3f}; classifier score {r['mean_score']:.2f}")
+                     f"{r['mean_bit_accuracy']:.3f}; " + (f"classifier score {r['mean_score']:.2f}"
+                                                          if r["mean_score"] is not None else
+                                                          "classifier not used (geometric decoder)"))
         line = (f"    model-level p-value {_fmt_p(r['model_pvalue'])}; FPR of this verdict <= "
                 f"{r['model_fpr_bound']:.2g} under any dependence between views")
         if "adjusted_pvalue" in r:
@@ -630,8 +663,8 @@ def write_figure(path: Path, report: Dict[str, Any], views: Views, key: Optional
     pmf = [math.exp(metrics.log_binomial_tail_pvalue(x, k)) - math.exp(metrics.log_binomial_tail_pvalue(x + 1, k))
            for x in xs]
     ax.plot(xs, pmf, "k-", lw=1.5, label=f"theoretical null Binomial({k}, 1/2)")
-    if r["empirical_null"] and key is not None and key.null:
-        nm = [int(x) for x in key.null["matches"]]
+    if r["empirical_null"] and key is not None and decoder_null(key, r.get("decoder", "extractor")):
+        nm = [int(x) for x in decoder_null(key, r.get("decoder", "extractor"))["matches"]]
         ax.hist(nm, bins=[x - 0.5 for x in range(k + 2)], density=True, histtype="step", color="tab:orange", lw=2,
                 label=f"empirical null (n={len(nm)})")
     t = r["thresholds"]
@@ -654,7 +687,8 @@ def write_figure(path: Path, report: Dict[str, Any], views: Views, key: Optional
             img = torch.nn.functional.interpolate(img[None], scale_factor=s, mode="area")[0]
         a.imshow(img.permute(1, 2, 0).clamp(0, 1).numpy())
         v = r["per_view"][i]
-        a.set_title(f"{v['name'][-24:]}\n{v['matches']}/{k}  p={_fmt_p(v['pvalue'])}  score={v['score']:.2f}\n"
+        score = f"score={v['score']:.2f}" if v["score"] is not None else "geometry"
+        a.set_title(f"{v['name'][-24:]}\n{v['matches']}/{k}  p={_fmt_p(v['pvalue'])}  {score}\n"
                     f"{'PASS' if v['passed'] else 'fail'}", fontsize=8)
         a.axis("off")
     fig.tight_layout()
@@ -699,6 +733,66 @@ def _check_stats(fpr: float, min_share: float) -> None:
         raise GStickerError(f"--min-share must be in (0, 1], got {min_share}")
 
 
+def choose_decoder(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]]) -> Tuple[str, List[str]]:
+    """``--decode``: geometry or extractor, and why (auto); one-line errors for impossible choices."""
+    from gsticker_plugin import geometry
+
+    if config.decode == "geometry":
+        if config.load_config is None:
+            raise GStickerError("--decode geometry reads a model's geometry, not images: pass --load-config "
+                                "SUSPECT/config.yml, or use --decode extractor with --images")
+        for path, key in keys:
+            if not key.geometry:
+                raise GStickerError(geometry.missing_geometry_message(path))
+        return "geometry", []
+    if config.decode == "extractor":
+        return "extractor", []
+    if config.load_config is None:
+        return "extractor", ["auto: images can only be decoded by the extractor (the geometric decoder needs a model)"]
+    for path, key in keys:
+        if not key.geometry:
+            return "extractor", [f"auto: {path} has no geometry reference (version-1 key), so the extractor decodes; "
+                                 "add it with `ns-verify-owner export-key`"]
+        cfg = Path(config.base_config) if config.base_config is not None else geometry.recorded_base_config(key)
+        if cfg is None or not cfg.exists():
+            return "extractor", [f"auto: the owner's base run {cfg} is not reachable from here, so the extractor "
+                                 "decodes; pass --base-config BASE_RUN/config.yml for geometric decoding"]
+    return "geometry", []
+
+
+def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device):
+    """Geometric decoding of the suspect run for every key (each against its own base run)."""
+    import contextlib
+    import warnings
+
+    from gsticker_plugin import geometry
+
+    with contextlib.redirect_stdout(sys.stderr):
+        run_cfg, pipeline, ckpt = load_run(config.load_config, data=config.data, device=device)
+    warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
+    model = pipeline.model
+    results, views, bases, notes = [], None, [], []
+    for path, key in keys:
+        ref = geometry.load_base_reference(key, path, config.base_config, config.base_data or config.data, device)
+        dec, vlist = geometry.decode_suspect(key, ref, model, config.num_views, config.sampled_share, config.seed,
+                                             progress=config.progress)
+        kv = Views(kind="model", source=str(config.load_config), views=vlist,
+                   details={"method": run_cfg.method_name, "model": type(model).__name__, "checkpoint": str(ckpt),
+                            "sticker": "on" if hasattr(model, "sticker_enabled") else None,
+                            "own_cameras": sum(1 for v in vlist if not v.name.startswith("sampled/")),
+                            "sampled_poses": sum(1 for v in vlist if v.name.startswith("sampled/")),
+                            "cameras_of": f"the owner's base run {ref.config_path}"})
+        r = key_result(key, path, dec, kv, config.fpr, config.min_share, decoder="geometry")
+        r["base"] = {"config": str(ref.config_path), "checkpoint": str(ref.checkpoint), "method": ref.method}
+        notes += ref.notes
+        bases.append(str(ref.config_path))
+        results.append(r)
+        views = views or kv
+        del ref
+    signals = sorted({tuple(g["signals"]) for r in results for g in (v["geometry"] for v in r["per_view"])})
+    return results, views, {"bases": bases, "signals": [list(s) for s in signals], "notes": notes}
+
+
 def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
     """Run ``verify``; returns (exit status, report). Raises GStickerError for bad input."""
     _check_stats(config.fpr, config.min_share)
@@ -715,18 +809,33 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
             raise GStickerError(f"--attack: {e}") from None
     keys = _load_keys(config.key, config.keys)
     device = _device(config.device)
-    if config.load_config is not None:
-        views = model_views(config.load_config, config.num_views, config.sampled_share, config.seed, config.data,
-                            device, progress=config.progress)
+    decoder, notes = choose_decoder(config, keys)
+    if decoder == "geometry":
+        results, views, info = _verify_geometry(config, keys, device)
+        notes += info.pop("notes")
+        if config.attack.strip():
+            notes.append(f"--attack {config.attack!r} not applied: attacks are image-level distortions, and the "
+                         "geometric decoder reads the model's geometry, not images")
+        decoder_info = {"kind": "geometry", "informed": True, **info,
+                        "description": "informed: fits the key's sticker to the suspect's geometry (accumulation, "
+                                       "expected depth) against the owner's unwatermarked base run; model-level only"}
     else:
-        views = images_views(config.images, config.max_side, config.min_side, config.max_pixels, config.progress)
-    if not views.views:
-        raise GStickerError("no view to decode; nothing to base a verdict on")
-    apply_attack(views, config.attack, config.seed)
-    results = []
-    for path, key in _tqdm(keys, "decoding", config.progress and len(keys) > 1):
-        dec = decode_views(key, views, device)
-        results.append(key_result(key, path, dec, views, config.fpr, config.min_share))
+        if config.load_config is not None:
+            views = model_views(config.load_config, config.num_views, config.sampled_share, config.seed, config.data,
+                                device, progress=config.progress)
+        else:
+            views = images_views(config.images, config.max_side, config.min_side, config.max_pixels, config.progress)
+        if not views.views:
+            raise GStickerError("no view to decode; nothing to base a verdict on")
+        apply_attack(views, config.attack, config.seed)
+        results = []
+        for path, key in _tqdm(keys, "decoding", config.progress and len(keys) > 1):
+            dec = decode_views(key, views, device)
+            results.append(key_result(key, path, dec, views, config.fpr, config.min_share))
+        decoder_info = {"kind": "extractor", "informed": False,
+                        "description": "blind: the key's extractor reads the message from RGB "
+                                       + ("renders" if views.kind == "model" else "images")}
+    decoder_info["notes"] = notes
     report: Dict[str, Any] = {
         "tool": "ns-verify-owner", "created": time.time(),
         "input": {"kind": views.kind, "source": views.source, "views": len(views.views),
@@ -734,6 +843,7 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
         "settings": {"fpr": config.fpr, "min_share": config.min_share, "attack": config.attack,
                      "num_views": config.num_views if views.kind == "model" else None, "seed": config.seed,
                      "correction": config.correction if len(keys) > 1 else None},
+        "decoder": decoder_info,
         "keys": results,
         "multiple_testing": correct_keys(results, config.fpr, config.min_share, config.correction)
         if len(keys) > 1 else None,

@@ -1,0 +1,459 @@
+"""Informed geometric decoding: read the owner's message from a suspect model's *geometry*, given the base.
+
+The sticker changes only the density of the frozen base: ``sigma~ = relu(sigma + psi(sigma) * scale * m(x, M))``.
+Recoloring (palette, hue, a color-only fine-tune) never touches density, so the suspect's geometry outputs
+(accumulation, and for nerfacto the expected depth) still carry ``M`` exactly. When the owner holds the
+unwatermarked base run (the owner key references it by path and sha256) and the sticker and gates (stored in the
+key since version 2), the message can be read back by fitting:
+
+1. render the owner's base once per view camera, capturing its final samples (positions, deltas, density) and
+   its own accumulation / depth outputs (:func:`gsticker_plugin.fastpath.cache_view`);
+2. render the suspect (any Nerfstudio run, a black box) at the same camera and take its accumulation / depth;
+3. model the suspect as ``base outputs + [G(s) - G(0)]`` where ``G`` composites the base's samples with the
+   sticker of a *continuous* message ``s in [-1, 1]^K`` (:meth:`Sticker.mix` accepts any signs), and fit ``s`` to
+   the suspect by damped Gauss-Newton (Levenberg-Marquardt, clamped to the box);
+4. decode bit ``i`` as ``s_i > 0``; bits the suspect does not determine (``|s_i| <= tol``, e.g. every bit when
+   the suspect *is* the base: zero residual) are coin flips from a generator seeded independently of the owner's
+   message, so the unmarked base decodes at chance, not at 0/48 or 48/48.
+
+Why the binomial null holds: the fit uses the suspect, the base and the sticker, never the owner's message; the
+sticker was trained on uniformly random messages (``--pipeline.owner-message-prob 0``), so for a model that was
+not marked with ``M`` the decoded bits are independent of ``M``, and with ``M`` uniformly random the matches are
+``Binomial(K, 1/2)`` whatever the decoded bits are.
+
+Limits: it needs the owner's base run (an *informed* decoder), works on models (not on images), and models only
+the final field's density on the base's own samples (bases whose fine samples follow the wrapped coarse density,
+TensoRF and vanilla-nerf, are fitted approximately; nerfacto's proposal samplers are not wrapped by default, so
+its fit is exact).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional, Tuple
+
+import torch
+from jaxtyping import Bool, Float, Int
+from torch import Tensor
+
+from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.sticker import Sticker, render_weights
+
+GEOMETRY_REFERENCE_VERSION = 1
+ACCUMULATION_KEYS = ("accumulation", "accumulation_fine")
+EXPECTED_DEPTH_KEYS = ("expected_depth",)
+
+
+# ================================================================================================================
+# the key's geometry reference
+# ================================================================================================================
+
+
+def geometry_reference(model) -> Dict[str, Any]:
+    """What the geometric decoder needs from a GeometrySticker model, for the owner key (small: the sticker)."""
+    cfg = model.config
+    return {
+        "version": GEOMETRY_REFERENCE_VERSION,
+        "sticker_config": {"kind": cfg.sticker_kind, "num_bits": int(cfg.num_bits),
+                           "num_frequencies": int(cfg.num_frequencies), "hidden_dim": int(cfg.sticker_hidden_dim),
+                           "num_layers": int(cfg.sticker_num_layers)},
+        "gate_threshold": float(cfg.gate_threshold),
+        "wrap_proposal_networks": bool(cfg.wrap_proposal_networks),
+        "sticker_state": {k: v.detach().cpu().clone() for k, v in model.sticker.state_dict().items()},
+        "gates_state": {k: v.detach().cpu().clone() for k, v in model.gates.state_dict().items()},
+        "fields": [w.name for w in model.wraps],
+        "final_field": model.final_wrap.name,
+        "aabb": {w.name: w.aabb.detach().cpu().float().clone() for w in model.wraps},
+        "gates": {w.name: {"mu": float(w.gate.mu), "scale": float(w.gate.scale), "beta": float(w.gate.beta)}
+                  for w in model.wraps},
+        "null": None,
+    }
+
+
+# ================================================================================================================
+# pure functions: one view's reference, the prediction, the fit, the decision
+# ================================================================================================================
+
+
+@dataclass
+class ReferenceView:
+    """One camera of the owner's base: the rays the sticker can change and everything needed to predict them."""
+
+    name: str
+    hw: Tuple[int, int]
+    rays: Int[Tensor, "R"]  # flat pixel indices of rays with at least one gate-open sample
+    density: Float[Tensor, "R S 1"]  # base density of the final field's samples
+    deltas: Float[Tensor, "R S 1"]
+    steps: Float[Tensor, "R S 1"]  # distance of each sample from the camera along the (unit) ray direction
+    open_index: Int[Tensor, "N"]  # flat (ray * S + sample) index of the gate-open samples
+    psi_scale: Float[Tensor, "N 1"]  # psi * gate scale at the open samples
+    features: Float[Tensor, "N F"]  # Sticker.features of the open samples' normalized positions
+    base_signal: Float[Tensor, "C R"]  # the base's own outputs at the rays (accumulation[, acc * expected depth])
+    depth_scale: float  # divides acc * depth so both signals are O(1) per unit of weight
+    signals: Tuple[str, ...]  # ("accumulation",) or ("accumulation", "expected_depth")
+    image: Optional[Tensor] = None  # [3 H W] the base render (for figures)
+
+
+def geometry_signal(outputs: Dict[str, Tensor], use_depth: bool) -> Tuple[Float[Tensor, "C P"], Tuple[str, ...]]:
+    """A render's geometry per pixel: accumulation and (when asked) accumulation x expected depth.
+
+    Nerfstudio names: nerfacto ``accumulation`` + ``expected_depth`` (its ``depth`` is the *median* depth, a step
+    function of the weights: not used); TensoRF ``accumulation``; vanilla-nerf ``accumulation_fine``. Expected
+    depth is normalized by accumulation and measured along unit-norm ray directions, so ``acc * depth`` is the
+    weighted sum of the sample distances.
+    """
+    acc_key = next((k for k in ACCUMULATION_KEYS if isinstance(outputs.get(k), Tensor)), None)
+    if acc_key is None:
+        raise GStickerError(f"the suspect renders no accumulation (outputs: {sorted(outputs)[:12]}); geometric "
+                            "decoding needs a NeRF-style model: use --decode extractor")
+    acc = outputs[acc_key].float().reshape(-1)
+    if not use_depth:
+        return acc[None], ("accumulation",)
+    depth_key = next(k for k in EXPECTED_DEPTH_KEYS if isinstance(outputs.get(k), Tensor))
+    return torch.stack([acc, acc * outputs[depth_key].float().reshape(-1)]), ("accumulation", "expected_depth")
+
+
+def has_expected_depth(outputs: Dict[str, Any]) -> bool:
+    return any(isinstance(outputs.get(k), Tensor) for k in EXPECTED_DEPTH_KEYS)
+
+
+def predict_change(ref: ReferenceView, sticker: Sticker, signs: Float[Tensor, "K"]) -> Float[Tensor, "C R"]:
+    """G(s): the geometry signal of the base's samples with the sticker of continuous message ``signs``.
+
+    Same wrap as :class:`gsticker_plugin.sticker.DensityWrap` (``relu(sigma + psi * scale * m)``, zero where
+    the gate is closed) and the same quadrature as Nerfstudio's renderer; differentiable in ``signs``.
+    """
+    r, s = ref.density.shape[:2]
+    m = sticker.mix(ref.features, signs)  # [N 1]
+    delta = torch.zeros(r * s, 1, dtype=m.dtype, device=m.device).index_add(0, ref.open_index, ref.psi_scale * m)
+    density = torch.relu(ref.density + delta.reshape(r, s, 1))
+    w = render_weights(density, ref.deltas)
+    acc = w.sum(dim=-2)[:, 0]
+    if len(ref.signals) == 1:
+        return acc[None]
+    return torch.stack([acc, (w * ref.steps).sum(dim=-2)[:, 0] / ref.depth_scale])
+
+
+def jacobian(fn: Callable[[Tensor], Tensor], s: Float[Tensor, "K"], chunk: int = 16) -> Float[Tensor, "M K"]:
+    """d fn / d s by forward-mode AD, ``chunk`` directions at a time (memory stays bounded)."""
+    from torch.func import jvp, vmap
+
+    eye = torch.eye(s.numel(), dtype=s.dtype, device=s.device)
+    cols = []
+    for i in range(0, s.numel(), chunk):
+        cols.append(vmap(lambda v: jvp(fn, (s,), (v,))[1].reshape(-1))(eye[i: i + chunk]))
+    return torch.cat(cols).T
+
+
+@dataclass
+class Fit:
+    signs: Float[Tensor, "K"]
+    explained: float  # 1 - |residual after| ^2 / |residual before| ^2 (0 when there is nothing to explain)
+    residual_rms: float  # of the target (suspect minus base), in signal units
+    iterations: int
+
+
+def fit_message(predict: Callable[[Tensor], Tensor], target: Float[Tensor, "M"], num_bits: int,
+                iterations: int = 10, damping: float = 1e-3) -> Fit:
+    """Least squares ``min_s |target - (predict(s) - predict(0))|^2`` over ``s in [-1, 1]^K``.
+
+    Levenberg-Marquardt from ``s = 0`` (Jacobians by forward-mode AD, normal equations in float64, steps clamped
+    to the box). A zero target returns ``s = 0`` exactly.
+    """
+    s = torch.zeros(num_bits, dtype=target.dtype, device=target.device)
+    with torch.no_grad():
+        f0 = predict(s).reshape(-1)
+    target = target.reshape(-1)
+    cost0 = float((target.double() ** 2).sum())
+    rms = (cost0 / max(1, target.numel())) ** 0.5
+    if cost0 == 0.0:
+        return Fit(signs=s, explained=0.0, residual_rms=0.0, iterations=0)
+    e = target.clone()
+    cost = cost0
+    lam = damping
+    it = 0
+    for it in range(1, iterations + 1):
+        j = jacobian(lambda x: predict(x).reshape(-1) - f0, s).double()
+        a = j.T @ j
+        g = j.T @ e.double()
+        diag = torch.diagonal(a).clone()
+        ridge = 1e-12 * float(diag.max()) if float(diag.max()) > 0 else 1e-30
+        improved = False
+        while lam < 1e8:
+            step = torch.linalg.solve(a + torch.diag(lam * diag + ridge), g)
+            s_try = (s + step.to(s.dtype)).clamp(-1.0, 1.0)
+            with torch.no_grad():
+                e_try = target - (predict(s_try).reshape(-1) - f0)
+            c_try = float((e_try.double() ** 2).sum())
+            if c_try < cost:
+                s, e, improved = s_try, e_try, True
+                gain = cost - c_try
+                cost = c_try
+                lam = max(lam / 3.0, 1e-9)
+                break
+            lam *= 10.0
+        if not improved or gain <= 1e-10 * cost0:
+            break
+    return Fit(signs=s.detach(), explained=1.0 - cost / cost0, residual_rms=rms, iterations=it)
+
+
+def decide_bits(signs: Float[Tensor, "K"], generator: torch.Generator, tol: float = 1e-6) -> Tuple[Int[Tensor, "K"], int]:
+    """Bit ``i`` = ``signs_i > 0``; bits with ``|signs_i| <= tol`` (not determined by the suspect) are coin flips
+    from ``generator`` (seeded independently of the owner's message). Returns the bits and how many were flipped."""
+    bits = (signs > 0).long().cpu()
+    tie = (signs.abs() <= tol).cpu()
+    coins = torch.randint(0, 2, (signs.numel(),), generator=generator)
+    bits = torch.where(tie, coins, bits)
+    return bits, int(tie.sum())
+
+
+# ================================================================================================================
+# the owner's base with the key's sticker
+# ================================================================================================================
+
+
+@dataclass
+class BaseReference:
+    """The owner's base run rebuilt with the key's sticker and gates (sticker off: renders are the base's)."""
+
+    config_path: Path
+    checkpoint: Path
+    method: str
+    pipeline: Any  # the base run's pipeline (cameras)
+    model: Any  # GeometryStickerModel wrapping the base
+    notes: List[str] = field(default_factory=list)
+
+
+def missing_geometry_message(key_path) -> str:
+    return (f"the owner key {key_path} has no geometry reference (a version-1 key); add it with `ns-verify-owner "
+            f"export-key --load-config WATERMARKED_RUN/config.yml --key {key_path}` (or retrain), or pass "
+            "--decode extractor")
+
+
+def recorded_base_config(key) -> Optional[Path]:
+    cfg = (key.base or {}).get("config")
+    return Path(cfg) if cfg else None
+
+
+def base_config_path(key, key_path, base_config: Optional[Path]) -> Path:
+    """The base run's config.yml: ``--base-config`` or the path recorded in the key; one-line error otherwise."""
+    cfg = Path(base_config) if base_config is not None else recorded_base_config(key)
+    if cfg is not None and cfg.is_dir() and (cfg / "config.yml").is_file():
+        cfg = cfg / "config.yml"
+    if cfg is None or not cfg.is_file():
+        where = "given with --base-config" if base_config is not None else "recorded in the key"
+        raise GStickerError(f"the owner's base run {cfg} ({where}) does not exist here; geometric decoding needs "
+                            "the unwatermarked base: pass --base-config BASE_RUN/config.yml (or --decode extractor)")
+    return cfg
+
+
+def base_checkpoint(key, config_path: Path) -> Path:
+    """The base checkpoint the key was made on, found via the key or beside ``config_path``; sha256 checked."""
+    from gsticker_plugin.key import file_sha256
+
+    recorded = (key.base or {}).get("checkpoint")
+    want = (key.base or {}).get("checkpoint_sha256")
+    if not recorded or not want:
+        raise GStickerError("the owner key does not record its base checkpoint and sha256; retrain the sticker "
+                            "with this gsticker (ns-train geometrysticker --load-checkpoint ...)")
+    name = Path(recorded).name
+    candidates = [config_path.parent / "nerfstudio_models" / name, Path(recorded)]
+    found = next((c for c in candidates if c.is_file()), None)
+    if found is None:
+        raise GStickerError(f"the base checkpoint {name} the key was made on is not in "
+                            f"{config_path.parent / 'nerfstudio_models'}; pass --base-config with the base run "
+                            "the watermark was made on")
+    got = file_sha256(found)
+    if got != want:
+        raise GStickerError(f"base checkpoint {found} has sha256 {got[:12]}... but the key was made on "
+                            f"{want[:12]}...; pass --base-config with the exact base run the watermark was made on")
+    return found
+
+
+def _data_for(config_path: Path, data: Optional[Path]) -> Optional[Path]:
+    """``data`` only when the run's recorded dataset does not exist from here."""
+    from gsticker_plugin import base_run
+
+    cfg = base_run.load_run_config(config_path)
+    dm = cfg.pipeline.datamanager
+    recorded = getattr(dm, "data", None) or getattr(getattr(dm, "dataparser", None), "data", None)
+    return None if (recorded is not None and Path(recorded).exists()) else data
+
+
+def load_base_reference(key, key_path, base_config: Optional[Path], data: Optional[Path],
+                        device: torch.device) -> BaseReference:
+    """Rebuild the owner's base (strictly, sha256-checked) wrapped by a GeometrySticker model with the key's
+    sticker and gates. ``data``: dataset folder used when the base's recorded one does not exist here."""
+    from gsticker_plugin import base_run
+    from gsticker_plugin.model import GeometryStickerModelConfig
+    from gsticker_plugin.verify import load_run
+
+    geo = key.geometry
+    if not geo:
+        raise GStickerError(missing_geometry_message(key_path))
+    cfg_path = base_config_path(key, key_path, base_config)
+    ckpt = base_checkpoint(key, cfg_path)
+    with contextlib.redirect_stdout(sys.stderr):
+        config, pipeline, _ = load_run(cfg_path, data=_data_for(cfg_path, data), device=device)
+    from nerfstudio.cameras.cameras import Cameras  # noqa: F401  (nerfstudio is imported by load_run)
+
+    if config.method_name in ("geometrysticker",) or hasattr(pipeline.model, "sticker_enabled"):
+        raise GStickerError(f"{cfg_path} is a watermarked run, not the unwatermarked base; pass --base-config with "
+                            "the base run the watermark was made on")
+    sc = geo["sticker_config"]
+    base_model_cfg = config.pipeline.model
+    mcfg = GeometryStickerModelConfig(
+        base_model=base_model_cfg, num_bits=int(sc["num_bits"]), num_frequencies=int(sc["num_frequencies"]),
+        sticker_hidden_dim=int(sc["hidden_dim"]), sticker_num_layers=int(sc["num_layers"]),
+        sticker_kind=sc["kind"], gate_threshold=float(geo["gate_threshold"]),
+        wrap_proposal_networks=bool(geo["wrap_proposal_networks"]),
+        eval_num_rays_per_chunk=int(getattr(base_model_cfg, "eval_num_rays_per_chunk", 4096)))
+    ds = pipeline.datamanager.train_dataset
+    with contextlib.redirect_stdout(sys.stderr):
+        model = mcfg.setup(scene_box=ds.scene_box, num_train_data=len(ds), metadata=ds.metadata, device=device)
+    state = base_run.load_checkpoint_state(ckpt)
+    base_run.strict_load(model.base, base_run.model_state_from_pipeline_state(state["pipeline"]), len(ds))
+    names = [w.name for w in model.wraps]
+    if names != list(geo["fields"]):
+        raise GStickerError(f"the key's sticker wraps fields {list(geo['fields'])} but the base rebuilds {names}; "
+                            "pass --base-config with the base run the watermark was made on")
+    try:
+        model.sticker.load_state_dict(geo["sticker_state"], strict=True)
+        model.gates.load_state_dict(geo["gates_state"], strict=True)
+    except RuntimeError as e:
+        raise GStickerError(f"the key's sticker does not fit its own configuration ({str(e).splitlines()[0]}); "
+                            "the key is damaged: use your original copy") from None
+    notes = []
+    for w in model.wraps:
+        stored = geo["aabb"][w.name].to(w.aabb)
+        if not torch.allclose(stored, w.aabb):
+            notes.append(f"{w.name}: position normalization taken from the key (rebuilt base differs)")
+        w.aabb = stored
+    model.to(device)
+    model.eval()
+    return BaseReference(config_path=cfg_path, checkpoint=ckpt, method=config.method_name, pipeline=pipeline,
+                         model=model, notes=notes)
+
+
+@torch.no_grad()
+def reference_view(ref: BaseReference, name: str, camera, use_depth: bool) -> ReferenceView:
+    """Render the base at ``camera`` once (sticker off) and keep the rays whose samples the sticker can change."""
+    from gsticker_plugin.fastpath import cache_view
+
+    model = ref.model
+    outputs: Dict[str, Tensor] = {}
+    cam = camera.to(model.device)
+    view = cache_view(model, cam, novel=False, outputs_into=outputs, full_precision=True)
+    h, w = view.hw
+    wrap = model.final_wrap
+    density = view.density.float()  # [A S 1]
+    psi = wrap.gate(density.to(model.device)).cpu()
+    open_ = (psi > wrap.gate_threshold).squeeze(-1) if bool(wrap.gate.calibrated) else torch.zeros_like(density[..., 0], dtype=torch.bool)
+    keep = open_.any(dim=-1)
+    rays = view.active[keep]
+    density, open_, psi = density[keep], open_[keep], psi[keep]
+    positions = view.positions[keep].float()
+    deltas = view.deltas[keep].float()
+    origin = cam.camera_to_worlds[0, :3, 3].float().cpu()
+    steps = (positions - origin).norm(dim=-1, keepdim=True)
+    s = density.shape[1] if density.ndim == 3 else 0
+    open_index = open_.reshape(-1).nonzero().squeeze(-1)
+    pos_open = positions.reshape(-1, 3)[open_index]
+    feats = model.sticker.features(wrap.normalize(pos_open.to(model.device))).cpu() if open_index.numel() else \
+        torch.zeros(0, model.sticker.num_bits)
+    psi_scale = psi.reshape(-1, 1)[open_index] * float(wrap.gate.scale)
+    signal, names = geometry_signal(outputs, use_depth)
+    weights = render_weights(density, deltas)
+    wsum = float(weights.sum())
+    depth_scale = float((weights * steps).sum()) / wsum if wsum > 0 else 1.0
+    base_signal = signal[:, rays]
+    if use_depth:
+        base_signal = base_signal.clone()
+        base_signal[1] /= depth_scale
+    return ReferenceView(name=name, hw=(h, w), rays=rays, density=density, deltas=deltas, steps=steps,
+                         open_index=open_index, psi_scale=psi_scale, features=feats, base_signal=base_signal,
+                         depth_scale=depth_scale, signals=names,
+                         image=view.image.permute(2, 0, 1).contiguous())
+
+
+def suspect_signal(outputs: Dict[str, Tensor], ref: ReferenceView) -> Float[Tensor, "C R"]:
+    """The suspect's geometry at the reference view's rays, in the reference's units."""
+    signal, _ = geometry_signal(outputs, len(ref.signals) == 2)
+    h, w = ref.hw
+    if signal.shape[1] != h * w:
+        raise GStickerError(f"the suspect rendered {signal.shape[1]} pixels for a {h}x{w} camera; geometric decoding "
+                            "needs renders at the base's cameras")
+    out = signal[:, ref.rays].clone()
+    if out.shape[0] == 2:
+        out[1] /= ref.depth_scale
+    return out
+
+
+def decode_view(ref_view: ReferenceView, sticker: Sticker, suspect: Float[Tensor, "C R"],
+                generator: torch.Generator, iterations: int = 10) -> Dict[str, Any]:
+    """Fit the continuous message to one view's suspect geometry and decide the bits."""
+    k = sticker.num_bits
+    target = (suspect - ref_view.base_signal).float()
+    if ref_view.rays.numel() == 0:
+        fit = Fit(signs=torch.zeros(k), explained=0.0, residual_rms=0.0, iterations=0)
+    else:
+        sticker_cpu = sticker
+        fit = fit_message(lambda s: predict_change(ref_view, sticker_cpu, s), target, k, iterations=iterations)
+    bits, undetermined = decide_bits(fit.signs, generator)
+    return {"bits": bits, "signs": fit.signs, "undetermined": undetermined, "explained": fit.explained,
+            "residual_rms": fit.residual_rms, "iterations": fit.iterations, "rays": int(ref_view.rays.numel())}
+
+
+# ================================================================================================================
+# a suspect model, all views
+# ================================================================================================================
+
+
+def cpu_sticker(model) -> Sticker:
+    """A frozen CPU copy of the model's sticker (the fit runs on the CPU)."""
+    import copy
+
+    return copy.deepcopy(model.sticker).cpu().requires_grad_(False).eval()
+
+
+def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int, sampled_share: float, seed: int,
+                   sticker: Optional[bool] = None, progress: bool = False, iterations: int = 10):
+    """Render the base and the suspect at ``num_views`` cameras of the base run, fit and decode every view.
+
+    Returns ``(dec, views)``: ``dec`` holds per view ``bits``, ``matches``, ``bit_acc``, ``pvalues`` (as
+    :func:`gsticker_plugin.verify.decode_views`; ``scores`` is None: the classifier reads images, not geometry)
+    and ``geometry`` (per-view fit details); ``views`` are :class:`gsticker_plugin.verify.View` with the suspect's
+    RGB renders (for the report's figure).
+    """
+    from gsticker_plugin import metrics
+    from gsticker_plugin.verify import View, _tqdm, select_cameras
+
+    cams = select_cameras(reference.pipeline, num_views, sampled_share, seed)
+    st = cpu_sticker(reference.model)
+    gen = torch.Generator().manual_seed(104729 + 7919 * int(seed))  # ties: independent of the owner's message
+    ctx = (suspect_model.sticker_enabled(sticker) if (sticker is not None and hasattr(suspect_model, "sticker_enabled"))
+           else contextlib.nullcontext())
+    bits, details, views = [], [], []
+    with ctx:
+        for name, cam in _tqdm(cams, "geometric decoding", progress):
+            with torch.no_grad():
+                out = suspect_model.get_outputs_for_camera(cam.to(suspect_model.device))
+            out = {k: v.detach().float().cpu() for k, v in out.items() if isinstance(v, Tensor)}
+            ref_view = reference_view(reference, name, cam, use_depth=has_expected_depth(out))
+            sus = suspect_signal(out, ref_view)
+            d = decode_view(ref_view, st, sus, gen, iterations)
+            bits.append(d.pop("bits"))
+            d["signs_abs_mean"] = float(d.pop("signs").abs().mean())
+            d["signals"] = list(ref_view.signals)
+            details.append(d)
+            rgb = out.get("rgb", out.get("rgb_fine"))
+            img = rgb.clamp(0, 1).permute(2, 0, 1).contiguous() if rgb is not None else ref_view.image
+            views.append(View(name=name, image=img))
+    b = torch.stack(bits)
+    m = metrics.count_matches(b, key.message)
+    dec = {"bits": b, "matches": m, "bit_acc": metrics.bit_accuracy(b, key.message),
+           "pvalues": metrics.binomial_tail_pvalues(m, key.num_bits), "scores": None, "geometry": details}
+    return dec, views
