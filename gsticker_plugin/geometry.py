@@ -273,7 +273,7 @@ def base_checkpoint(key, config_path: Path) -> Path:
     return found
 
 
-def _data_for(config_path: Path, data: Optional[Path]) -> Optional[Path]:
+def data_if_missing(config_path: Path, data: Optional[Path]) -> Optional[Path]:
     """``data`` only when the run's recorded dataset does not exist from here."""
     from gsticker_plugin import base_run
 
@@ -297,7 +297,7 @@ def load_base_reference(key, key_path, base_config: Optional[Path], data: Option
     cfg_path = base_config_path(key, key_path, base_config)
     ckpt = base_checkpoint(key, cfg_path)
     with contextlib.redirect_stdout(sys.stderr):
-        config, pipeline, _ = load_run(cfg_path, data=_data_for(cfg_path, data), device=device)
+        config, pipeline, _ = load_run(cfg_path, data=data_if_missing(cfg_path, data), device=device)
     from nerfstudio.cameras.cameras import Cameras  # noqa: F401  (nerfstudio is imported by load_run)
 
     if config.method_name in ("geometrysticker",) or hasattr(pipeline.model, "sticker_enabled"):

@@ -119,6 +119,13 @@ class CalibrateConfig:
     """Folders of unmarked images."""
     base: bool = True
     """Also render the base run the key was made on (the config path recorded in the key), when it exists here."""
+    decode: Literal["extractor", "geometry"] = "extractor"
+    """Which decoder's null to measure: the extractor's (stored in the key's null) or the geometric decoder's
+    (stored in the key's geometry reference; decodes the base itself and the --load-config runs, not images)."""
+    base_config: Optional[Path] = None
+    """--decode geometry: the owner's base run (config.yml), when the path recorded in the key moved."""
+    data: Optional[Path] = None
+    """--decode geometry: dataset folder of the owner's base run, when its recorded one does not exist here."""
     random_images: int = 64
     """Random images (noise, smooth noise, flat colours, gradients) added to the null."""
     random_size: int = 64
@@ -873,6 +880,8 @@ def calibrate(config: CalibrateConfig) -> Dict[str, Any]:
     key_path = Path(config.key)
     key = OwnerKey.load(key_path)
     device = _device(config.device)
+    if config.decode == "geometry":
+        return _calibrate_geometry(config, key_path, key, device)
     sources: List[Views] = []
     notes: List[str] = []
     if config.base:
@@ -904,12 +913,21 @@ def calibrate(config: CalibrateConfig) -> Dict[str, Any]:
         matches += m
         src_info.append({"kind": s.kind, "source": s.source, "n": len(m), "mean_matches": sum(m) / len(m),
                          "max_matches": max(m), "skipped": len(s.skipped), **({"details": s.details} if s.details else {})})
-    old = key.null if (config.append and key.null) else None
+    return _store_null(config, key_path, key, "extractor", matches, src_info, notes)
+
+
+def _store_null(config: CalibrateConfig, key_path: Path, key: OwnerKey, decoder: str, matches: List[int],
+                src_info: List[Dict[str, Any]], notes: List[str]) -> Dict[str, Any]:
+    old = decoder_null(key, decoder) if config.append else None
     if old:
         matches = [int(x) for x in old.get("matches", [])] + matches
         src_info = list(old.get("sources", [])) + src_info
-    key.null = {"version": NULL_FORMAT_VERSION, "num_bits": key.num_bits, "matches": matches, "sources": src_info,
-                "created": time.time()}
+    null = {"version": NULL_FORMAT_VERSION, "num_bits": key.num_bits, "matches": matches, "sources": src_info,
+            "created": time.time(), "decoder": decoder}
+    if decoder == "geometry":
+        key.geometry = {**key.geometry, "null": null}
+    else:
+        key.null = null
     backup = None
     if config.backup:
         backup = key_path.with_name(key_path.name + ".bak")
@@ -918,15 +936,99 @@ def calibrate(config: CalibrateConfig) -> Dict[str, Any]:
     OwnerKey.load(key_path)  # the rewritten key passes its own fingerprint check
     k = key.num_bits
     return {"key": str(key_path), "backup": str(backup) if backup else None, "null_views": len(matches),
-            "sources": src_info, "notes": notes,
+            "decoder": decoder, "sources": src_info, "notes": notes,
             "mean_matches": sum(matches) / len(matches), "max_matches": max(matches),
             "thresholds": {f"{a:g}": {"theoretical": metrics.min_matches_for_fpr(k, a),
                                       "empirical": metrics.empirical_threshold(matches, a, k)}
                            for a in (1e-3, 1e-6, 1e-9)}}
 
 
+def _calibrate_geometry(config: CalibrateConfig, key_path: Path, key: OwnerKey, device: torch.device) -> Dict[str, Any]:
+    """The geometric decoder's null: decode the unwatermarked base itself and the given (unmarked) runs."""
+    import contextlib
+
+    from gsticker_plugin import geometry
+
+    if not key.geometry:
+        raise GStickerError(geometry.missing_geometry_message(key_path))
+    notes = []
+    if config.images or config.random_images:
+        notes.append("images skipped: the geometric decoder reads models, not images")
+    ref = geometry.load_base_reference(key, key_path, config.base_config, config.data, device)
+    runs = ([ref.config_path] if config.base else []) + [Path(c) for c in config.load_config]
+    if not runs:
+        raise GStickerError("no unmarked run to calibrate the geometric decoder on; keep the base (drop --no-base) "
+                            "or pass --load-config OTHER_RUN/config.yml")
+    matches: List[int] = []
+    src_info = []
+    for i, cfg in enumerate(runs):
+        with contextlib.redirect_stdout(sys.stderr):
+            run_cfg, pipeline, _ = load_run(cfg, data=geometry.data_if_missing(cfg, config.data), device=device)
+        dec, _ = geometry.decode_suspect(key, ref, pipeline.model, config.num_views, config.sampled_share,
+                                         config.seed + i, sticker=False, progress=config.progress)
+        m = [int(x) for x in dec["matches"].tolist()]
+        matches += m
+        src_info.append({"kind": "model", "source": str(cfg), "n": len(m), "mean_matches": sum(m) / len(m),
+                         "max_matches": max(m), "skipped": 0,
+                         "details": {"method": run_cfg.method_name, "sticker": "off",
+                                     "undetermined_bits_mean": sum(g["undetermined"] for g in dec["geometry"]) / len(m)}})
+    return _store_null(config, key_path, key, "geometry", matches, src_info, notes)
+
+
+@dataclass
+class ExportKeyConfig:
+    """Add the geometry reference (the sticker, the gates) of a watermarked run to its owner key: a version-1 key
+    becomes a version-2 key that `ns-verify-owner --decode geometry` can use. The run must carry the key's
+    message and be made on the key's base."""
+
+    load_config: Path
+    """The watermarked run (RUN/config.yml written by ns-train geometrysticker) the key belongs to."""
+    key: Path
+    """The owner key (.gskey) to extend."""
+    output: Optional[Path] = None
+    """Where the extended key is written (default: the key itself, the previous file kept as KEY.gskey.bak)."""
+    data: Optional[Path] = None
+    """Dataset folder of the run, when the path recorded in its config.yml does not exist from here."""
+    backup: bool = True
+    """Keep the previous key file as KEY.gskey.bak when rewriting it in place."""
+
+
+def export_key(config: ExportKeyConfig) -> Dict[str, Any]:
+    import contextlib
+
+    from gsticker_plugin.geometry import geometry_reference
+
+    key_path = Path(config.key)
+    key = OwnerKey.load(key_path)
+    with contextlib.redirect_stdout(sys.stderr):
+        run_cfg, pipeline, ckpt = load_run(config.load_config, data=config.data, device=torch.device("cpu"))
+    model = pipeline.model
+    if not hasattr(model, "sticker") or not hasattr(model, "final_wrap"):
+        raise GStickerError(f"{config.load_config} is a {run_cfg.method_name} run without a sticker; pass the "
+                            "watermarked run (ns-train geometrysticker) the key was written for")
+    if not torch.equal(model.message.cpu().long(), key.message.long()):
+        raise GStickerError(f"the run {config.load_config} carries a different message than the key {key_path}; "
+                            "pass the watermarked run this key was written for")
+    run_sha = dict(run_cfg.pipeline.base_run).get("checkpoint_sha256")
+    key_sha = (key.base or {}).get("checkpoint_sha256")
+    if run_sha != key_sha:
+        raise GStickerError(f"the run {config.load_config} was made on another base than the key {key_path} "
+                            "(base checkpoint sha256 differs); pass the watermarked run this key was written for")
+    old_null = (key.geometry or {}).get("null")
+    key.geometry = {**geometry_reference(model), "null": old_null}
+    out = Path(config.output) if config.output is not None else key_path
+    backup = None
+    if out.resolve() == key_path.resolve() and config.backup:
+        backup = key_path.with_name(key_path.name + ".bak")
+        shutil.copy2(key_path, backup)
+    key.save(out)
+    OwnerKey.load(out)
+    return {"key": str(out), "backup": str(backup) if backup else None, "run": str(config.load_config),
+            "checkpoint": str(ckpt), "fields": key.geometry["fields"]}
+
+
 def calibrate_text(res: Dict[str, Any]) -> str:
-    lines = [f"calibrated {res['key']}: {res['null_views']} unmarked views in its null "
+    lines = [f"calibrated {res['key']} ({res['decoder']} decoder): {res['null_views']} unmarked views in its null "
              f"(mean {res['mean_matches']:.1f}, max {res['max_matches']} matches; chance mean 24 of 48)"]
     for s in res["sources"]:
         lines.append(f"  {s['kind']} {s['source']}: {s['n']} views, mean {s['mean_matches']:.1f}, max {s['max_matches']}")
@@ -955,21 +1057,29 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     compat.apply()
     argv = list(sys.argv[1:] if argv is None else argv)
     sub = "verify"
-    if argv and argv[0] in ("verify", "calibrate"):
+    if argv and argv[0] in ("verify", "calibrate", "export-key"):
         sub, argv = argv[0], argv[1:]
     try:
         if sub == "calibrate":
             cfg = tyro.cli(CalibrateConfig, args=argv, prog="ns-verify-owner calibrate")
+        elif sub == "export-key":
+            cfg = tyro.cli(ExportKeyConfig, args=argv, prog="ns-verify-owner export-key")
         else:
             cfg = tyro.cli(VerifyConfig, args=argv, prog="ns-verify-owner [verify]",
                            description=(VerifyConfig.__doc__ or "") + "\n\nSubcommands: verify (default), calibrate "
-                           "(ns-verify-owner calibrate --help).")
+                           "(ns-verify-owner calibrate --help), export-key (adds the geometry reference to a "
+                           "version-1 key).")
     except SystemExit as e:  # --help (0) or a parse error (tyro prints it; status 2)
         return int(e.code) if isinstance(e.code, int) else EXIT_ERROR
     try:
         if sub == "calibrate":
             res = calibrate(cfg)
             print(calibrate_text(res))
+            return 0
+        if sub == "export-key":
+            res = export_key(cfg)
+            print(f"wrote {res['key']}: geometry reference of {res['run']} (fields {', '.join(res['fields'])})"
+                  + (f"; previous key kept as {res['backup']}" if res["backup"] else ""))
             return 0
         status, report = verify(cfg)
         print(summary_text(report))
