@@ -250,8 +250,9 @@ def base_config_path(key, key_path, base_config: Optional[Path]) -> Path:
     return cfg
 
 
-def base_checkpoint(key, config_path: Path) -> Path:
-    """The base checkpoint the key was made on, found via the key or beside ``config_path``; sha256 checked."""
+def base_checkpoint(key, config_path: Path, only_beside: bool = False) -> Path:
+    """The base checkpoint the key was made on, beside ``config_path`` or (unless ``only_beside``: the user
+    named the base run) where the key recorded it; sha256 checked."""
     from gsticker_plugin.key import file_sha256
 
     recorded = (key.base or {}).get("checkpoint")
@@ -260,7 +261,7 @@ def base_checkpoint(key, config_path: Path) -> Path:
         raise GStickerError("the owner key does not record its base checkpoint and sha256; retrain the sticker "
                             "with this gsticker (ns-train geometrysticker --load-checkpoint ...)")
     name = Path(recorded).name
-    candidates = [config_path.parent / "nerfstudio_models" / name, Path(recorded)]
+    candidates = [config_path.parent / "nerfstudio_models" / name] + ([] if only_beside else [Path(recorded)])
     found = next((c for c in candidates if c.is_file()), None)
     if found is None:
         raise GStickerError(f"the base checkpoint {name} the key was made on is not in "
@@ -295,7 +296,7 @@ def load_base_reference(key, key_path, base_config: Optional[Path], data: Option
     if not geo:
         raise GStickerError(missing_geometry_message(key_path))
     cfg_path = base_config_path(key, key_path, base_config)
-    ckpt = base_checkpoint(key, cfg_path)
+    ckpt = base_checkpoint(key, cfg_path, only_beside=base_config is not None)
     with contextlib.redirect_stdout(sys.stderr):
         config, pipeline, _ = load_run(cfg_path, data=data_if_missing(cfg_path, data), device=device)
     from nerfstudio.cameras.cameras import Cameras  # noqa: F401  (nerfstudio is imported by load_run)
@@ -327,6 +328,9 @@ def load_base_reference(key, key_path, base_config: Optional[Path], data: Option
         raise GStickerError(f"the key's sticker does not fit its own configuration ({str(e).splitlines()[0]}); "
                             "the key is damaged: use your original copy") from None
     notes = []
+    if sc["kind"] == "bilinear" and int(sc["hidden_dim"]) + 1 < int(sc["num_bits"]):
+        notes.append(f"the bilinear sticker's {sc['hidden_dim']} hidden units span fewer than its {sc['num_bits']} "
+                     "bit patterns: some bits are not identifiable from geometry (decoded near chance)")
     for w in model.wraps:
         stored = geo["aabb"][w.name].to(w.aabb)
         if not torch.allclose(stored, w.aabb):

@@ -1,0 +1,346 @@
+"""Informed geometric decoding (gsticker_plugin/geometry.py, ``ns-verify-owner --decode geometry``).
+
+Pure functions first (the sticker's continuous-message path, the least-squares fit, the tie rule), then the owner
+key's version-2 geometry reference, then real runs: a 2-step nerfacto base and a 10-step ``geometrysticker`` run on
+the 32 px tiny scene (real ``ns-train``), recolored with ``ns-recolor`` (palette, hue, color-only fine-tune), a copy
+of the run whose checkpoint carries a different message, and a base trained on another scene. Nothing is faked:
+the CLI loads the key, rebuilds the owner's base, renders the suspect and fits the message.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Dict, List
+
+import pytest
+import torch
+
+from gsticker_plugin import geometry as G
+from gsticker_plugin import verify as V
+from gsticker_plugin.key import OwnerKey, fingerprint, parse_message
+from gsticker_plugin.sticker import Sticker, message_to_signs
+
+BIN = Path(sys.executable).parent
+MESSAGE = "101100111000111100001111100000111111000000111111"
+OTHER_MESSAGE = "010011000111000011110000011111000000111111000000"  # the complement: 0 matches with MESSAGE
+NERFACTO_TINY = ["gsticker-nerfacto-small", "--pipeline.model.num-nerf-samples-per-ray", "16",
+                 "--pipeline.model.num-proposal-samples-per-ray", "32", "16",
+                 "--pipeline.datamanager.train-num-rays-per-batch", "256"]
+COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
+VIEWS = "6"
+
+
+def _env() -> dict:
+    return dict(os.environ, OMP_NUM_THREADS="1", GSTICKER_NO_DOWNLOAD="1", PYTHONWARNINGS="ignore")
+
+
+def run_cli(argv: List[str], capsys):
+    status = V.main([*argv, "--no-progress"] if argv[:1] != ["export-key"] else argv)
+    cap = capsys.readouterr()
+    return status, cap.out, cap.err
+
+
+def one_error_line(err: str) -> str:
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert lines and lines[-1].startswith("error: "), err
+    assert sum(1 for ln in lines if ln.startswith("error: ")) == 1, err
+    return lines[-1]
+
+
+def report_of(out_dir: Path) -> dict:
+    return json.loads((out_dir / "report.json").read_text())
+
+
+def rewrite_key(src: Path, dst: Path, **changes) -> Path:
+    """A copy of a key with payload entries changed and the fingerprint recomputed (a *valid* key)."""
+    p = torch.load(src, weights_only=True)
+    p.update(changes)
+    p["fingerprint"] = fingerprint(p)
+    torch.save(p, dst)
+    return dst
+
+
+# ---------------------------------------------------------------------------------------------- pure functions
+@pytest.mark.parametrize("kind", ["bilinear", "concat"])
+def test_sticker_mix_is_forward_for_bits(kind):
+    torch.manual_seed(0)
+    st = Sticker(48, 5, 32, 2, 0.5, kind)
+    x = torch.rand(100, 3)
+    m = torch.randint(0, 2, (48,))
+    assert torch.equal(st(x, m), st.mix(st.features(x), message_to_signs(m)))
+
+
+def _synthetic_view(st: Sticker, r: int = 600, s: int = 24, seed: int = 0) -> G.ReferenceView:
+    g = torch.Generator().manual_seed(seed)
+    dens = torch.rand(r, s, 1, generator=g) * 5 * (torch.rand(r, s, 1, generator=g) > 0.6)
+    psi = torch.sigmoid((dens - 2.5) * 4).reshape(-1, 1)
+    open_index = (psi[:, 0] > 1e-3).nonzero().squeeze(-1)
+    pos = torch.rand(r * s, 3, generator=g)
+    with torch.no_grad():
+        feats = st.features(pos[open_index])
+    return G.ReferenceView(name="v", hw=(1, r), rays=torch.arange(r), density=dens,
+                           deltas=torch.full((r, s, 1), 0.1),
+                           steps=torch.linspace(2, 6, s).expand(r, s)[..., None].clone(), open_index=open_index,
+                           psi_scale=psi[open_index] * 2.0, features=feats, base_signal=torch.zeros(2, r),
+                           depth_scale=4.0, signals=("accumulation", "expected_depth"))
+
+
+def test_fit_recovers_the_message_and_a_zero_residual_gives_coin_flips():
+    torch.manual_seed(0)
+    st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)  # hidden >= bits: all 48 patterns independent
+    ref = _synthetic_view(st)
+    msg = parse_message(MESSAGE)
+    with torch.no_grad():
+        suspect = G.predict_change(ref, st, message_to_signs(msg)) - G.predict_change(ref, st, torch.zeros(48))
+    d = G.decode_view(ref, st, suspect, torch.Generator().manual_seed(1))
+    assert torch.equal(d["bits"], msg) and d["undetermined"] == 0 and d["explained"] > 0.999
+    # the suspect IS the base: nothing to fit, every bit is a coin flip (not 0/48 or 48/48)
+    matches = []
+    gen = torch.Generator().manual_seed(2)
+    for _ in range(200):
+        d0 = G.decode_view(ref, st, torch.zeros_like(suspect), gen)
+        assert d0["undetermined"] == 48 and d0["iterations"] == 0
+        matches.append(int((d0["bits"] == msg).sum()))
+    mean = sum(matches) / len(matches)
+    assert 23.0 < mean < 25.0 and max(matches) < 41  # Binomial(48, 1/2): mean 24, sd of the mean 0.24
+
+
+def test_jacobian_matches_finite_differences():
+    torch.manual_seed(1)
+    st = Sticker(48, 5, 16, 2, 0.5, "concat").requires_grad_(False)
+    ref = _synthetic_view(st, r=50, s=8)
+    s0 = torch.rand(48) * 0.4 - 0.2
+    fn = lambda s: G.predict_change(ref, st, s).double().reshape(-1)  # noqa: E731
+    j = G.jacobian(lambda s: G.predict_change(ref, st, s).reshape(-1), s0)
+    eps = 1e-3
+    for i in (0, 17, 47):
+        e = torch.zeros(48)
+        e[i] = eps
+        fd = (fn(s0 + e) - fn(s0 - e)) / (2 * eps)
+        assert torch.allclose(j[:, i].double(), fd, atol=2e-3, rtol=2e-2)
+
+
+# ---------------------------------------------------------------------------------------------- real runs
+@pytest.fixture(scope="module")
+def ws(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("geometry")
+
+
+def _train(cmd: List[str], cwd: Path) -> None:
+    proc = subprocess.run([str(BIN / "ns-train"), *cmd], capture_output=True, text=True, env=_env(), cwd=cwd,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+
+
+@pytest.fixture(scope="module")
+def runs(tiny_scene, ws) -> Dict[str, Path]:
+    """Base, watermarked run + key, a copy carrying OTHER_MESSAGE, and a base on another scene."""
+    out = ws / "runs"
+    _train([*NERFACTO_TINY, *COMMON, "--output-dir", str(out / "base"), "--experiment-name", "nerfacto",
+            "--timestamp", "base", "--max-num-iterations", "2", "--steps-per-save", "2",
+            "blender-data", "--data", str(tiny_scene)], ws)
+    base = out / "base" / "nerfacto" / "gsticker-nerfacto-small" / "base"
+    ckpt = max((base / "nerfstudio_models").glob("step-*.ckpt"))
+    _train(["geometrysticker", "--load-checkpoint", str(ckpt), *COMMON, "--output-dir", str(out / "gs"),
+            "--experiment-name", "gs", "--timestamp", "run", "--max-num-iterations", "10",
+            "--pipeline.message", MESSAGE, "--pipeline.pool-train-views", "2", "--pipeline.pool-novel-views", "2",
+            "--pipeline.monitor-views", "1", "--pipeline.steps-per-monitor", "5", "--pipeline.views-per-step", "2",
+            "--pipeline.heads.width", "8"], ws)
+    run = out / "gs" / "gs" / "geometrysticker" / "run"
+    # the same sticker carrying another message: the checkpoint's message buffer rewritten
+    other = out / "other-msg" / "run"
+    shutil.copytree(run, other)
+    (ck,) = (other / "nerfstudio_models").glob("step-*.ckpt")
+    state = torch.load(ck, map_location="cpu", weights_only=False)
+    state["pipeline"]["_model.message"] = parse_message(OTHER_MESSAGE)
+    torch.save(state, ck)
+    import yaml
+
+    cfg = yaml.load((other / "config.yml").read_text(), Loader=yaml.Loader)
+    cfg.output_dir, cfg.experiment_name, cfg.timestamp = out / "nowhere", "x", "y"  # found beside config.yml
+    (other / "config.yml").write_text(yaml.dump(cfg))
+    # another scene (seed 1), its own base
+    scene2 = ws / "scene2"
+    proc = subprocess.run([sys.executable, "-m", "gsticker_plugin.scene", "--output-dir", str(scene2), "--resolution",
+                           "32", "--num-train", "6", "--num-val", "2", "--num-test", "2", "--seed", "1"],
+                          capture_output=True, text=True, timeout=300, env=_env())
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    _train([*NERFACTO_TINY, *COMMON, "--output-dir", str(out / "scene2"), "--experiment-name", "nerfacto",
+            "--timestamp", "base", "--max-num-iterations", "2", "--steps-per-save", "2",
+            "blender-data", "--data", str(scene2)], ws)
+    return {"base": base / "config.yml", "run": run / "config.yml", "key": run.with_name("run.gskey"),
+            "other_msg": other / "config.yml",
+            "scene2": out / "scene2" / "nerfacto" / "gsticker-nerfacto-small" / "base" / "config.yml"}
+
+
+def _geo(runs, ws, capsys, suspect: Path, name: str, *extra: str):
+    out = ws / f"rep-{name}"
+    status, stdout, err = run_cli(["--load-config", str(suspect), "--key", str(runs["key"]), "--output", str(out),
+                                   "--num-views", VIEWS, *extra], capsys)
+    assert status in (0, 1), err[-2000:]
+    rep = report_of(out)
+    assert rep["decoder"]["kind"] == "geometry" and rep["decoder"]["informed"] is True
+    assert "decoder: geometry (informed" in stdout and stdout.startswith("VERDICT:")
+    (r,) = rep["keys"]
+    assert r["decoder"] == "geometry" and r["views"] == int(VIEWS) and r["base"]["config"] == str(runs["base"])
+    return status, stdout, r
+
+
+def test_key_v2_holds_the_geometry_reference_and_loads_weights_only(runs):
+    key = OwnerKey.load(runs["key"])
+    assert key.version == 2 and key.geometry["fields"] == ["field"] and key.geometry["final_field"] == "field"
+    assert key.geometry["sticker_config"]["kind"] == "bilinear" and key.geometry["sticker_config"]["num_bits"] == 48
+    assert set(key.geometry["gates_state"]) == {"field.mu", "field.scale", "field.calibrated", "field.log_beta"}
+    n = sum(v.numel() for v in key.geometry["sticker_state"].values())
+    assert 5_000 < n < 20_000  # the sticker is small
+    code = "import torch,sys; p=torch.load(sys.argv[1], weights_only=True); print(p['version'], sorted(p['geometry']))"
+    proc = subprocess.run([sys.executable, "-c", code, str(runs["key"])], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-1000:]
+    assert proc.stdout.startswith("2 ") and "'sticker_state'" in proc.stdout
+
+
+def test_watermarked_run_is_owned_48_of_48(runs, ws, capsys):
+    status, stdout, r = _geo(runs, ws, capsys, runs["run"], "wm")
+    assert status == 0 and r["verdict"] == "owned"
+    assert all(v["matches"] == 48 and v["decoded"] == MESSAGE for v in r["per_view"]), [v["matches"] for v in r["per_view"]]
+    assert all(v["geometry"]["undetermined"] == 0 and v["geometry"]["explained"] > 0.99 for v in r["per_view"])
+    assert all(v["score"] is None for v in r["per_view"]) and "classifier not used" in stdout
+
+
+@pytest.mark.parametrize("edit", ["palette", "hue", "finetune"])
+def test_recolored_runs_are_owned(runs, ws, capsys, edit):
+    from gsticker_plugin.recolor import cli
+
+    args = {"palette": ["palette", "--set", "0=blue"], "hue": ["hue", "--shift", "0.25"],
+            "finetune": ["finetune", "--set", "0=blue", "--steps", "10"]}[edit]
+    dest = ws / f"recolored-{edit}"
+    assert cli.run([*args, "--load-config", str(runs["run"]), "--output-dir", str(dest)]) == 0
+    (cfg,) = dest.glob("**/config.yml")
+    capsys.readouterr()  # ns-recolor's own output
+    status, _, r = _geo(runs, ws, capsys, cfg, edit)
+    assert status == 0 and r["verdict"] == "owned"
+    assert min(v["matches"] for v in r["per_view"]) >= 41
+
+
+def test_unwatermarked_base_and_another_scene_are_not_shown_near_chance(runs, ws, capsys):
+    status, _, r = _geo(runs, ws, capsys, runs["base"], "base")
+    assert status == 1 and r["verdict"] == "not shown"
+    m = [v["matches"] for v in r["per_view"]]
+    assert max(m) < 41 and 12 <= sorted(m)[len(m) // 2] <= 36, m
+    assert all(v["geometry"]["undetermined"] == 48 for v in r["per_view"])  # zero residual: coin flips
+    status, _, r = _geo(runs, ws, capsys, runs["scene2"], "scene2")
+    assert status == 1 and r["verdict"] == "not shown"
+    m = [v["matches"] for v in r["per_view"]]
+    assert max(m) < 41 and 12 <= sorted(m)[len(m) // 2] <= 36, m
+
+
+def test_another_message_on_the_same_base_decodes_to_that_message(runs, ws, capsys):
+    status, _, r = _geo(runs, ws, capsys, runs["other_msg"], "other-msg")
+    assert status == 1 and r["verdict"] == "not shown"
+    assert all(v["decoded"] == OTHER_MESSAGE and v["matches"] == 0 for v in r["per_view"])
+
+
+def test_auto_decoder_and_explicit_extractor(runs, ws, capsys):
+    out = ws / "rep-extractor"
+    status, stdout, _ = run_cli(["--load-config", str(runs["run"]), "--key", str(runs["key"]), "--output", str(out),
+                                 "--num-views", "2", "--decode", "extractor"], capsys)
+    assert status in (0, 1) and report_of(out)["decoder"]["kind"] == "extractor" and "decoder: extractor (blind" in stdout
+    # auto without a reachable base: the extractor, and the report says why
+    moved = rewrite_key(runs["key"], ws / "moved-base.gskey",
+                        base={**OwnerKey.load(runs["key"]).base, "config": str(ws / "nowhere" / "config.yml")})
+    out = ws / "rep-auto-moved"
+    status, _, _ = run_cli(["--load-config", str(runs["run"]), "--key", str(moved), "--output", str(out),
+                            "--num-views", "2"], capsys)
+    dec = report_of(out)["decoder"]
+    assert status in (0, 1) and dec["kind"] == "extractor" and "--base-config" in dec["notes"][0]
+    # ... and --base-config brings the geometry decoder back
+    out = ws / "rep-base-config"
+    status, _, _ = run_cli(["--load-config", str(runs["run"]), "--key", str(moved), "--output", str(out),
+                            "--num-views", "2", "--base-config", str(runs["base"])], capsys)
+    assert status == 0 and report_of(out)["decoder"]["kind"] == "geometry"
+    # attacks are image-level: skipped with a note under geometric decoding
+    out = ws / "rep-attack"
+    status, stdout, _ = run_cli(["--load-config", str(runs["run"]), "--key", str(runs["key"]), "--output", str(out),
+                                 "--num-views", "2", "--attack", "noise=0.1"], capsys)
+    assert status == 0 and "not applied" in " ".join(report_of(out)["decoder"]["notes"]) and "not applied" in stdout
+
+
+def test_v1_key_loads_says_how_to_add_geometry_and_export_key_upgrades_it(runs, ws, capsys):
+    p = torch.load(runs["key"], weights_only=True)
+    v1 = {k: v for k, v in p.items() if k != "geometry"}
+    v1["version"] = 1
+    v1["fingerprint"] = fingerprint(v1)
+    path = ws / "v1.gskey"
+    torch.save(v1, path)
+    key = OwnerKey.load(path)
+    assert key.version == 1 and key.geometry is None and torch.equal(key.message, parse_message(MESSAGE))
+    status, _, err = run_cli(["--load-config", str(runs["run"]), "--key", str(path), "--output", str(ws / "r"),
+                              "--decode", "geometry"], capsys)
+    line = one_error_line(err)
+    assert status == 2 and "no geometry reference" in line and "export-key" in line
+    # auto with a v1 key: the extractor, with the reason
+    out = ws / "rep-v1-auto"
+    status, _, _ = run_cli(["--load-config", str(runs["run"]), "--key", str(path), "--output", str(out),
+                            "--num-views", "2"], capsys)
+    assert status in (0, 1) and report_of(out)["decoder"]["kind"] == "extractor"
+    # export-key refuses a run carrying another message, then upgrades the key from the right run
+    status, _, err = run_cli(["export-key", "--load-config", str(runs["other_msg"]), "--key", str(path)], capsys)
+    assert status == 2 and "different message" in one_error_line(err)
+    status, stdout, err = run_cli(["export-key", "--load-config", str(runs["run"]), "--key", str(path)], capsys)
+    assert status == 0, err
+    up = OwnerKey.load(path)
+    assert up.version == 2 and up.geometry["fields"] == ["field"] and Path(str(path) + ".bak").is_file()
+    for k, v in OwnerKey.load(runs["key"]).geometry["sticker_state"].items():
+        assert torch.equal(up.geometry["sticker_state"][k], v)
+    out = ws / "rep-v1-upgraded"
+    status, _, _ = run_cli(["--load-config", str(runs["run"]), "--key", str(path), "--output", str(out),
+                            "--num-views", "2"], capsys)
+    assert status == 0 and report_of(out)["decoder"]["kind"] == "geometry"
+
+
+def test_calibrate_geometry_stores_its_own_null(runs, ws, capsys):
+    key = ws / "calib.gskey"
+    shutil.copy(runs["key"], key)
+    status, stdout, err = run_cli(["calibrate", "--key", str(key), "--decode", "geometry", "--num-views", "3",
+                                   "--load-config", str(runs["scene2"])], capsys)
+    assert status == 0, err
+    k = OwnerKey.load(key)
+    assert k.null is None  # the extractor's null is untouched
+    null = k.geometry["null"]
+    assert len(null["matches"]) == 6 and null["decoder"] == "geometry" and max(null["matches"]) < 41
+    assert null["sources"][0]["source"] == str(runs["base"])
+    out = ws / "rep-calibrated"
+    status, stdout, _ = run_cli(["--load-config", str(runs["run"]), "--key", str(key), "--output", str(out),
+                                 "--num-views", "2"], capsys)
+    t = report_of(out)["keys"][0]["thresholds"]
+    assert status == 0 and t["empirical"] == max(null["matches"]) + 1 and t["used"] == 41
+
+
+def test_bad_input_is_one_line_exit_2(runs, ws, capsys, tiny_scene):
+    cases = []
+    # geometry from images
+    cases.append((["--images", str(tiny_scene / "train"), "--key", str(runs["key"]), "--decode", "geometry"],
+                  "--load-config"))
+    # the base is missing
+    moved = rewrite_key(runs["key"], ws / "bad-moved.gskey",
+                        base={**OwnerKey.load(runs["key"]).base, "config": str(ws / "nowhere" / "config.yml")})
+    cases.append((["--load-config", str(runs["run"]), "--key", str(moved), "--decode", "geometry"], "--base-config"))
+    # a base run whose checkpoint is not the one the key was made on
+    cases.append((["--load-config", str(runs["run"]), "--key", str(runs["key"]), "--decode", "geometry",
+                   "--base-config", str(runs["scene2"])], "sha256"))
+    # the watermarked run given as the base
+    cases.append((["--load-config", str(runs["run"]), "--key", str(runs["key"]), "--decode", "geometry",
+                   "--base-config", str(runs["run"])], "not in"))
+    # a tampered geometry reference (fingerprint kept)
+    p = torch.load(runs["key"], weights_only=True)
+    p["geometry"]["sticker_state"]["pos_in.bias"] = p["geometry"]["sticker_state"]["pos_in.bias"] + 1.0
+    torch.save(p, ws / "tampered.gskey")
+    cases.append((["--load-config", str(runs["run"]), "--key", str(ws / "tampered.gskey")], "fingerprint"))
+    for argv, words in cases:
+        status, stdout, err = run_cli([*argv, "--output", str(ws / "rep-bad")], capsys)
+        assert status == 2 and words in one_error_line(err) and "VERDICT" not in stdout, (argv, err[-800:])
