@@ -14,7 +14,9 @@ brightness pattern) is kept.
 The end-to-end tests train a tiny nerfacto base and a tiny ``geometrysticker`` run on the 32 px tiny scene
 (like tests/test_geometrysticker.py) and check that ``verify`` and ``calibrate`` run on real runs and write
 sane reports. The extractor of such a 10-step run has not learned the message (docs/geometrysticker.md,
-"Status"), so the verdict "owned" on it is an ``xfail(strict=False)``.
+"Status"), so the extractor's verdict "owned" on it is an ``xfail(strict=False)``; the informed geometric decoder
+(``--decode geometry``, the default for a model with a version-2 key whose base is reachable; more in
+tests/test_geometry.py) reads it from the geometry: "owned", also on the recolored runs.
 """
 
 from __future__ import annotations
@@ -510,7 +512,11 @@ def _check_model_report(rep: dict, n_views: int) -> dict:
     assert r["views"] == n_views and len(r["per_view"]) == n_views
     for v in r["per_view"]:
         assert 0 <= v["matches"] <= 48 and 0.0 <= v["bit_accuracy"] <= 1.0 and 0.0 < v["pvalue"] <= 1.0
-        assert 0.0 <= v["score"] <= 1.0 and len(v["decoded"]) == 48
+        assert len(v["decoded"]) == 48
+        if rep["decoder"]["kind"] == "extractor":
+            assert 0.0 <= v["score"] <= 1.0
+        else:  # the classifier reads images; the geometric decoder does not use it
+            assert v["score"] is None and v["geometry"]["rays"] > 0
         assert v["pvalue"] == pytest.approx(direct_tail(v["matches"]), rel=1e-9)
     assert 0.0 < r["model_pvalue"] <= 1.0 and 0.0 <= r["share_passing"] <= 1.0
     assert rep["verdict"] in ("owned", "not shown")
@@ -518,10 +524,29 @@ def _check_model_report(rep: dict, n_views: int) -> dict:
 
 
 @pytest.mark.slow
+def test_real_watermarked_run_is_owned_by_geometric_decoding(real_runs, ws, capsys):
+    """The default decoder for a model (the key is version 2, its base is here): informed, from the geometry."""
+    out = ws / "rep-real-geometry"
+    status, stdout, err = run_cli(["--load-config", str(real_runs["run"]), "--key", str(real_runs["key"]),
+                                   "--output", str(out), "--num-views", "8"], capsys)
+    assert status == 0 and stdout.startswith("VERDICT: OWNED"), err[-2000:]
+    rep = report_of(out)
+    assert rep["decoder"]["kind"] == "geometry" and "informed" in stdout
+    r = _check_model_report(rep, 8)
+    assert r["verdict"] == "owned" and r["matches_min"] >= 41
+    out_b = ws / "rep-real-geometry-base"
+    status, _, _ = run_cli(["--load-config", str(real_runs["base"]), "--key", str(real_runs["key"]),
+                            "--output", str(out_b), "--num-views", "8"], capsys)
+    assert status == 1
+    assert _check_model_report(report_of(out_b), 8)["matches_max"] < 41
+
+
+@pytest.mark.slow
 def test_real_watermarked_run_end_to_end(real_runs, ws, capsys):
+    """The blind extractor on renders (--decode extractor)."""
     out = ws / "rep-real"
     status, stdout, _ = run_cli(["--load-config", str(real_runs["run"]), "--key", str(real_runs["key"]),
-                                 "--output", str(out)], capsys)
+                                 "--output", str(out), "--decode", "extractor"], capsys)
     assert status in (0, 1) and stdout.startswith("VERDICT:")
     rep = report_of(out)
     r = _check_model_report(rep, 24)
@@ -530,7 +555,7 @@ def test_real_watermarked_run_end_to_end(real_runs, ws, capsys):
     # the stock base (nerfacto, never marked) with the run's key: not shown
     out_b = ws / "rep-real-base"
     status, _, _ = run_cli(["--load-config", str(real_runs["base"]), "--key", str(real_runs["key"]),
-                            "--output", str(out_b), "--num-views", "8"], capsys)
+                            "--output", str(out_b), "--num-views", "8", "--decode", "extractor"], capsys)
     assert status == 1
     _check_model_report(report_of(out_b), 8)
     if r["verdict"] != "owned":
@@ -585,6 +610,11 @@ def test_real_recolored_runs(real_runs, ws, capsys, edit):
     out = ws / f"rep-recolored-{edit}"
     status, stdout, err = run_cli(["--load-config", str(cfg), "--key", str(real_runs["key"]), "--output", str(out),
                                    "--num-views", "8"], capsys)
+    assert status == 0 and stdout.startswith("VERDICT: OWNED"), err[-2000:]  # geometric decoding (the default)
+    r = _check_model_report(report_of(out), 8)
+    assert report_of(out)["decoder"]["kind"] == "geometry" and r["matches_min"] >= 41
+    status, stdout, err = run_cli(["--load-config", str(cfg), "--key", str(real_runs["key"]), "--output", str(out),
+                                   "--num-views", "8", "--decode", "extractor"], capsys)
     assert status in (0, 1) and stdout.startswith("VERDICT:"), err[-2000:]
     r = _check_model_report(report_of(out), 8)
     if r["verdict"] != "owned":
