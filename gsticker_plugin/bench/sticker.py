@@ -132,17 +132,19 @@ def write_report(cfg: StickerBenchConfig, results: List[Dict[str, object]]) -> N
         "# Sticker-stage speed: fast path vs naive vs paper-faithful",
         "",
         f"Command: `python -m gsticker_plugin.bench.sticker --load-checkpoint {cfg.load_checkpoint} --seconds {cfg.seconds:g} "
-        f"--variants {' '.join(cfg.variants)} --output {cfg.output}`",
+        f"{'--data ' + str(cfg.data) + ' ' if cfg.data else ''}--variants {' '.join(cfg.variants)} "
+        f"{'--append ' if cfg.append else ''}--output {cfg.output}`",
         f"Device: {dev}; torch {torch.__version__}; date {time.strftime('%Y-%m-%d')}.",
-        f"Budget {cfg.seconds:g} s of training per variant; held-out bit accuracy on {cfg.monitor_views} novel views, owner message, no attack.",
+        f"Budget {cfg.seconds:g} s of training per variant (the last run; `--append` keeps earlier rows, whose own budget is "
+        f"the 'train s' column); held-out bit accuracy on {cfg.monitor_views} novel views, owner message, no attack.",
         "",
-        "| variant | heads params | steps/s | steps | time to >= 99% bits | final held-out bit acc | same, clean renders (chance = 0.5) | final PSNR marked vs clean | pool render (s) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| variant | heads params | train s | steps/s | steps | time to >= 99% bits | final held-out bit acc | same, clean renders (chance = 0.5) | final PSNR marked vs clean | pool render (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         fin = r["final"] or {}
         t99 = f"{r['seconds_to_99']:.0f} s" if r["seconds_to_99"] is not None else "not reached"
-        lines.append(f"| {r['variant']} | {r['heads_parameters']:,} | {r['steps_per_second']:.2f} | {r['steps']} | {t99} | "
+        lines.append(f"| {r['variant']} | {r['heads_parameters']:,} | {r['train_seconds']:.0f} | {r['steps_per_second']:.2f} | {r['steps']} | {t99} | "
                      f"{fin.get('heldout_bit_acc', float('nan')):.4f} | {fin.get('heldout_clean_bit_acc', float('nan')):.4f} | "
                      f"{fin.get('heldout_psnr', float('nan')):.2f} dB | {r['pool_seconds']:.0f} |")
     cfg.output.write_text("\n".join(lines) + "\n")
