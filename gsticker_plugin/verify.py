@@ -824,8 +824,9 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
             notes.append(f"--attack {config.attack!r} not applied: attacks are image-level distortions, and the "
                          "geometric decoder reads the model's geometry, not images")
         decoder_info = {"kind": "geometry", "informed": True, **info,
-                        "description": "informed: fits the key's sticker to the suspect's geometry (accumulation, "
-                                       "expected depth) against the owner's unwatermarked base run; model-level only"}
+                        "description": "informed: fits the key's sticker to the suspect's geometry ("
+                                       + " + ".join(sorted({n.replace("_", " ") for sig in info["signals"] for n in sig}))
+                                       + ") against the owner's unwatermarked base run; model-level only"}
     else:
         if config.load_config is not None:
             views = model_views(config.load_config, config.num_views, config.sampled_share, config.seed, config.data,

@@ -344,3 +344,18 @@ def test_bad_input_is_one_line_exit_2(runs, ws, capsys, tiny_scene):
     for argv, words in cases:
         status, stdout, err = run_cli([*argv, "--output", str(ws / "rep-bad")], capsys)
         assert status == 2 and words in one_error_line(err) and "VERDICT" not in stdout, (argv, err[-800:])
+
+
+def test_demo_verify_stage_reports_both_decoders(runs, ws):
+    """``make demo``'s verdict stage (gsticker_plugin.demo.verify_stage) on the tiny runs, few views."""
+    from gsticker_plugin.demo import verify_stage
+
+    logs = ws / "demo-logs"
+    logs.mkdir()
+    verdicts = verify_stage(ws / "demo-verify", logs, runs["key"],
+                            {"watermarked": runs["run"], "unwatermarked base": runs["base"]},
+                            {"geometry": 2, "extractor": 1})
+    assert verdicts["watermarked"]["geometry"]["verdict"] == "owned"
+    assert verdicts["unwatermarked base"]["geometry"]["verdict"] == "not shown"
+    assert verdicts["unwatermarked base"]["extractor"]["verdict"] == "not shown"
+    assert Path(verdicts["watermarked"]["extractor"]["report"]).is_file()
