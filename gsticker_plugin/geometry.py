@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import torch
-from jaxtyping import Bool, Float, Int
+from jaxtyping import Float, Int
 from torch import Tensor
 
 from gsticker_plugin.errors import GStickerError
@@ -299,9 +299,7 @@ def load_base_reference(key, key_path, base_config: Optional[Path], data: Option
     ckpt = base_checkpoint(key, cfg_path, only_beside=base_config is not None)
     with contextlib.redirect_stdout(sys.stderr):
         config, pipeline, _ = load_run(cfg_path, data=data_if_missing(cfg_path, data), device=device)
-    from nerfstudio.cameras.cameras import Cameras  # noqa: F401  (nerfstudio is imported by load_run)
-
-    if config.method_name in ("geometrysticker",) or hasattr(pipeline.model, "sticker_enabled"):
+    if hasattr(pipeline.model, "sticker_enabled"):
         raise GStickerError(f"{cfg_path} is a watermarked run, not the unwatermarked base; pass --base-config with "
                             "the base run the watermark was made on")
     sc = geo["sticker_config"]
@@ -355,7 +353,7 @@ def reference_view(ref: BaseReference, name: str, camera, use_depth: bool) -> Re
     wrap = model.final_wrap
     density = view.density.float()  # [A S 1]
     psi = wrap.gate(density.to(model.device)).cpu()
-    open_ = (psi > wrap.gate_threshold).squeeze(-1) if bool(wrap.gate.calibrated) else torch.zeros_like(density[..., 0], dtype=torch.bool)
+    open_ = (psi > wrap.gate_threshold).squeeze(-1) & bool(wrap.gate.calibrated)  # the wrap's own rule
     keep = open_.any(dim=-1)
     rays = view.active[keep]
     density, open_, psi = density[keep], open_[keep], psi[keep]
@@ -363,7 +361,6 @@ def reference_view(ref: BaseReference, name: str, camera, use_depth: bool) -> Re
     deltas = view.deltas[keep].float()
     origin = cam.camera_to_worlds[0, :3, 3].float().cpu()
     steps = (positions - origin).norm(dim=-1, keepdim=True)
-    s = density.shape[1] if density.ndim == 3 else 0
     open_index = open_.reshape(-1).nonzero().squeeze(-1)
     pos_open = positions.reshape(-1, 3)[open_index]
     feats = model.sticker.features(wrap.normalize(pos_open.to(model.device))).cpu() if open_index.numel() else \
@@ -401,11 +398,10 @@ def decode_view(ref_view: ReferenceView, sticker: Sticker, suspect: Float[Tensor
     """Fit the continuous message to one view's suspect geometry and decide the bits."""
     k = sticker.num_bits
     target = (suspect - ref_view.base_signal).float()
-    if ref_view.rays.numel() == 0:
+    if ref_view.rays.numel() == 0:  # the gate opens nowhere in this view: nothing to read
         fit = Fit(signs=torch.zeros(k), explained=0.0, residual_rms=0.0, iterations=0)
     else:
-        sticker_cpu = sticker
-        fit = fit_message(lambda s: predict_change(ref_view, sticker_cpu, s), target, k, iterations=iterations)
+        fit = fit_message(lambda s: predict_change(ref_view, sticker, s), target, k, iterations=iterations)
     bits, undetermined = decide_bits(fit.signs, generator)
     return {"bits": bits, "signs": fit.signs, "undetermined": undetermined, "explained": fit.explained,
             "residual_rms": fit.residual_rms, "iterations": fit.iterations, "rays": int(ref_view.rays.numel())}
