@@ -43,7 +43,7 @@ class DemoConfig:
     """Test views decoded in the verification stage."""
     owner_id: str = "demo-owner"
     """Owner ID the message is derived from."""
-    verify_views: int = 24
+    verify_views: int = 16
     """Views rendered per model by ns-verify-owner (blind extractor)."""
     geometry_views: int = 8
     """Views per model for the informed geometric decoder (each renders the suspect and the owner's base)."""
