@@ -56,6 +56,8 @@ class BenchGeometryConfig:
     """Steps of the attacker's color-only fine-tune (0: skip it)."""
     extractor: bool = True
     """Also verify the watermarked run with the blind extractor, for comparison."""
+    verify: bool = True
+    """Run the ns-verify-owner stage (``--no-verify``: only training, PSNR and recolor numbers)."""
     psnr_views: int = 10
     """Test views for the watermarked-vs-clean PSNR."""
 
@@ -86,13 +88,18 @@ def _config_under(folder: Path) -> Path:
     return found[0]
 
 
-def psnr_watermarked_vs_clean(config: Path, views: int) -> float:
+def psnr_watermarked_vs_clean(config: Path, views: int) -> Dict[str, float]:
+    """Mean PSNR over the first ``views`` test views: sticker on vs off of the same run (for a recolored run of a
+    watermarked one: the edit on the watermarked model vs the same edit on the unwatermarked base), and each of them
+    against the ground truth."""
     from gsticker_plugin.evaluate import load_pipeline, psnr_nhw3, render_split
 
     pipe = load_pipeline(config)
-    on = render_split(pipe, "test", views, sticker=True, progress=False)["rgb"]
-    off = render_split(pipe, "test", views, sticker=False, progress=False)["rgb"]
-    return float(psnr_nhw3(on, off).mean())
+    on = render_split(pipe, "test", views, sticker=True, progress=False)
+    off = render_split(pipe, "test", views, sticker=False, progress=False)
+    return {"vs_clean": float(psnr_nhw3(on["rgb"], off["rgb"]).mean()),
+            "marked_vs_gt": float(psnr_nhw3(on["rgb"], on["gt"]).mean()),
+            "clean_vs_gt": float(psnr_nhw3(off["rgb"], off["gt"]).mean())}
 
 
 def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
@@ -120,8 +127,11 @@ def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
         print("    (exists)")
 
     print("[2/4] PSNR watermarked vs clean (test views)", flush=True)
-    results["psnr_watermarked_vs_clean_db"] = psnr_watermarked_vs_clean(wm / "config.yml", cfg.psnr_views)
-    print(f"    {results['psnr_watermarked_vs_clean_db']:.2f} dB", flush=True)
+    psnr = psnr_watermarked_vs_clean(wm / "config.yml", cfg.psnr_views)
+    results["psnr_watermarked_vs_clean_db"] = psnr["vs_clean"]
+    results["psnr_vs_ground_truth_db"] = {"watermarked": psnr["marked_vs_gt"], "unwatermarked": psnr["clean_vs_gt"]}
+    print(f"    {psnr['vs_clean']:.2f} dB; against ground truth: watermarked {psnr['marked_vs_gt']:.2f} dB, "
+          f"unwatermarked {psnr['clean_vs_gt']:.2f} dB", flush=True)
 
     print("[3/4] ns-recolor", flush=True)
     recolors = {"palette": ["palette", "--set", "0=dodger blue", "1=magenta"], "hue": ["hue", "--shift", "0.3"]}
@@ -138,6 +148,14 @@ def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
             print(f"    ({dest} exists)")
         suspects[f"{name}-recolored"] = _config_under(dest)
     suspects["unwatermarked base"] = base_config
+    results["psnr_recolored_watermarked_vs_clean_db"] = {}
+    for name in recolors:
+        p = psnr_watermarked_vs_clean(suspects[f"{name}-recolored"], cfg.psnr_views)["vs_clean"]
+        results["psnr_recolored_watermarked_vs_clean_db"][name] = p
+        print(f"    {name}: recolored watermarked vs the same edit on the unwatermarked model {p:.2f} dB", flush=True)
+    if not cfg.verify:
+        (out / "results.json").write_text(json.dumps(results, indent=2))
+        return results
 
     print("[4/4] ns-verify-owner", flush=True)
     rows = []
@@ -175,6 +193,11 @@ def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
                      f"{row['matches_max']} | {row['wall_s']:.0f} s |")
     lines.append("")
     lines.append(f"PSNR watermarked vs clean render (test views): {results['psnr_watermarked_vs_clean_db']:.2f} dB")
+    gt = results["psnr_vs_ground_truth_db"]
+    lines.append(f"PSNR against ground truth (test views): watermarked {gt['watermarked']:.2f} dB, unwatermarked "
+                 f"{gt['unwatermarked']:.2f} dB")
+    for name, p in results["psnr_recolored_watermarked_vs_clean_db"].items():
+        lines.append(f"PSNR {name}-recolored watermarked vs the same edit on the unwatermarked model: {p:.2f} dB")
     (out / "results.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return results
