@@ -67,8 +67,6 @@ def geometry_reference(model) -> Dict[str, Any]:
         "fields": [w.name for w in model.wraps],
         "final_field": model.final_wrap.name,
         "aabb": {w.name: w.aabb.detach().cpu().float().clone() for w in model.wraps},
-        "gates": {w.name: {"mu": float(w.gate.mu), "scale": float(w.gate.scale), "beta": float(w.gate.beta)}
-                  for w in model.wraps},
         "null": None,
     }
 
