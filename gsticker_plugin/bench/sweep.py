@@ -1,0 +1,268 @@
+"""Speed against accuracy: sticker configurations trained side by side, decoded at every saved checkpoint.
+
+    python -m gsticker_plugin.bench.sweep \\
+        --load-checkpoint ../shared/checkpoints/lego100-nerfacto-small/nerfacto/base/nerfstudio_models/step-000002999.ckpt \\
+        --data ../shared/data/lego100 --output docs/bench-sweep.md
+
+For each variant (sticker width, message length, share of samples under the gate, image resolution) it runs
+``ns-train geometrysticker`` on the same frozen base, keeping a checkpoint every ``--save-every`` steps, then for
+every checkpoint: the informed geometric decoder's bit accuracy (``ns-verify-owner --decode geometry``, with that
+checkpoint's own sticker as the reference: what the owner key would hold had training stopped there) and the PSNR
+of the watermarked vs the unwatermarked render (sticker on / off, test views). Training time at a checkpoint is the
+pool build plus the step time the trainer logs (``[gsticker] step N: ... S s``, printed at every checkpoint).
+
+Writes ``--output`` (Markdown table), the same name with ``.json`` and ``.png`` (bit accuracy and PSNR against
+training time per variant), and names the smallest variant (sticker parameters) that reaches the targets.
+The blind extractor is not swept here: it stays at chance for every configuration this CPU can train
+(docs/bench-sticker.md), so its width and patch size do not move these numbers.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import re
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any, Dict, List, Optional, Tuple
+
+import torch
+import tyro
+
+from gsticker_plugin.bench.geometry import _bin, _run
+
+# name -> (ns-train geometrysticker overrides, dataset suffix replacement or None)
+VARIANTS: Dict[str, Tuple[List[str], Optional[str]]] = {
+    "default": ([], None),
+    "width-16": (["--pipeline.model.sticker-hidden-dim", "16"], None),
+    "width-32": (["--pipeline.model.sticker-hidden-dim", "32"], None),
+    "width-128": (["--pipeline.model.sticker-hidden-dim", "128"], None),
+    "bits-16": (["--pipeline.model.num-bits", "16"], None),
+    "bits-32": (["--pipeline.model.num-bits", "32"], None),
+    "bits-64": (["--pipeline.model.num-bits", "64", "--pipeline.model.sticker-hidden-dim", "64"], None),
+    "gate-0.25": (["--pipeline.model.gate-quantile", "0.25"], None),
+    "gate-0.75": (["--pipeline.model.gate-quantile", "0.75"], None),
+    "res-200": ([], "200"),
+}
+
+
+@dataclass
+class SweepConfig:
+    """Train sticker variants on one base and chart bit accuracy and PSNR against training time."""
+
+    load_checkpoint: Path
+    """The base run's checkpoint (RUN/nerfstudio_models/step-N.ckpt)."""
+    data: Optional[Path] = None
+    """The base's dataset folder (e.g. ../shared/data/lego100); ``res-200`` swaps a trailing 100 for 200."""
+    variants: Tuple[str, ...] = ("default", "width-16", "width-32", "bits-16", "bits-64", "gate-0.25", "gate-0.75",
+                                 "res-200")
+    """Which of: default, width-16, width-32, width-128, bits-16, bits-32, bits-64, gate-0.25, gate-0.75, res-200."""
+    steps: int = 150
+    """Sticker training steps per variant."""
+    save_every: int = 50
+    """A checkpoint (and a decoded point) every this many steps."""
+    warmup_steps: int = 25
+    """Sticker warm-up (no content loss) before the content loss ramps in."""
+    pool_views: int = 8
+    """Training and novel views each in the fast-path pool."""
+    num_views: int = 4
+    """Cameras per geometric decode."""
+    psnr_views: int = 4
+    """Test views for the watermarked-vs-unwatermarked PSNR."""
+    fpr: float = 1e-6
+    """Per-view false-positive rate of the verdict threshold."""
+    target_bit_acc: float = 0.99
+    target_psnr: float = 35.0
+    output: Path = Path("docs/bench-sweep.md")
+    """Markdown table; the .json and .png beside it."""
+    work_dir: Path = Path("outputs/bench-sweep")
+    """Where the runs and logs go (a variant whose final checkpoint exists is not retrained)."""
+    owner_id: str = "sweep-owner"
+    extra: List[str] = field(default_factory=list)
+    """More ns-train arguments for every variant."""
+
+
+_STEP = re.compile(r"step (\d+): held-out .* (\d+) s")
+_POOL = re.compile(r"pool: .* (\d+) s;")
+
+
+def train_seconds(log: Path) -> Tuple[Optional[float], Dict[int, float]]:
+    """(pool build seconds, {step: seconds since training began}) from an ns-train geometrysticker log."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", log.read_text(errors="replace")) if log.is_file() else ""
+    pool = _POOL.search(text)
+    return (float(pool.group(1)) if pool else None), {int(m.group(1)): float(m.group(2)) for m in _STEP.finditer(text)}
+
+
+def decode_checkpoint(pipeline, key, base_config: Path, data: Optional[Path], num_views: int, psnr_views: int,
+                      threshold: int) -> Dict[str, Any]:
+    """Geometric bit accuracy (the checkpoint's own sticker as the reference) and PSNR on/off, at the loaded state."""
+    from gsticker_plugin.evaluate import psnr_nhw3, render_split
+    from gsticker_plugin.geometry import decode_suspect, geometry_reference, load_base_reference
+
+    model = pipeline.model
+    ref_key = SimpleNamespace(geometry=geometry_reference(model), message=key.message, base=key.base,
+                              num_bits=key.num_bits)
+    ref = load_base_reference(ref_key, "(checkpoint)", base_config, data, model.device)
+    t0 = time.time()
+    with contextlib.redirect_stdout(sys.stderr):
+        dec, _ = decode_suspect(ref_key, ref, model, num_views, 0.25, 0, sticker=True)
+    per_view = (time.time() - t0) / num_views
+    on = render_split(pipeline, "test", psnr_views, sticker=True, progress=False)
+    off = render_split(pipeline, "test", psnr_views, sticker=False, progress=False)
+    m = dec["matches"]
+    return {"bit_acc": float(dec["bit_acc"].float().mean()), "matches": [int(x) for x in m],
+            "views_passing": int((m >= threshold).sum()), "psnr_vs_unwm": float(psnr_nhw3(on["rgb"], off["rgb"]).mean()),
+            "psnr_vs_gt": float(psnr_nhw3(on["rgb"], on["gt"]).mean()), "decode_seconds_per_view": round(per_view, 2)}
+
+
+def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
+    from gsticker_plugin import base_run, metrics
+    from gsticker_plugin.key import OwnerKey
+    from gsticker_plugin.verify import load_run
+
+    overrides, res = VARIANTS[name]
+    data = cfg.data
+    if res is not None:
+        if data is None or not re.search(r"\d+$", str(data).rstrip("/")):
+            raise SystemExit(f"variant {name} needs --data ending in a resolution (e.g. ../shared/data/lego100)")
+        data = Path(re.sub(r"\d+$", res, str(data).rstrip("/")))
+        if not data.is_dir():
+            raise SystemExit(f"variant {name}: {data} does not exist; drop it from --variants")
+    out = cfg.work_dir.resolve()
+    logs = out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    run = out / name / "geometrysticker" / "watermarked"
+    key_path = run.with_name("watermarked.gskey")
+    log = logs / f"{name}.log"
+    final = run / "nerfstudio_models" / f"step-{cfg.steps - 1:09d}.ckpt"
+    wall = None
+    if not (key_path.is_file() and final.is_file()):
+        t0 = time.time()
+        _run([_bin("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
+              "--output-dir", str(out), "--experiment-name", name, "--timestamp", "watermarked",
+              "--max-num-iterations", str(cfg.steps), "--steps-per-save", str(cfg.save_every),
+              "--save-only-latest-checkpoint", "False", "--pipeline.owner-id", cfg.owner_id,
+              "--pipeline.pool-train-views", str(cfg.pool_views), "--pipeline.pool-novel-views", str(cfg.pool_views),
+              "--pipeline.monitor-views", "2", "--pipeline.steps-per-monitor", str(cfg.save_every),
+              "--pipeline.warmup-steps", str(cfg.warmup_steps), *overrides, *cfg.extra,
+              "--load-checkpoint", str(Path(cfg.load_checkpoint).resolve()),
+              *(["--data", str(Path(data).resolve())] if data is not None else [])], log)
+        wall = round(time.time() - t0, 1)
+    pool_s, step_s = train_seconds(log)
+    key = OwnerKey.load(key_path)
+    threshold = metrics.min_matches_for_fpr(key.num_bits, cfg.fpr)
+    base_config = Path(cfg.load_checkpoint).resolve().parent.parent / "config.yml"
+    with contextlib.redirect_stdout(sys.stderr):
+        _, pipeline, _ = load_run(run / "config.yml", data=data)
+    params = sum(p.numel() for p in pipeline.model.sticker.parameters())
+    points = []
+    for ckpt in sorted((run / "nerfstudio_models").glob("step-*.ckpt")):
+        n = int(ckpt.stem.split("-")[1])
+        step = n if n % cfg.save_every == 0 else n + 1  # the final checkpoint is saved at step max - 1
+        state = base_run.load_checkpoint_state(ckpt)
+        base_run.strict_load(pipeline.model, base_run.model_state_from_pipeline_state(state["pipeline"]))
+        pipeline.model.eval()
+        pt = decode_checkpoint(pipeline, key, base_config, data, cfg.num_views, cfg.psnr_views, threshold)
+        secs = step_s.get(step, step_s.get(n + 1))
+        pt.update(step=step, train_seconds=None if secs is None or pool_s is None else pool_s + secs)
+        print(f"    {name} step {step}: bit acc {pt['bit_acc']:.3f} ({pt['views_passing']}/{cfg.num_views} views), "
+              f"PSNR vs unwm {pt['psnr_vs_unwm']:.2f} dB, t {pt['train_seconds']} s", flush=True)
+        points.append(pt)
+    h, w = int(pipeline.datamanager.train_dataset.cameras.height[0]), int(pipeline.datamanager.train_dataset.cameras.width[0])
+    return {"name": name, "overrides": overrides, "data": str(data) if data is not None else None, "size": [h, w],
+            "num_bits": key.num_bits, "threshold": threshold, "sticker_params": params, "pool_seconds": pool_s,
+            "wall_seconds": wall, "points": points}
+
+
+def smallest_meeting(rows: List[Dict[str, Any]], bit_acc: float, psnr: float) -> Optional[Dict[str, Any]]:
+    ok = [r for r in rows if r["points"] and r["points"][-1]["bit_acc"] >= bit_acc and r["points"][-1]["psnr_vs_unwm"] >= psnr
+          and r["num_bits"] == 48 and r["size"][0] == min(x["size"][0] for x in rows)]
+    return min(ok, key=lambda r: (r["sticker_params"], r["points"][-1]["train_seconds"] or 0)) if ok else None
+
+
+def markdown(cfg: SweepConfig, rows: List[Dict[str, Any]], when: str, machine: str) -> str:
+    lines = ["# Speed against accuracy: sticker variants on one base", "",
+             f"Command: `python -m gsticker_plugin.bench.sweep --load-checkpoint {cfg.load_checkpoint}"
+             + (f" --data {cfg.data}" if cfg.data else "") + f" --variants {' '.join(cfg.variants)} --steps {cfg.steps} "
+             f"--save-every {cfg.save_every} --output {cfg.output}`", f"Machine: {machine}. Date: {when}.", "",
+             f"Each variant: `ns-train geometrysticker` for {cfg.steps} steps ({cfg.pool_views}+{cfg.pool_views} pool views, "
+             f"warm-up {cfg.warmup_steps}); at every {cfg.save_every}-step checkpoint the informed geometric decoder on "
+             f"{cfg.num_views} cameras (the checkpoint's own sticker as the reference) and PSNR of watermarked vs "
+             f"unwatermarked renders on {cfg.psnr_views} test views. Time = pool build + training seconds logged at that "
+             "step (setup and checkpoint writing excluded).", "",
+             "| variant | image | bits | sticker params | step | train s | geometric bit acc | views passing | "
+             "PSNR wm vs unwm | PSNR wm vs GT | decode s/view |", "|" + "---|" * 11]
+    for r in rows:
+        for p in r["points"]:
+            lines.append(f"| {r['name']} | {r['size'][0]} px | {r['num_bits']} | {r['sticker_params']:,} | {p['step']} | "
+                         f"{p['train_seconds'] if p['train_seconds'] is not None else '-'} | {100 * p['bit_acc']:.1f} | "
+                         f"{p['views_passing']}/{len(p['matches'])} | {p['psnr_vs_unwm']:.2f} | {p['psnr_vs_gt']:.2f} | "
+                         f"{p['decode_seconds_per_view']} |")
+    best = smallest_meeting(rows, cfg.target_bit_acc, cfg.target_psnr)
+    lines += ["", f"Smallest 48-bit variant at the lowest resolution reaching >= {100 * cfg.target_bit_acc:g} % and >= "
+              f"{cfg.target_psnr:g} dB at its last checkpoint: "
+              + (f"**{best['name']}** ({best['sticker_params']:,} sticker parameters, {best['points'][-1]['train_seconds']} s)."
+                 if best else "none of the variants."), "", f"Chart: `{cfg.output.with_suffix('.png').name}`.", ""]
+    return "\n".join(lines)
+
+
+def chart(rows: List[Dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.8))
+    for r in rows:
+        pts = [p for p in r["points"] if p["train_seconds"] is not None]
+        if not pts:
+            continue
+        t = [p["train_seconds"] / 60 for p in pts]
+        line, = a1.plot(t, [100 * p["bit_acc"] for p in pts], "o-", label=r["name"])
+        a2.plot(t, [p["psnr_vs_unwm"] for p in pts], "o-", color=line.get_color(), label=r["name"])
+    a1.axhline(99, color="gray", ls=":", lw=0.8)
+    a1.axhline(50, color="red", ls=":", lw=0.8)
+    a2.axhline(35, color="gray", ls=":", lw=0.8)
+    a1.set_xlabel("training time (min)")
+    a2.set_xlabel("training time (min)")
+    a1.set_ylabel("geometric bit accuracy %")
+    a2.set_ylabel("PSNR watermarked vs unwatermarked (dB)")
+    a1.set_ylim(40, 101)
+    a1.legend(fontsize=7)
+    fig.suptitle("sticker variants: accuracy and invisibility against training time (dotted: targets)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(cfg: SweepConfig) -> List[Dict[str, Any]]:
+    from gsticker_plugin.evaluation.runner import machine_info
+
+    unknown = [v for v in cfg.variants if v not in VARIANTS]
+    if unknown:
+        raise SystemExit(f"unknown variant(s) {unknown}; use some of {', '.join(VARIANTS)}")
+    rows = []
+    for i, name in enumerate(cfg.variants):
+        print(f"[{i + 1}/{len(cfg.variants)}] {name}", flush=True)
+        rows.append(run_variant(cfg, name))
+        cfg.output.parent.mkdir(parents=True, exist_ok=True)
+        cfg.output.with_suffix(".json").write_text(json.dumps(rows, indent=1))  # partial results survive a crash
+    m = machine_info()
+    md = markdown(cfg, rows, time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                  f"{m['cpu']}, {m['cores']} cores, torch threads {m['torch_threads']}, CUDA {'yes' if m['cuda'] else 'no'}")
+    cfg.output.write_text(md)
+    chart(rows, cfg.output.with_suffix(".png"))
+    print(md)
+    return rows
+
+
+def entrypoint() -> None:
+    torch.set_grad_enabled(True)
+    main(tyro.cli(SweepConfig))
+
+
+if __name__ == "__main__":
+    entrypoint()
