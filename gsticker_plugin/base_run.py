@@ -8,6 +8,7 @@ failure is a one-line :class:`GStickerError` naming the fix.
 from __future__ import annotations
 
 import importlib.util
+import re
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple
 
@@ -57,6 +58,12 @@ def load_run_config(config_path: Path):
     except yaml.YAMLError as e:
         raise GStickerError(f"{config_path} is not a readable Nerfstudio config ({type(e).__name__}); "
                             "restore the run's config.yml") from None
+
+
+def checkpoint_step(checkpoint: Path) -> int:
+    """The training step of a Nerfstudio checkpoint (``step-000002999.ckpt`` -> 2999; read from it otherwise)."""
+    m = re.fullmatch(r"step-(\d+)", Path(checkpoint).stem)
+    return int(m.group(1)) if m else int(load_checkpoint_state(checkpoint).get("step", 0))
 
 
 def load_checkpoint_state(checkpoint: Path) -> Dict[str, Any]:

@@ -305,7 +305,7 @@ def load_base_reference(key, key_path, base_config: Optional[Path], data: Option
     mcfg = GeometryStickerModelConfig(
         base_model=base_model_cfg, num_bits=int(sc["num_bits"]), num_frequencies=int(sc["num_frequencies"]),
         sticker_hidden_dim=int(sc["hidden_dim"]), sticker_num_layers=int(sc["num_layers"]),
-        sticker_kind=sc["kind"], gate_threshold=float(geo["gate_threshold"]),
+        sticker_kind=sc["kind"], gate_threshold=float(geo["gate_threshold"]), base_step=base_run.checkpoint_step(ckpt),
         wrap_proposal_networks=bool(geo["wrap_proposal_networks"]),
         eval_num_rays_per_chunk=int(getattr(base_model_cfg, "eval_num_rays_per_chunk", 4096)))
     ds = pipeline.datamanager.train_dataset
@@ -418,13 +418,15 @@ def cpu_sticker(model) -> Sticker:
 
 
 def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int, sampled_share: float, seed: int,
-                   sticker: Optional[bool] = None, progress: bool = False, iterations: int = 10):
+                   sticker: Optional[bool] = None, progress: bool = False, iterations: int = 10,
+                   ref_cache: Optional[Dict[Any, ReferenceView]] = None):
     """Render the base and the suspect at ``num_views`` cameras of the base run, fit and decode every view.
 
     Returns ``(dec, views)``: ``dec`` holds per view ``bits``, ``matches``, ``bit_acc``, ``pvalues`` (as
     :func:`gsticker_plugin.verify.decode_views`; ``scores`` is None: the classifier reads images, not geometry)
     and ``geometry`` (per-view fit details); ``views`` are :class:`gsticker_plugin.verify.View` with the suspect's
-    RGB renders (for the report's figure).
+    RGB renders (for the report's figure). ``ref_cache``: a dict kept by the caller to reuse the base's reference
+    views across suspects decoded with the same reference, cameras and seed.
     """
     from gsticker_plugin import metrics
     from gsticker_plugin.verify import View, _tqdm, select_cameras
@@ -440,7 +442,13 @@ def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int,
             with torch.no_grad():
                 out = suspect_model.get_outputs_for_camera(cam.to(suspect_model.device))
             out = {k: v.detach().float().cpu() for k, v in out.items() if isinstance(v, Tensor)}
-            ref_view = reference_view(reference, name, cam, use_depth=has_expected_depth(out))
+            use_depth = has_expected_depth(out)
+            if ref_cache is not None and (name, use_depth) in ref_cache:
+                ref_view = ref_cache[(name, use_depth)]
+            else:
+                ref_view = reference_view(reference, name, cam, use_depth=use_depth)
+                if ref_cache is not None:
+                    ref_cache[(name, use_depth)] = ref_view
             sus = suspect_signal(out, ref_view)
             d = decode_view(ref_view, st, sus, gen, iterations)
             bits.append(d.pop("bits"))

@@ -33,6 +33,9 @@ class GeometryStickerModelConfig(ModelConfig):
     """The base applies its own collider."""
     base_model: tyro.conf.Suppress[Optional[Any]] = None
     """The base run's ModelConfig (copied from its config.yml; not a CLI option)."""
+    base_step: tyro.conf.Suppress[Optional[int]] = None
+    """The base checkpoint's training step: the base is sized for it when rebuilt (TensoRF's grids grow during
+    training); recorded from the checkpoint, not a CLI option."""
     num_bits: int = 48
     """Message length."""
     sticker_hidden_dim: int = 64
@@ -70,6 +73,8 @@ class GeometryStickerModel(Model):
         self.base: Model = self.config.base_model.setup(
             scene_box=self.scene_box, num_train_data=self.num_train_data, **self.kwargs
         )
+        if self.config.base_step is not None:
+            self.base.update_to_step(int(self.config.base_step))  # e.g. TensoRF's grid resolution at that step
         self.base.requires_grad_(False)
         self.base.eval()
         self.sticker = Sticker(self.config.num_bits, self.config.num_frequencies,

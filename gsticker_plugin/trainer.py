@@ -109,6 +109,7 @@ class GeometryStickerTrainer(Trainer):
                     else run_dir.with_name(run_dir.name + ".gskey"))
             else:
                 pcfg.model.base_model = run_cfg.pipeline.model
+                pcfg.model.base_step = base_run.checkpoint_step(ckpt)
                 pcfg.datamanager = copy_datamanager(run_cfg, cfg.data)
                 pcfg.base_run = {
                     "method": run_cfg.method_name,

@@ -61,10 +61,11 @@ def _psnr(x) -> None:
 @pytest.mark.slow
 def test_files_written(smoke):
     out = smoke["out"]
-    for name in ("results.json", "results.md", "charts/curves.png", "charts/recolor.png", "charts/speed.png"):
+    for name in ("results.json", "results.md", "charts/curves.png", "charts/recolor.png", "charts/speed.png",
+                 "charts/geometry_recolor.png", "charts/purify.png"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
-    for stage in ("scene", "bases", "sticker", "renders", "quality", "distortions", "curves", "recolor",
-                  "false_positives", "speed"):
+    for stage in ("scene", "bases", "sticker", "renders", "quality", "geometry", "distortions", "curves", "recolor",
+                  "purify", "false_positives", "speed"):
         assert (out / "stages" / f"{stage}.json").is_file(), stage
         assert stage in smoke["results"], stage
     assert list((out / "runs" / "nerfacto" / "geometrysticker").glob("watermarked.gskey"))
@@ -122,6 +123,22 @@ def test_numbers_in_range(smoke):
         _acc(x["null_bit_acc"])
         _psnr(x["psnr"])
         assert -1.0 <= x["ssim"] <= 1.0
+        if x["kind"] != "image_hue":  # model-level edits: the geometric decoder and the color baseline read models
+            for k in ("geometry", "geometry_null", "color_baseline"):
+                assert len(x[k]["matches"]) == p.geometry.num_views, k
+                _acc(x[k]["bit_acc"])
+    geo = r["geometry"]
+    for k in ("watermarked", "sticker_off", "base_run"):
+        assert len(geo["bases"]["nerfacto"][k]["matches"]) == p.geometry.num_views, k
+        _acc(geo["bases"]["nerfacto"][k]["bit_acc"])
+    cb = geo["color_baseline"]
+    assert cb["amplitude"] > 0 and abs(cb["psnr_vs_unmarked"] - cb["target_psnr"]) < 1.0  # amplitude matched
+    _acc(cb["color_decoder"]["bit_acc"])
+    pur = r["purify"]
+    assert [pt["steps"] for pt in pur["points"]] == list(p.geometry.purify_steps)
+    for pt in pur["points"]:
+        _acc(pt["bit_acc"])
+        _psnr(pt["psnr_vs_gt"])
     fp = r["false_positives"]
     assert 0.0 <= fp["empirical_fpr"] <= 1.0 and fp["empirical_fpr"] <= fp["fpr_upper_95"] <= 1.0
     assert fp["views"] == sum(s["views"] for s in fp["sources"])
@@ -139,8 +156,8 @@ def test_numbers_in_range(smoke):
 def test_tables_have_every_row(smoke):
     md = (smoke["out"] / "results.md").read_text()
     p = _protocol()
-    for section in ("## Bases", "## Distortions", "## Recolor", "## False positives", "## Where it breaks",
-                    "## Speed vs accuracy"):
+    for section in ("## Bases", "## Model-level verdicts", "## Recolor", "## Model purification", "## Distortions",
+                    "## False positives", "## Where it breaks", "## Speed vs accuracy"):
         assert section in md, section
     for row in p.distortions:
         assert f"| {row.label} |" in md, row.label
@@ -156,7 +173,7 @@ def test_tables_have_every_row(smoke):
 def test_resume_skips_finished_stages(smoke):
     proc = subprocess.run(smoke["cmd"], capture_output=True, text=True, timeout=300, env=_env(), cwd=REPO_ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert proc.stdout.count("done earlier") == 10, proc.stdout
+    assert proc.stdout.count("done earlier") == 12, proc.stdout
     assert "$ " not in proc.stdout  # nothing trained, generated or recolored again
 
 

@@ -56,6 +56,8 @@ BASE_ARGS: Dict[str, List[str]] = {
         "--pipeline.model.num-samples", "32",
         "--pipeline.model.num-uniform-samples", "16",
         "--pipeline.datamanager.train-num-rays-per-batch", "256",
+        # grow the grids during the base's 2 steps (32 -> 40), as every real TensoRF run does (2000, 3000, ...):
+        "--pipeline.model.upsampling-iters", "1", "--pipeline.model.final-resolution", "40",
     ],
 }
 # A distinct 48-bit message per base.
@@ -224,6 +226,20 @@ def test_run_writes_checkpoint_config_and_key(gs_runs, base):
     assert "base loaded strictly" in run["stdout"]
     assert "[gsticker]" in run["stdout"], "the [gsticker] prefix of the log lines is swallowed by rich markup"
     assert "held-out bit acc" in run["stdout"]  # the monitor ran
+
+
+def test_tensorf_grids_grown_during_base_training_are_rebuilt_at_the_base_step(gs_runs):
+    """TensoRF's planes grow during training; the watermarked run rebuilds its base at the base's step."""
+    from gsticker_plugin import base_run
+
+    run = gs_runs["tensorf"]
+    state = base_run.model_state_from_pipeline_state(base_run.load_checkpoint_state(run["base_ckpt"])["pipeline"])
+    grown = [k for k, v in state.items() if k.endswith("plane_coef")]
+    assert grown and all(state[k].shape[-1] == 40 for k in grown)  # grown from init-resolution 32
+    cfg = base_run.load_run_config(run["config"])
+    assert cfg.pipeline.model.base_step == BASE_STEPS - 1
+    wm = base_run.model_state_from_pipeline_state(base_run.load_checkpoint_state(run["ckpt"])["pipeline"])
+    assert all(wm["base." + k].shape[-1] == 40 for k in grown)
 
 
 @pytest.mark.parametrize("base", BASES)

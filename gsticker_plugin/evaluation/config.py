@@ -31,8 +31,8 @@ PAPER = {
     "psnr_vs_gt": {"vanilla-nerf": 27.44, "instant-ngp": 28.59, "tensorf": 29.18},
 }
 REFERENCE_COLORS = ("green", "yellow", "orange", "red", "pink", "magenta", "purple", "blue", "dodger blue", "cyan")
-ALL_STAGES = ("scene", "bases", "sticker", "renders", "quality", "distortions", "curves", "recolor",
-              "false_positives", "speed", "report")
+ALL_STAGES = ("scene", "bases", "sticker", "renders", "quality", "geometry", "distortions", "curves", "recolor",
+              "purify", "false_positives", "speed", "report")
 
 
 @dataclass
@@ -113,6 +113,24 @@ class FalsePositiveSpec:
 
 
 @dataclass
+class GeometrySpec:
+    """Model-level verdicts with the informed geometric decoder (``ns-verify-owner --decode geometry``)."""
+
+    num_views: int = 8
+    """Cameras per suspect model (as ns-verify-owner --num-views)."""
+    sampled_share: float = 0.25
+    """Share of those cameras sampled around the training views (the rest: the run's own cameras)."""
+    purify_steps: List[int] = field(default_factory=lambda: [0, 100, 300, 1000])
+    """Purification curve: fine-tune the *whole* watermarked model (density included) on clean training images,
+    decoding after each of these cumulative step counts; [] = skip."""
+    purify_lr: float = 1e-3
+    purify_rays_per_step: int = 1024
+    color_baseline: bool = True
+    """Also build the color-branch baseline (the same sticker added to color instead of density, its amplitude
+    matched to the sticker's PSNR) and decode it with the informed color decoder, unedited and after each recolor."""
+
+
+@dataclass
 class Protocol:
     name: str
     output_dir: Path
@@ -132,6 +150,8 @@ class Protocol:
     """Where-it-breaks curves: attack name -> strengths."""
     recolor: Optional[RecolorSpec] = field(default_factory=RecolorSpec)
     false_positives: FalsePositiveSpec = field(default_factory=FalsePositiveSpec)
+    geometry: Optional[GeometrySpec] = field(default_factory=GeometrySpec)
+    """Model-level geometric decoding (the verdict that survives recoloring); null = skip."""
     device: str = "cpu"
     source: Optional[Path] = None
     """The YAML file this protocol came from."""
@@ -152,7 +172,7 @@ def _build(cls, data: Any, where: str):
             continue
         v = data[f.name]
         sub = {"scene": SceneSpec, "sticker": StickerSpec, "recolor": RecolorSpec, "finetune": FinetuneSpec,
-               "false_positives": FalsePositiveSpec}.get(f.name)
+               "false_positives": FalsePositiveSpec, "geometry": GeometrySpec}.get(f.name)
         if sub is not None and cls in (Protocol, RecolorSpec):
             v = _build(sub, v, f"{where}.{f.name}")
         elif f.name == "bases" and cls is Protocol:
@@ -217,6 +237,13 @@ def validate(p: Protocol) -> None:
         ft = p.recolor.finetune
         if ft is not None and (ft.color is None) == (ft.hue_shift is None):
             raise GStickerError("recolor.finetune: give exactly one of color or hue_shift")
+    g = p.geometry
+    if g is not None:
+        if g.num_views < 1 or not 0 <= g.sampled_share <= 1:
+            raise GStickerError(f"geometry: num_views must be >= 1 and sampled_share in [0, 1], got {g.num_views}, "
+                                f"{g.sampled_share}")
+        if any(int(s) < 0 for s in g.purify_steps) or list(g.purify_steps) != sorted(g.purify_steps):
+            raise GStickerError(f"geometry.purify_steps: give increasing step counts >= 0, got {g.purify_steps}")
 
 
 def load_protocol(path: Path, output_dir: Optional[Path] = None, data: Optional[Path] = None) -> Protocol:

@@ -170,16 +170,75 @@ class Runner:
 
         return OwnerKey.load(self.key_path(name))
 
+    def geo_reference(self, name: str):
+        """The owner's base ``name`` rebuilt with its key's sticker (once per invocation) and its reference views."""
+        if not hasattr(self, "_geo"):
+            self._geo: Dict[str, Any] = {}
+        if name not in self._geo:
+            from gsticker_plugin.geometry import load_base_reference
+
+            ref = load_base_reference(self.key(name), self.key_path(name), self.base_config(name), self.scene_dir,
+                                      self.device)
+            self._geo[name] = (ref, {})
+        return self._geo[name]
+
+    def geo_decode(self, name: str, suspect_model, sticker: Optional[bool] = None, desc: str = "") -> Dict[str, Any]:
+        """Informed geometric decoding of a suspect model with the owner key of base ``name``."""
+        from gsticker_plugin.geometry import decode_suspect
+
+        g = self.p.geometry
+        ref, views = self.geo_reference(name)
+        key = self.key(name)
+        t0 = time.time()
+        with contextlib.redirect_stdout(sys.stderr):
+            dec, _ = decode_suspect(key, ref, suspect_model, g.num_views, g.sampled_share, self.p.seeds[0],
+                                    sticker=sticker, progress=self.progress, ref_cache=views)
+        res = self.summarize(dec["matches"], dec["bit_acc"], key.num_bits)
+        res["seconds_per_view"] = round((time.time() - t0) / max(1, res["views"]), 2)
+        if desc:
+            self.say(f"    geometry {desc}: matches {res['matches']} -> {'OWNED' if res['verdict'] else 'not shown'}")
+        return res
+
+    def color_decode(self, suspect_model, amplitude: float, desc: str = "") -> Dict[str, Any]:
+        """The color-branch baseline's informed decoder (primary base's key and reference)."""
+        from gsticker_plugin.colormark import decode_color_suspect
+
+        g = self.p.geometry
+        ref, _ = self.geo_reference(self.primary)
+        key = self.key(self.primary)
+        with contextlib.redirect_stdout(sys.stderr):
+            dec, _ = decode_color_suspect(key, ref, suspect_model, g.num_views, g.sampled_share, self.p.seeds[0],
+                                          amplitude=amplitude, progress=self.progress)
+        res = self.summarize(dec["matches"], dec["bit_acc"], key.num_bits)
+        if desc:
+            self.say(f"    color baseline {desc}: matches {res['matches']} -> {'OWNED' if res['verdict'] else 'not shown'}")
+        return res
+
+    @staticmethod
+    def _as_tensors(d: Dict[str, Any], prefix: str) -> Dict[str, Tensor]:
+        return {f"{prefix}_matches": torch.tensor(d["matches"]), f"{prefix}_bit_acc": torch.tensor([float(d["bit_acc"])])}
+
+    def _from_tensors(self, c: Dict[str, Tensor], prefix: str, num_bits: int = 48) -> Optional[Dict[str, Any]]:
+        if f"{prefix}_matches" not in c:
+            return None
+        m = c[f"{prefix}_matches"]
+        return self.summarize(m, m.float() / num_bits, num_bits)
+
     def decode(self, key, images_nhw3: Tensor) -> Dict[str, Any]:
-        """Per-view numbers and their summary for one set of views."""
-        from gsticker_plugin import metrics
+        """Per-view numbers and their summary for one set of views (the blind extractor)."""
         from gsticker_plugin.evaluate import decode_images
 
         d = decode_images(key, images_nhw3.float().clamp(0, 1))
-        m = [int(x) for x in d.matches.tolist()]
+        return self.summarize(d.matches, d.bit_acc, key.num_bits)
+
+    def summarize(self, matches: Tensor, bit_acc: Tensor, num_bits: int) -> Dict[str, Any]:
+        """Per-view matches -> views passing the threshold, the model-level vote and its p-value."""
+        from gsticker_plugin import metrics
+
+        m = [int(x) for x in matches.tolist()]
         passing = [x >= self.threshold for x in m]
         vote = metrics.combine_view_decisions(passing, self.p.min_share)
-        acc = d.bit_acc.float()
+        acc = bit_acc.float()
         return {
             "views": len(m),
             "bit_acc": float(acc.mean()),
@@ -188,7 +247,7 @@ class Runner:
             "views_passing": sum(passing),
             "share_passing": sum(passing) / len(m),
             "verdict": bool(vote.passed),
-            "vote_pvalue": float(metrics.vote_pvalue(m, key.num_bits, self.p.min_share)),
+            "vote_pvalue": float(metrics.vote_pvalue(m, num_bits, self.p.min_share)),
         }
 
     @staticmethod
@@ -306,6 +365,66 @@ class Runner:
             }
         return res
 
+    def color_run(self) -> Optional[Path]:
+        """The color-branch baseline run of the primary base (written by the geometry stage), or None."""
+        cfg = self.out / "runs" / self.primary / "colormark" / "config.yml"
+        return cfg if cfg.is_file() else None
+
+    def stage_geometry(self) -> Dict[str, Any]:
+        """Model-level verdicts of the informed geometric decoder: watermarked, sticker off, the unwatermarked base
+        (and other runs); plus the color-branch baseline (unedited) when enabled."""
+        g = self.p.geometry
+        res: Dict[str, Any] = {"num_views": g.num_views, "sampled_share": g.sampled_share, "seed": self.p.seeds[0],
+                               "threshold": self.threshold, "bases": {}}
+        for b in self.p.bases:
+            self.say(f"  [geometry] {b.name}")
+            wm = self.load(self.wm_dir(b.name) / "config.yml").model
+            res["bases"][b.name] = {
+                "watermarked": self.geo_decode(b.name, wm, sticker=True, desc="watermarked"),
+                "sticker_off": self.geo_decode(b.name, wm, sticker=False, desc="sticker off"),
+                "base_run": self.geo_decode(b.name, self.load(self.base_config(b.name)).model, desc="base run"),
+            }
+            del wm
+        others = []
+        for o in self.p.false_positives.other_runs:
+            from gsticker_plugin.verify import load_run
+
+            name, cfg = o.get("name", Path(o["config"]).parent.name), Path(o["config"])
+            with contextlib.redirect_stdout(sys.stderr):
+                _, pipe, _ = load_run(cfg, data=Path(o["data"]) if o.get("data") else None, device=self.device)
+            others.append({"name": name, **self.geo_decode(self.primary, pipe.model, desc=name)})
+        res["other_runs"] = others
+        if g.color_baseline:
+            res["color_baseline"] = self.color_baseline()
+        return res
+
+    def color_baseline(self) -> Dict[str, Any]:
+        """Write the color-marked run (amplitude matched to the sticker's PSNR) and decode it unedited."""
+        from gsticker_plugin.colormark import match_amplitude, write_color_marked_run
+
+        q = json.loads(self.stage_path("quality").read_text())
+        target = q[self.primary]["wm_vs_unwm"]["psnr"]
+        if not isinstance(target, (int, float)):
+            target = 45.0
+        dest = self.out / "runs" / self.primary / "colormark"
+        if dest.exists():
+            shutil.rmtree(dest)
+        cfg = write_color_marked_run(self.wm_dir(self.primary) / "config.yml", dest, amplitude=0.05)
+        pipe = self.load(cfg)
+        amplitude = float(match_amplitude(pipe, target_psnr=float(target)))
+        shutil.rmtree(dest)
+        cfg = write_color_marked_run(self.wm_dir(self.primary) / "config.yml", dest, amplitude=amplitude)
+        pipe = self.load(cfg)
+        r_on = self.render(pipe, "color-marked", sticker=True)
+        r_off = self.render(pipe, "color mark off", sticker=False)
+        return {"config": str(cfg), "amplitude": amplitude, "target_psnr": float(target),
+                "psnr_vs_unmarked": self.image_metrics(r_on["rgb"], r_off["rgb"])["psnr"],
+                "color_decoder": self.color_decode(pipe.model, amplitude, desc="unedited"),
+                "geometry_decoder": self.geo_decode(self.primary, pipe.model, desc="color-marked run"),
+                "note": "the same sticker patterns and gate as the watermarked run, added to the final field's per-sample "
+                        "color instead of its density (density identical to the base); built, not trained, in this "
+                        "harness; decoded by the informed color decoder (the geometric decoder's fit on RGB)"}
+
     @property
     def primary(self) -> str:
         return self.p.bases[0].name
@@ -384,11 +503,16 @@ class Runner:
         return out
 
     def recolored_views(self, variant: Dict[str, Any], which: str) -> Tensor:
-        """Renders of one ns-recolor edit of the watermarked run (``wm``) or of the base run (``base``)."""
+        return self.recolored(variant, which)["rgb"]
+
+    def recolored(self, variant: Dict[str, Any], which: str) -> Dict[str, Tensor]:
+        """One ns-recolor edit of the watermarked run (``wm``), the base run (``base``) or the color-branch baseline
+        (``color``): its renders and, with ``geometry`` on, its model-level decodes (geometric; color for ``color``)."""
         def make():
             from gsticker_plugin.recolor import cli
 
-            src = self.wm_dir(self.primary) / "config.yml" if which == "wm" else self.base_config(self.primary)
+            src = {"wm": self.wm_dir(self.primary) / "config.yml", "base": self.base_config(self.primary),
+                   "color": self.color_run()}[which]
             dest = self.out / "recolored" / self.primary / variant["name"] / which
             if dest.exists():
                 shutil.rmtree(dest)
@@ -400,12 +524,19 @@ class Runner:
             if rc != 0:
                 raise GStickerError(f"ns-recolor {' '.join(argv)} failed (exit {rc})")
             (cfg,) = list(dest.glob("*/*/*/config.yml"))
-            r = self.render(self.load(cfg), f"{variant['name']} ({which})")
+            pipe = self.load(cfg)
+            out = {"rgb": self.render(pipe, f"{variant['name']} ({which})")["rgb"]}
+            if self.p.geometry is not None:
+                label = f"{variant['name']} ({which})"
+                out.update(self._as_tensors(self.geo_decode(self.primary, pipe.model, desc=label), "geo"))
+                if which == "color":
+                    amp = json.loads(self.stage_path("geometry").read_text())["color_baseline"]["amplitude"]
+                    out.update(self._as_tensors(self.color_decode(pipe.model, amp, desc=label), "color"))
             if not self.p.recolor.keep_runs:
                 shutil.rmtree(dest)
-            return {"rgb": r["rgb"]}
+            return out
 
-        return self.cached(f"recolor-{self.primary}-{variant['name']}-{which}", make)["rgb"]
+        return self.cached(f"recolor-{self.primary}-{variant['name']}-{which}", make)
 
     def stage_recolor(self) -> Dict[str, Any]:
         from gsticker_plugin.attacks import hue_shift
@@ -431,13 +562,23 @@ class Runner:
             rows.append(self._recolor_row({"name": "image-hue-jitter", "kind": "image_hue",
                                            "label": f"image-level hue jitter U(-{abs(jitter):g}, {abs(jitter):g})"},
                                           per_seed, null_seed, quality, paper=99.33))
+        with_color = self.p.geometry is not None and self.p.geometry.color_baseline and self.color_run() is not None
         for var in _tqdm(self.recolor_variants(), "recolor", self.progress):
-            a, b = self.recolored_views(var, "wm"), self.recolored_views(var, "base")
+            wm, base = self.recolored(var, "wm"), self.recolored(var, "base")
+            a, b = wm["rgb"], base["rgb"]
             paper = 99.40 if var["kind"] == "palette" else None
-            rows.append(self._recolor_row(var, [self.decode(key, a)], [self.decode(key, b)], [self.image_metrics(a, b)], paper))
+            row = self._recolor_row(var, [self.decode(key, a)], [self.decode(key, b)], [self.image_metrics(a, b)], paper)
+            row["geometry"] = self._from_tensors(wm, "geo", key.num_bits)
+            row["geometry_null"] = self._from_tensors(base, "geo", key.num_bits)
+            if with_color:
+                row["color_baseline"] = self._from_tensors(self.recolored(var, "color"), "color", key.num_bits)
+            rows.append(row)
         return {"base": self.primary, "rows": rows, "palette_entry": self.p.recolor.palette_entry,
                 "note": "bit accuracy of the watermarked run after the edit; 'null' = the same edit of the unwatermarked base "
-                        "decoded with the owner key; PSNR/SSIM = watermarked-recolored vs unwatermarked-recolored render"}
+                        "decoded with the owner key; PSNR/SSIM = watermarked-recolored vs unwatermarked-recolored render; "
+                        "bit_acc/null_* = the blind extractor on the renders; 'geometry' = the informed geometric decoder on "
+                        "the edited model (geometry_null: on the edited base); 'color_baseline' = the color-branch "
+                        "baseline after the same edit, read by the informed color decoder"}
 
     @staticmethod
     def _recolor_row(var, per_seed, null_seed, quality, paper) -> Dict[str, Any]:
@@ -451,6 +592,47 @@ class Runner:
                 "null_bit_acc": mean(null_seed, "bit_acc"), "null_share_passing": mean(null_seed, "share_passing"),
                 "psnr": mean(quality, "psnr"), "ssim": mean(quality, "ssim"),
                 "per_seed": per_seed, "null_per_seed": null_seed}
+
+    def stage_purify(self) -> Dict[str, Any]:
+        """Model purification: fine-tune every parameter of the watermarked run (density, color, sticker) on clean
+        training images (MSE, Adam); geometric decoding and test PSNR after each cumulative step count."""
+        from gsticker_plugin.recolor.finetune import finetune_color
+        from gsticker_plugin.recolor.runs import background_of, composite_on, training_images
+
+        g = self.p.geometry
+        pipe = self.load(self.wm_dir(self.primary) / "config.yml")
+        model = pipe.model
+        ds = pipe.datamanager.train_dataset
+        bg = background_of(model)
+        targets = [composite_on(t, bg) for t in training_images(ds)]
+        params = {n: p for n, p in model.named_parameters() if p.is_floating_point() and n.rsplit(".", 1)[-1] != "aabb"
+                  and not n.startswith(("extractor", "classifier"))}
+        points, done, t_train = [], 0, 0.0
+        for steps in g.purify_steps:
+            if steps > done:
+                t0 = time.time()
+                hist = finetune_color(model, ds.cameras, targets, steps - done, lr=g.purify_lr,
+                                      rays_per_step=g.purify_rays_per_step, seed=done, progress=self.progress,
+                                      color_params=params)
+                t_train += time.time() - t0
+                done = steps
+                loss = float(sum(hist["loss"][-20:]) / len(hist["loss"][-20:]))
+            else:
+                loss = None
+            model.eval()
+            r = self.render(pipe, f"purified {steps} steps")
+            d = self.geo_decode(self.primary, model, desc=f"purified {steps} steps")
+            points.append({"steps": steps, "train_seconds": round(t_train, 1), "loss": loss,
+                           "psnr_vs_gt": self.image_metrics(r["rgb"], r["gt"])["psnr"],
+                           "bit_acc": d["bit_acc"], "share_passing": d["share_passing"], "verdict": d["verdict"],
+                           "matches": d["matches"]})
+        below = next((p["steps"] for p in points if p["bit_acc"] < 0.9), None)
+        fails = next((p["steps"] for p in points if not p["verdict"]), None)
+        return {"base": self.primary, "lr": g.purify_lr, "rays_per_step": g.purify_rays_per_step,
+                "parameters": len(params), "points": points, "bit_acc_below_90_at": below, "verdict_fails_at": fails,
+                "note": "the attacker holds the shareable model and the clean training images and fine-tunes every "
+                        "parameter (the base's density and color, the sticker, the gate width) to fit the images; "
+                        "decoded with the informed geometric decoder against the owner's untouched base"}
 
     def stage_false_positives(self) -> Dict[str, Any]:
         from gsticker_plugin import metrics
@@ -545,10 +727,14 @@ class Runner:
 
         t0 = time.time()
         fns = {"scene": self.stage_scene, "bases": self.stage_bases, "sticker": self.stage_sticker,
-               "renders": self.stage_renders, "quality": self.stage_quality, "distortions": self.stage_distortions,
-               "curves": self.stage_curves, "recolor": self.stage_recolor, "false_positives": self.stage_false_positives,
-               "speed": self.stage_speed}
+               "renders": self.stage_renders, "quality": self.stage_quality, "geometry": self.stage_geometry,
+               "distortions": self.stage_distortions, "curves": self.stage_curves, "recolor": self.stage_recolor,
+               "purify": self.stage_purify, "false_positives": self.stage_false_positives, "speed": self.stage_speed}
         want = [s for s in fns if s in stages]
+        if self.p.geometry is None:
+            want = [s for s in want if s not in ("geometry", "purify")]
+        elif not self.p.geometry.purify_steps and "purify" in want:
+            want.remove("purify")
         if self.p.recolor is None and "recolor" in want:
             want.remove("recolor")
         if not self.p.curves and "curves" in want:
