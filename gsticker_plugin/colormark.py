@@ -20,10 +20,15 @@ Order with recoloring: the mark wraps the final field instance's ``get_outputs``
 :class:`gsticker_plugin.recolor.model.RecolorModel` built on a color-marked run (ns-recolor palette / hue) wraps
 the already-marked method and edits the marked RGB.
 
+Bases: nerfacto (tested end to end on real runs); TensoRF and vanilla-nerf get the same wrap (the mark and the
+unchanged density are tested on untrained in-memory models; the decoder is not exercised on them).
+
 Honest limits: the mark is a gray offset. A pure HSV hue rotation maps ``rgb + d`` to ``hue(rgb) + d`` wherever
 ``rgb + d`` stays in [0, 1] (max and min, hence V and the chroma, move together with ``d``), so a hue-shifted
 color-marked model still *carries* the offset; what the recolor breaks is the decoder's reference (the
-suspect's RGB is no longer the base's plus the mark). A decoder that knew the edit could undo it.
+suspect's RGB is no longer the base's plus the mark), and how far it falls depends on the size of the edit
+relative to the mark (a strong mark on a faintly colored base survives a hue turn). A decoder that knew the
+edit (a hue-shifted reference) could undo it.
 """
 
 from __future__ import annotations

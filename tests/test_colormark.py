@@ -12,13 +12,10 @@ round-trips through ``load_run``.
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import os
-import subprocess
 import sys
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Dict, List
+from typing import Dict
 
 import pytest
 import torch
@@ -28,29 +25,14 @@ from gsticker_plugin import colormark as C
 from gsticker_plugin import geometry as G
 from gsticker_plugin import verify as V
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.key import OwnerKey
+from gsticker_plugin.key import OwnerKey, file_sha256
 from gsticker_plugin.sticker import DensityWrap, Gate, Sticker, WrapState
+from test_geometry import COMMON, MESSAGE, NERFACTO_TINY, _train  # the tiny-run recipe shared with the geometry tests
 
-BIN = Path(sys.executable).parent
-MESSAGE = "101100111000111100001111100000111111000000111111"
-NERFACTO_TINY = ["gsticker-nerfacto-small", "--pipeline.model.num-nerf-samples-per-ray", "16",
-                 "--pipeline.model.num-proposal-samples-per-ray", "32", "16",
-                 "--pipeline.datamanager.train-num-rays-per-batch", "256"]
-COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
 BASE_STEPS = "400"
 AMPLITUDE = 0.05
 VIEWS = 6
 CPU = torch.device("cpu")
-
-
-def _env() -> dict:
-    return dict(os.environ, OMP_NUM_THREADS="1", GSTICKER_NO_DOWNLOAD="1", PYTHONWARNINGS="ignore")
-
-
-def _train(cmd: List[str], cwd: Path) -> None:
-    proc = subprocess.run([str(BIN / "ns-train"), *cmd], capture_output=True, text=True, env=_env(), cwd=cwd,
-                          timeout=600)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
 
 
 def _quiet():
@@ -110,6 +92,42 @@ def test_color_wrap_adds_a_gray_mark_where_the_gate_opens_and_leaves_density():
     assert "get_density" not in fld.__dict__ and "get_outputs" not in fld.__dict__
 
 
+@pytest.mark.parametrize("kind", ["tensorf", "vanilla-nerf"])
+def test_tensorf_and_vanilla_nerf_bases_get_the_mark_with_their_density_unchanged(kind):
+    """Real model classes, untrained and in memory (gates calibrated by hand on their own renders)."""
+    import method_configs  # noqa: F401  (host fixes: offline LPIPS)
+    from nerfstudio.cameras.cameras import Cameras
+    from nerfstudio.data.scene_box import SceneBox
+    from nerfstudio.models.tensorf import TensoRFModelConfig
+    from nerfstudio.models.vanilla_nerf import VanillaModelConfig
+
+    torch.manual_seed(0)
+    base = (TensoRFModelConfig(init_resolution=16, final_resolution=32, num_samples=32, num_uniform_samples=16,
+                               upsampling_iters=(), num_den_components=4, num_color_components=4, appearance_dim=9)
+            if kind == "tensorf" else VanillaModelConfig(num_coarse_samples=16, num_importance_samples=16))
+    model = C.ColorMarkModelConfig(base_model=base, color_amplitude=0.2).setup(
+        scene_box=SceneBox(aabb=torch.tensor([[-1.5] * 3, [1.5] * 3])), num_train_data=2, metadata={}, device="cpu")
+    model.eval()
+    if kind == "tensorf":  # untrained grids are ~0: give the density planes something to render
+        for p in model.base.field.density_encoding.parameters():
+            p.data.uniform_(0.0, 0.5)
+    model.set_message(torch.tensor([int(c) for c in MESSAGE]))
+    cam = Cameras(camera_to_worlds=torch.tensor([[[1.0, 0, 0, 0], [0, 0, -1, -4], [0, 1, 0, 0]]]), fx=20.0, fy=20.0,
+                  cx=8.0, cy=8.0, width=16, height=16)
+    with torch.no_grad():
+        with model.capture_final_samples() as records:
+            model.get_outputs_for_camera(cam)
+        density = torch.cat([r["density"].reshape(-1) for r in records])
+        for g in model.gates.values():
+            g.calibrate(density, torch.ones_like(density))
+        on = model.get_outputs_for_camera(cam)
+        with model.sticker_enabled(False):
+            off = model.get_outputs_for_camera(cam)
+    geometry = [k for k in on if "accumulation" in k or "depth" in k]
+    assert geometry and all(torch.equal(on[k], off[k]) for k in geometry), geometry
+    assert float((on["rgb"] - off["rgb"]).abs().max()) > 1e-3
+
+
 # ---------------------------------------------------------------------------------------------- real runs
 @pytest.fixture(scope="module")
 def runs(tiny_scene, tmp_path_factory) -> Dict[str, Path]:
@@ -140,10 +158,6 @@ def loaded(runs):
     return SimpleNamespace(key=key, ref=ref, pipe=pipe, model=pipe.model, ckpt=ckpt)
 
 
-def _file_sha(p: Path) -> str:
-    return hashlib.sha256(Path(p).read_bytes()).hexdigest()
-
-
 def test_written_run_round_trips_through_load_run(runs, loaded):
     color, run = runs["color"], runs["run"]
     assert color == runs["ws"] / "colormark" / "config.yml"
@@ -156,7 +170,7 @@ def test_written_run_round_trips_through_load_run(runs, loaded):
         assert getattr(mc, name) == getattr(wm.pipeline.model, name), name
     assert yaml.dump(mc.base_model) == yaml.dump(wm.pipeline.model.base_model)
     (src,) = (run.parent / "nerfstudio_models").glob("step-*.ckpt")
-    assert loaded.ckpt.name == src.name and _file_sha(loaded.ckpt) == _file_sha(src)
+    assert loaded.ckpt.name == src.name and file_sha256(loaded.ckpt) == file_sha256(src)
     model = loaded.model
     assert type(model) is C.ColorMarkModel and model.config.color_amplitude == AMPLITUDE
     assert torch.equal(model.message.cpu(), loaded.key.message) and model.calibrated
