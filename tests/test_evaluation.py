@@ -132,7 +132,7 @@ def test_numbers_in_range(smoke):
         assert len(geo["bases"]["nerfacto"][k]["matches"]) == p.geometry.num_views, k
         _acc(geo["bases"]["nerfacto"][k]["bit_acc"])
     cb = geo["color_baseline"]
-    assert cb["amplitude"] > 0 and abs(cb["psnr_vs_unmarked"] - cb["target_psnr"]) < 1.0  # amplitude matched
+    assert cb["amplitude"] > 0 and abs(cb["psnr_vs_unmarked"] - cb["target_psnr"]) < 0.5  # amplitude matched
     _acc(cb["color_decoder"]["bit_acc"])
     pur = r["purify"]
     assert [pt["steps"] for pt in pur["points"]] == list(p.geometry.purify_steps)

@@ -38,8 +38,13 @@ class EvalArgs:
 
 
 def main(args: EvalArgs) -> int:
+    import warnings
+
     import method_configs  # noqa: F401  (host fixes: offline LPIPS, checkpoint types)
     from gsticker_plugin.evaluation.config import load_protocol
+
+    # nerfstudio 1.1.5's camera indexing warns on every render with this torch: noise in a long log
+    warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
     from gsticker_plugin.evaluation.runner import Runner
 
     bad = [s for s in (*args.stages, *args.redo) if s not in ALL_STAGES]

@@ -125,6 +125,9 @@ class GeometrySpec:
     decoding after each of these cumulative step counts; [] = skip."""
     purify_lr: float = 1e-3
     purify_rays_per_step: int = 1024
+    recolor_null: bool = True
+    """Also decode every recolored *base* geometrically (its density is the base's, so all its bits are the
+    undetermined-bit coin flips of the unwatermarked base; false = skip these decodes to save time)."""
     color_baseline: bool = True
     """Also build the color-branch baseline (the same sticker added to color instead of density, its amplitude
     matched to the sticker's PSNR) and decode it with the informed color decoder, unedited and after each recolor."""

@@ -271,13 +271,19 @@ def chart_recolor(r, path: Path) -> Optional[Path]:
     for i, row in enumerate(rows):
         if row["paper"] is not None:
             ax.plot([i - 0.4, i + 0.4], [row["paper"]] * 2, "k-", lw=1.5)
+    return _finish_bars(plt, fig, ax, [row["name"] for row in rows], path,
+                        f"{r['protocol']['name']}: bit accuracy after recolor (black: paper)", legend_loc="best")
+
+
+def _finish_bars(plt, fig, ax, names: List[str], path: Path, title: str, legend_loc: str) -> Path:
+    """Chance line, one tick per bar group, bit-accuracy axis, legend and title; writes ``path``."""
     ax.axhline(50, color="red", lw=0.8, ls=":")
-    ax.set_xticks(x)
-    ax.set_xticklabels([row["name"] for row in rows], rotation=45, ha="right", fontsize=7)
+    ax.set_xticks(list(range(len(names))))
+    ax.set_xticklabels(names, rotation=45, ha="right", fontsize=7)
     ax.set_ylabel("bit accuracy %")
     ax.set_ylim(0, 102)
-    ax.legend(fontsize=7)
-    ax.set_title(f"{r['protocol']['name']}: bit accuracy after recolor (black: paper)", fontsize=9)
+    ax.legend(fontsize=7, loc=legend_loc)
+    ax.set_title(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -302,19 +308,12 @@ def chart_geometry_recolor(r, path: Path) -> Optional[Path]:
     ax.bar([i - 0.27 for i in x], [acc(a) for _, a, _, _ in rows], 0.27, label="sticker (density), geometric decoder")
     if any(cb for _, _, cb, _ in rows):
         ax.bar(x, [acc(cb) for _, _, cb, _ in rows], 0.27, label="color-branch baseline, color decoder")
-    ax.bar([i + 0.27 for i in x], [acc(n) for _, _, _, n in rows], 0.27, label="unwatermarked base (null)", color="gray")
-    ax.axhline(50, color="red", lw=0.8, ls=":")
+    nulls = [(i, n) for i, (_, _, _, n) in enumerate(rows) if n]  # recolored bases may be skipped (recolor_null)
+    ax.bar([i + 0.27 for i, _ in nulls], [acc(n) for _, n in nulls], 0.27, label="unwatermarked base (null)", color="gray")
     ax.axhline(100 * r["threshold"] / 48, color="black", lw=0.8, ls="--")
-    ax.set_xticks(x)
-    ax.set_xticklabels([n for n, *_ in rows], rotation=45, ha="right", fontsize=7)
-    ax.set_ylabel("bit accuracy %")
-    ax.set_ylim(0, 102)
-    ax.legend(fontsize=7, loc="lower left")
-    ax.set_title(f"{r['protocol']['name']}: model-level bit accuracy after recolor (dashed: verdict threshold)", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _finish_bars(plt, fig, ax, [n for n, *_ in rows], path,
+                        f"{r['protocol']['name']}: model-level bit accuracy after recolor (dashed: verdict threshold)",
+                        legend_loc="lower left")
 
 
 def chart_purify(r, path: Path) -> Optional[Path]:

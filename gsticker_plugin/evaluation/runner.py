@@ -412,6 +412,14 @@ class Runner:
         cfg = write_color_marked_run(self.wm_dir(self.primary) / "config.yml", dest, amplitude=0.05)
         pipe = self.load(cfg)
         amplitude = float(match_amplitude(pipe, target_psnr=float(target)))
+        # refine on the reported test views (the clamp to [0, 1] makes the PSNR only nearly linear in log amplitude)
+        for _ in range(3):
+            pipe.model.config.color_amplitude = amplitude
+            got = self.image_metrics(self.render(pipe, "color mark", sticker=True)["rgb"],
+                                     self.render(pipe, "color mark off", sticker=False)["rgb"])["psnr"]
+            if not isinstance(got, float) or abs(got - float(target)) < 0.1:
+                break
+            amplitude *= 10 ** ((got - float(target)) / 20)
         shutil.rmtree(dest)
         cfg = write_color_marked_run(self.wm_dir(self.primary) / "config.yml", dest, amplitude=amplitude)
         pipe = self.load(cfg)
@@ -479,7 +487,7 @@ class Runner:
             below = next((p["strength"] for p in pts if p["bit_acc_mean"] < 0.9), None)
             fails = next((p["strength"] for p in pts if p["verdict_rate"] < 0.5), None)
             curves[name] = {"points": pts, "bit_acc_below_90_at": below, "verdict_fails_at": fails,
-                            "randomized": name in ("noise", "crop"), "definition": describe_spec(f"{name}=1")}
+                            "randomized": name in ("noise", "crop"), "definition": describe_spec(f"{name}={strengths[-1]}")}
         return {"base": self.primary, "seeds": list(self.p.seeds), "curves": curves,
                 "note": "seeds change the distortions' randomness only (noise samples, cropout rectangle); rotation, "
                         "blur, JPEG, resize and a fixed hue shift are deterministic, so their spread over seeds is 0. "
@@ -525,13 +533,16 @@ class Runner:
                 raise GStickerError(f"ns-recolor {' '.join(argv)} failed (exit {rc})")
             (cfg,) = list(dest.glob("*/*/*/config.yml"))
             pipe = self.load(cfg)
-            out = {"rgb": self.render(pipe, f"{variant['name']} ({which})")["rgb"]}
-            if self.p.geometry is not None:
-                label = f"{variant['name']} ({which})"
+            label = f"{variant['name']} ({which})"
+            out = {}
+            if which != "color":  # the baseline is only decoded (its renders enter no table)
+                out["rgb"] = self.render(pipe, label)["rgb"]
+            g = self.p.geometry
+            if g is not None and (which == "wm" or (which == "base" and g.recolor_null)):
                 out.update(self._as_tensors(self.geo_decode(self.primary, pipe.model, desc=label), "geo"))
-                if which == "color":
-                    amp = json.loads(self.stage_path("geometry").read_text())["color_baseline"]["amplitude"]
-                    out.update(self._as_tensors(self.color_decode(pipe.model, amp, desc=label), "color"))
+            if g is not None and which == "color":
+                amp = json.loads(self.stage_path("geometry").read_text())["color_baseline"]["amplitude"]
+                out.update(self._as_tensors(self.color_decode(pipe.model, amp, desc=label), "color"))
             if not self.p.recolor.keep_runs:
                 shutil.rmtree(dest)
             return out
