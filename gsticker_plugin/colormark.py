@@ -33,7 +33,6 @@ edit (a hue-shifted reference) could undo it.
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import dataclasses
 import math
@@ -346,34 +345,24 @@ def decode_color_suspect(key, reference, suspect_model, num_views: int, sampled_
     ``pvalues``, ``scores`` (None) and ``color`` (per-view fit details); ``views`` the suspect's RGB renders.
     """
     from gsticker_plugin import geometry as G
-    from gsticker_plugin import metrics
-    from gsticker_plugin.verify import View, _tqdm, select_cameras
+    from gsticker_plugin.verify import View
 
     check_amplitude(amplitude)
     st = G.cpu_sticker(reference.model)
     gate_scale = float(reference.model.final_wrap.gate.scale)
-    gen = torch.Generator().manual_seed(104729 + 7919 * int(seed))  # ties: independent of the owner's message
-    toggle = sticker is not None and hasattr(suspect_model, "sticker_enabled")
+    gen = G.tie_generator(seed)
     per_view: List[Dict[str, Any]] = []
-    views = []
-    with (suspect_model.sticker_enabled(sticker) if toggle else contextlib.nullcontext()):
-        for name, cam in _tqdm(select_cameras(reference.pipeline, num_views, sampled_share, seed), "color decoding",
-                               progress):
-            with torch.no_grad():
-                rendered = suspect_model.get_outputs_for_camera(cam.to(suspect_model.device))
-            rendered = {k: v.detach().float().cpu() for k, v in rendered.items() if isinstance(v, Tensor)}
-            cached = [ref_cache[k] for k in ((name, False), (name, True)) if k in ref_cache] if ref_cache else []
-            ref_view = cached[0] if cached else None
-            if ref_view is None:
-                ref_view = G.reference_view(reference, name, cam, use_depth=False)
-                if ref_cache is not None:
-                    ref_cache[(name, False)] = ref_view
-            ref = color_reference(ref_view, gate_scale)
-            per_view.append(decode_color_view(ref, st, suspect_rgb_at(rendered, ref_view.rays, ref_view.hw),
-                                              float(amplitude), gen, iterations))
-            img = rendered.get("rgb", rendered.get("rgb_fine"))
-            views.append(View(name=name, image=img.clamp(0, 1).permute(2, 0, 1).contiguous()))
-    bits = torch.stack([d.pop("bits") for d in per_view])
-    matches = metrics.count_matches(bits, key.message)
-    return {"bits": bits, "matches": matches, "bit_acc": metrics.bit_accuracy(bits, key.message),
-            "pvalues": metrics.binomial_tail_pvalues(matches, key.num_bits), "scores": None, "color": per_view}, views
+    bits, views = [], []
+    for name, cam, rendered in G.suspect_renders(reference, suspect_model, num_views, sampled_share, seed, sticker,
+                                                 progress, "color decoding"):
+        # any reference view of this camera will do (the color fit uses no depth)
+        ref_view = next((ref_cache[k] for k in ((name, False), (name, True)) if ref_cache and k in ref_cache), None) \
+            or G.cached_reference_view(reference, name, cam, False, ref_cache)
+        ref = color_reference(ref_view, gate_scale)
+        d = decode_color_view(ref, st, suspect_rgb_at(rendered, ref_view.rays, ref_view.hw), float(amplitude), gen,
+                              iterations)
+        bits.append(d.pop("bits"))
+        per_view.append(d)
+        img = rendered.get("rgb", rendered.get("rgb_fine"))
+        views.append(View(name=name, image=img.clamp(0, 1).permute(2, 0, 1).contiguous()))
+    return G.decoded(key, bits, "color", per_view), views

@@ -428,38 +428,62 @@ def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int,
     RGB renders (for the report's figure). ``ref_cache``: a dict kept by the caller to reuse the base's reference
     views across suspects decoded with the same reference, cameras and seed.
     """
-    from gsticker_plugin import metrics
-    from gsticker_plugin.verify import View, _tqdm, select_cameras
+    from gsticker_plugin.verify import View
+
+    st = cpu_sticker(reference.model)
+    gen = tie_generator(seed)
+    bits, details, views = [], [], []
+    for name, cam, out in suspect_renders(reference, suspect_model, num_views, sampled_share, seed, sticker, progress,
+                                          "geometric decoding"):
+        ref_view = cached_reference_view(reference, name, cam, has_expected_depth(out), ref_cache)
+        d = decode_view(ref_view, st, suspect_signal(out, ref_view), gen, iterations)
+        bits.append(d.pop("bits"))
+        d["signs_abs_mean"] = float(d.pop("signs").abs().mean())
+        d["signals"] = list(ref_view.signals)
+        details.append(d)
+        rgb = out.get("rgb", out.get("rgb_fine"))
+        img = rgb.clamp(0, 1).permute(2, 0, 1).contiguous() if rgb is not None else ref_view.image
+        views.append(View(name=name, image=img))
+    return decoded(key, bits, "geometry", details), views
+
+
+def tie_generator(seed: int) -> torch.Generator:
+    """Coin flips for undetermined bits: seeded by the verification seed, independent of the owner's message."""
+    return torch.Generator().manual_seed(104729 + 7919 * int(seed))
+
+
+def suspect_renders(reference: BaseReference, suspect_model, num_views: int, sampled_share: float, seed: int,
+                    sticker: Optional[bool], progress: bool, desc: str):
+    """Yield ``(name, camera, outputs)`` of the suspect at the base run's chosen cameras (outputs float, on the
+    CPU); ``sticker``: render with the suspect's sticker on/off (None: as it is)."""
+    from gsticker_plugin.verify import _tqdm, select_cameras
 
     cams = select_cameras(reference.pipeline, num_views, sampled_share, seed)
-    st = cpu_sticker(reference.model)
-    gen = torch.Generator().manual_seed(104729 + 7919 * int(seed))  # ties: independent of the owner's message
     ctx = (suspect_model.sticker_enabled(sticker) if (sticker is not None and hasattr(suspect_model, "sticker_enabled"))
            else contextlib.nullcontext())
-    bits, details, views = [], [], []
     with ctx:
-        for name, cam in _tqdm(cams, "geometric decoding", progress):
+        for name, cam in _tqdm(cams, desc, progress):
             with torch.no_grad():
                 out = suspect_model.get_outputs_for_camera(cam.to(suspect_model.device))
-            out = {k: v.detach().float().cpu() for k, v in out.items() if isinstance(v, Tensor)}
-            use_depth = has_expected_depth(out)
-            if ref_cache is not None and (name, use_depth) in ref_cache:
-                ref_view = ref_cache[(name, use_depth)]
-            else:
-                ref_view = reference_view(reference, name, cam, use_depth=use_depth)
-                if ref_cache is not None:
-                    ref_cache[(name, use_depth)] = ref_view
-            sus = suspect_signal(out, ref_view)
-            d = decode_view(ref_view, st, sus, gen, iterations)
-            bits.append(d.pop("bits"))
-            d["signs_abs_mean"] = float(d.pop("signs").abs().mean())
-            d["signals"] = list(ref_view.signals)
-            details.append(d)
-            rgb = out.get("rgb", out.get("rgb_fine"))
-            img = rgb.clamp(0, 1).permute(2, 0, 1).contiguous() if rgb is not None else ref_view.image
-            views.append(View(name=name, image=img))
+            yield name, cam, {k: v.detach().float().cpu() for k, v in out.items() if isinstance(v, Tensor)}
+
+
+def cached_reference_view(reference: BaseReference, name: str, cam, use_depth: bool,
+                          ref_cache: Optional[Dict[Any, ReferenceView]]) -> ReferenceView:
+    """:func:`reference_view`, kept in ``ref_cache`` (when given) under ``(name, use_depth)``."""
+    if ref_cache is not None and (name, use_depth) in ref_cache:
+        return ref_cache[(name, use_depth)]
+    ref_view = reference_view(reference, name, cam, use_depth=use_depth)
+    if ref_cache is not None:
+        ref_cache[(name, use_depth)] = ref_view
+    return ref_view
+
+
+def decoded(key, bits: List[Tensor], details_name: str, details: List[Dict[str, Any]]) -> Dict[str, Any]:
+    """Per-view bits -> matches, bit accuracy and binomial p-values against the owner's message."""
+    from gsticker_plugin import metrics
+
     b = torch.stack(bits)
     m = metrics.count_matches(b, key.message)
-    dec = {"bits": b, "matches": m, "bit_acc": metrics.bit_accuracy(b, key.message),
-           "pvalues": metrics.binomial_tail_pvalues(m, key.num_bits), "scores": None, "geometry": details}
-    return dec, views
+    return {"bits": b, "matches": m, "bit_acc": metrics.bit_accuracy(b, key.message),
+            "pvalues": metrics.binomial_tail_pvalues(m, key.num_bits), "scores": None, details_name: details}
