@@ -419,8 +419,9 @@ def cpu_sticker(model) -> Sticker:
 
 def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int, sampled_share: float, seed: int,
                    sticker: Optional[bool] = None, progress: bool = False, iterations: int = 10,
-                   ref_cache: Optional[Dict[Any, ReferenceView]] = None):
-    """Render the base and the suspect at ``num_views`` cameras of the base run, fit and decode every view.
+                   ref_cache: Optional[Dict[Any, ReferenceView]] = None, cameras: Optional[List[Tuple[str, Any]]] = None):
+    """Render the base and the suspect at ``num_views`` cameras of the base run (or the given ``(name, camera)``
+    list), fit and decode every view.
 
     Returns ``(dec, views)``: ``dec`` holds per view ``bits``, ``matches``, ``bit_acc``, ``pvalues`` (as
     :func:`gsticker_plugin.verify.decode_views`; ``scores`` is None: the classifier reads images, not geometry)
@@ -434,7 +435,7 @@ def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int,
     gen = tie_generator(seed)
     bits, details, views = [], [], []
     for name, cam, out in suspect_renders(reference, suspect_model, num_views, sampled_share, seed, sticker, progress,
-                                          "geometric decoding"):
+                                          "geometric decoding", cameras):
         ref_view = cached_reference_view(reference, name, cam, has_expected_depth(out), ref_cache)
         d = decode_view(ref_view, st, suspect_signal(out, ref_view), gen, iterations)
         bits.append(d.pop("bits"))
@@ -453,12 +454,12 @@ def tie_generator(seed: int) -> torch.Generator:
 
 
 def suspect_renders(reference: BaseReference, suspect_model, num_views: int, sampled_share: float, seed: int,
-                    sticker: Optional[bool], progress: bool, desc: str):
-    """Yield ``(name, camera, outputs)`` of the suspect at the base run's chosen cameras (outputs float, on the
-    CPU); ``sticker``: render with the suspect's sticker on/off (None: as it is)."""
+                    sticker: Optional[bool], progress: bool, desc: str, cameras: Optional[List[Tuple[str, Any]]] = None):
+    """Yield ``(name, camera, outputs)`` of the suspect at the base run's chosen cameras, or at ``cameras``
+    (outputs float, on the CPU); ``sticker``: render with the suspect's sticker on/off (None: as it is)."""
     from gsticker_plugin.verify import _tqdm, select_cameras
 
-    cams = select_cameras(reference.pipeline, num_views, sampled_share, seed)
+    cams = cameras if cameras is not None else select_cameras(reference.pipeline, num_views, sampled_share, seed)
     ctx = (suspect_model.sticker_enabled(sticker) if (sticker is not None and hasattr(suspect_model, "sticker_enabled"))
            else contextlib.nullcontext())
     with ctx:

@@ -81,6 +81,23 @@ def _run(cmd: List[str], log: Path, ok=(0,)) -> Dict[str, Any]:
     return {"command": cmd, "exit": proc.returncode, "wall_s": wall}
 
 
+def train_sticker(out: Path, base_ckpt: Path, data: List[str], steps: int, warmup_steps: int, pool_views: int,
+                  owner_id: str, logs: Path) -> Optional[Dict[str, Any]]:
+    """``ns-train geometrysticker`` into ``out/bench/geometrysticker/watermarked`` (skipped, returning None, when
+    its checkpoint and key exist)."""
+    wm = out / "bench" / "geometrysticker" / "watermarked"
+    if wm.with_name("watermarked.gskey").exists() and list((wm / "nerfstudio_models").glob("step-*.ckpt")):
+        print("    (exists)")
+        return None
+    return _run([_bin("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
+                 "--output-dir", str(out), "--experiment-name", "bench", "--timestamp", "watermarked",
+                 "--max-num-iterations", str(steps), "--steps-per-save", str(steps),
+                 "--pipeline.owner-id", owner_id, "--pipeline.pool-train-views", str(pool_views),
+                 "--pipeline.pool-novel-views", str(pool_views), "--pipeline.monitor-views", "4",
+                 "--pipeline.steps-per-monitor", "50", "--pipeline.warmup-steps", str(warmup_steps),
+                 "--load-checkpoint", str(base_ckpt), *data], logs / "train.log")
+
+
 def _config_under(folder: Path) -> Path:
     found = sorted(folder.glob("**/config.yml"))
     if not found:
@@ -114,17 +131,9 @@ def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
     key = wm.with_name("watermarked.gskey")
 
     print("[1/4] ns-train geometrysticker", flush=True)
-    if not key.exists() or not list((wm / "nerfstudio_models").glob("step-*.ckpt")):
-        results["stages"]["train"] = _run(
-            [_bin("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
-             "--output-dir", str(out), "--experiment-name", "bench", "--timestamp", "watermarked",
-             "--max-num-iterations", str(cfg.steps), "--steps-per-save", str(cfg.steps),
-             "--pipeline.owner-id", cfg.owner_id, "--pipeline.pool-train-views", str(cfg.pool_views),
-             "--pipeline.pool-novel-views", str(cfg.pool_views), "--pipeline.monitor-views", "4",
-             "--pipeline.steps-per-monitor", "50", "--pipeline.warmup-steps", str(cfg.warmup_steps),
-             "--load-checkpoint", str(base_ckpt), *data], logs / "train.log")
-    else:
-        print("    (exists)")
+    trained = train_sticker(out, base_ckpt, data, cfg.steps, cfg.warmup_steps, cfg.pool_views, cfg.owner_id, logs)
+    if trained is not None:
+        results["stages"]["train"] = trained
 
     print("[2/4] PSNR watermarked vs clean (test views)", flush=True)
     psnr = psnr_watermarked_vs_clean(wm / "config.yml", cfg.psnr_views)
