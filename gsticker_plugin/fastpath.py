@@ -73,13 +73,16 @@ def orbit_cameras(cameras: Cameras, num: int, generator: torch.Generator, max_ti
 
 @torch.no_grad()
 def cache_view(model, camera: Cameras, novel: bool, min_density: Optional[float] = None,
-               outputs_into: Optional[Dict[str, Tensor]] = None, full_precision: bool = False) -> ViewCache:
+               outputs_into: Optional[Dict[str, Tensor]] = None, full_precision: bool = False,
+               message: Optional[Tensor] = None) -> ViewCache:
     """Render one camera with the sticker off, recording the final field's samples.
 
     ``outputs_into``: a dict that receives the render's outputs (accumulation, depth, ...), CPU float.
     ``full_precision``: keep positions and colours in float32 (the training pool stores them in half).
+    ``message``: render with the sticker of this message on and record the base's density and colour at the
+    samples the marked model draws (see ``capture_final_samples``); outputs and image are then the marked ones.
     """
-    with model.capture_final_samples() as records:
+    with model.capture_final_samples(message) as records:
         outputs = model.get_outputs_for_camera(camera)
     if outputs_into is not None:
         outputs_into.update({k: v.detach().float().cpu() for k, v in outputs.items() if isinstance(v, Tensor)})

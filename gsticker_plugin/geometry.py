@@ -223,6 +223,7 @@ class BaseReference:
     pipeline: Any  # the base run's pipeline (cameras)
     model: Any  # GeometryStickerModel wrapping the base
     notes: List[str] = field(default_factory=list)
+    samples_follow_sticker: bool = False  # the final samples are placed by a wrapped density (TensoRF, vanilla-nerf)
 
 
 def missing_geometry_message(key_path) -> str:
@@ -334,19 +335,26 @@ def load_base_reference(key, key_path, base_config: Optional[Path], data: Option
         w.aabb = stored
     model.to(device)
     model.eval()
+    # nerfacto's proposal networks place its samples and are not wrapped (by default): its samples do not move
+    follows = not (hasattr(model.base, "proposal_sampler") and not mcfg.wrap_proposal_networks)
     return BaseReference(config_path=cfg_path, checkpoint=ckpt, method=config.method_name, pipeline=pipeline,
-                         model=model, notes=notes)
+                         model=model, notes=notes, samples_follow_sticker=follows)
 
 
 @torch.no_grad()
-def reference_view(ref: BaseReference, name: str, camera, use_depth: bool) -> ReferenceView:
-    """Render the base at ``camera`` once (sticker off) and keep the rays whose samples the sticker can change."""
+def reference_view(ref: BaseReference, name: str, camera, use_depth: bool,
+                   message: Optional[Int[Tensor, "K"]] = None) -> ReferenceView:
+    """Render the base at ``camera`` once (sticker off) and keep the rays whose samples the sticker can change.
+
+    ``message``: take the samples the base marked with ``message`` draws instead (see
+    :func:`relinearized_view`); the returned ``base_signal`` is then the render's, to be replaced by the caller.
+    """
     from gsticker_plugin.fastpath import cache_view
 
     model = ref.model
     outputs: Dict[str, Tensor] = {}
     cam = camera.to(model.device)
-    view = cache_view(model, cam, novel=False, outputs_into=outputs, full_precision=True)
+    view = cache_view(model, cam, novel=False, outputs_into=outputs, full_precision=True, message=message)
     h, w = view.hw
     wrap = model.final_wrap
     density = view.density.float()  # [A S 1]
@@ -376,6 +384,19 @@ def reference_view(ref: BaseReference, name: str, camera, use_depth: bool) -> Re
                          open_index=open_index, psi_scale=psi_scale, features=feats, base_signal=base_signal,
                          depth_scale=depth_scale, signals=names,
                          image=view.image.permute(2, 0, 1).contiguous())
+
+
+def relinearized_view(ref: BaseReference, name: str, camera, use_depth: bool, bits: Int[Tensor, "K"],
+                      sticker: Sticker) -> ReferenceView:
+    """A reference view around a first estimate ``bits`` of the message, for bases whose final samples follow the
+    wrapped density (TensoRF's and vanilla-nerf's PDF samplers): the samples are the ones the base marked with
+    ``bits`` draws, the density at them is the base's, and the zero point is the prediction of the message 0 on
+    those samples, so ``base_signal + G(s) - G(0)`` is the composite of the base's density plus the sticker of
+    ``s`` on the marked model's samples. Independent of the owner's message (``bits`` come from the suspect)."""
+    view = reference_view(ref, name, camera, use_depth, message=bits)
+    with torch.no_grad():
+        view.base_signal = predict_change(view, sticker, torch.zeros(sticker.num_bits))
+    return view
 
 
 def suspect_signal(outputs: Dict[str, Tensor], ref: ReferenceView) -> Float[Tensor, "C R"]:
@@ -419,7 +440,8 @@ def cpu_sticker(model) -> Sticker:
 
 def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int, sampled_share: float, seed: int,
                    sticker: Optional[bool] = None, progress: bool = False, iterations: int = 10,
-                   ref_cache: Optional[Dict[Any, ReferenceView]] = None, cameras: Optional[List[Tuple[str, Any]]] = None):
+                   ref_cache: Optional[Dict[Any, ReferenceView]] = None, cameras: Optional[List[Tuple[str, Any]]] = None,
+                   relinearize: int = 1):
     """Render the base and the suspect at ``num_views`` cameras of the base run (or the given ``(name, camera)``
     list), fit and decode every view.
 
@@ -427,7 +449,9 @@ def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int,
     :func:`gsticker_plugin.verify.decode_views`; ``scores`` is None: the classifier reads images, not geometry)
     and ``geometry`` (per-view fit details); ``views`` are :class:`gsticker_plugin.verify.View` with the suspect's
     RGB renders (for the report's figure). ``ref_cache``: a dict kept by the caller to reuse the base's reference
-    views across suspects decoded with the same reference, cameras and seed.
+    views across suspects decoded with the same reference, cameras and seed. ``relinearize``: for bases whose
+    samples follow the wrapped density, refit this many times around the previous fit's bits
+    (:func:`relinearized_view`; a reference render and a fit more per view).
     """
     from gsticker_plugin.verify import View
 
@@ -438,6 +462,13 @@ def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int,
                                           "geometric decoding", cameras):
         ref_view = cached_reference_view(reference, name, cam, has_expected_depth(out), ref_cache)
         d = decode_view(ref_view, st, suspect_signal(out, ref_view), gen, iterations)
+        rounds = relinearize if reference.samples_follow_sticker else 0
+        for _ in range(rounds):
+            first = d["bits"]
+            rv = relinearized_view(reference, name, cam, has_expected_depth(out), first, st)
+            d = decode_view(rv, st, suspect_signal(out, rv), gen, iterations)
+            d["bits_changed_by_relinearizing"] = int((d["bits"] != first).sum())
+        d["relinearized"] = rounds
         bits.append(d.pop("bits"))
         d["signs_abs_mean"] = float(d.pop("signs").abs().mean())
         d["signals"] = list(ref_view.signals)

@@ -210,30 +210,44 @@ class GeometryStickerModel(Model):
 
     # ------------------------------------------------------------------------------------------ capture
     @contextmanager
-    def capture_final_samples(self):
-        """Record (positions, deltas, base density, rgb) of the final field's forward calls (sticker off)."""
+    def capture_final_samples(self, message: Optional[Tensor] = None):
+        """Record (positions, deltas, base density, rgb) of the final field's forward calls.
+
+        Sticker off by default. With ``message`` the model renders with the sticker of that message on, so the
+        samples are the ones the *marked* model draws (TensoRF and vanilla-nerf place their fine samples by the
+        wrapped density), while the recorded density and rgb are still the base's at those samples (the final
+        field is evaluated a second time with the sticker off).
+        """
+        from nerfstudio.field_components.field_heads import FieldHeadNames
+
         fld = self.final_wrap.field
         records: List[Dict[str, Tensor]] = []
         original_forward = fld.forward
 
         def forward(ray_samples, *args, **kwargs):
             out = original_forward(ray_samples, *args, **kwargs)
-            from nerfstudio.field_components.field_heads import FieldHeadNames
-
+            base = out
+            if message is not None:
+                with self.sticker_enabled(False):
+                    base = original_forward(ray_samples, *args, **kwargs)
             records.append({
                 "positions": ray_samples.frustums.get_positions().detach(),
                 "deltas": ray_samples.deltas.detach(),
-                "density": out[FieldHeadNames.DENSITY].detach(),
-                "rgb": out[FieldHeadNames.RGB].detach(),
+                "density": base[FieldHeadNames.DENSITY].detach(),
+                "rgb": base[FieldHeadNames.RGB].detach(),
             })
             return out
 
+        old_message = self.message.clone()
         object.__setattr__(fld, "forward", forward)
         try:
-            with self.sticker_enabled(False):
+            if message is not None:
+                self.set_message(message)
+            with self.sticker_enabled(message is not None):
                 yield records
         finally:
             del fld.__dict__["forward"]
+            self.set_message(old_message)
 
     def background_color(self) -> Tensor:
         renderer = getattr(self.base, "renderer_rgb", None)

@@ -362,6 +362,41 @@ def test_fast_path_matches_the_real_render(gs_runs, val_pipeline, base):
 
 
 @pytest.mark.parametrize("base", BASES)
+def test_relinearized_view_at_the_true_message_predicts_the_marked_render(gs_runs, val_pipeline, base):
+    """The geometric decoder's model around a message M (samples of the base marked with M, base density at them)
+    reproduces the marked render's accumulation, also where the samples follow the wrapped density (TensoRF,
+    vanilla-nerf); the linearization around the unmarked base's samples does not, for those bases."""
+    from gsticker_plugin import geometry as G
+
+    pipeline = val_pipeline(base)
+    model = pipeline.model
+    ref = G.BaseReference(config_path=gs_runs[base]["config"], checkpoint=gs_runs[base]["ckpt"], method=base,
+                          pipeline=pipeline, model=model)
+    camera = pipeline.datamanager.train_dataset.cameras[0:1]
+    message = model.message.clone()
+    st = G.cpu_sticker(model)
+    with torch.no_grad():
+        out = {k: v.float().cpu() for k, v in model.get_outputs_for_camera(camera).items() if isinstance(v, torch.Tensor)}
+    signs = message.float() * 2 - 1
+
+    def residual(view):
+        with torch.no_grad():
+            pred = view.base_signal + G.predict_change(view, st, signs) - G.predict_change(view, st, torch.zeros(48))
+        sus = G.suspect_signal(out, view)
+        return float((sus - pred).abs().max()), float((sus - view.base_signal).abs().max())
+
+    relin, change = residual(G.relinearized_view(ref, "cam0", camera, False, message, st))
+    assert torch.equal(model.message, message)  # restored after the capture
+    assert change > 1e-3, "the sticker changes this view's accumulation"
+    assert relin < 1e-4 * max(1.0, change * 100), (relin, change)
+    plain, _ = residual(G.reference_view(ref, "cam0", camera, False))
+    if base == "nerfacto":  # proposal samplers are not wrapped: the base's own samples are the marked model's
+        assert plain < 1e-4, plain
+    else:
+        assert plain > 10 * relin, (plain, relin)
+
+
+@pytest.mark.parametrize("base", BASES)
 def test_base_weights_are_bit_identical_after_training(gs_runs, base):
     ours = load_raw(gs_runs[base]["ckpt"])["pipeline"]
     theirs = load_raw(gs_runs[base]["base_ckpt"])["pipeline"]
