@@ -62,7 +62,7 @@ def _psnr(x) -> None:
 def test_files_written(smoke):
     out = smoke["out"]
     for name in ("results.json", "results.md", "charts/curves.png", "charts/recolor.png", "charts/speed.png",
-                 "charts/geometry_recolor.png", "charts/purify.png"):
+                 "charts/geometry_recolor.png", "charts/purify.png", "charts/recolor_strength.png"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     for stage in ("scene", "bases", "sticker", "renders", "quality", "geometry", "distortions", "curves", "recolor",
                   "purify", "false_positives", "speed"):
@@ -118,6 +118,14 @@ def test_numbers_in_range(smoke):
     for c in p.recolor.colors:
         assert f"palette-{c.replace(' ', '')}" in names
     assert "finetune" in names and any(n.startswith("hue-") for n in names)
+    ft = p.recolor.finetune
+    assert sorted(x["steps"] for x in rec if x["kind"] == "finetune") == sorted({ft.steps, *ft.steps_curve})
+    assert len(ft.steps_curve) > 0  # the smoke protocol exercises the fine-tune curve
+    src = r["recolor"]["palette_source"]
+    assert len(src) == 3 and all(0.0 <= c <= 1.0 for c in src)
+    for x in rec:
+        if x["kind"] == "palette":
+            assert 0.0 < x["delta_e"] < 250.0, x["delta_e"]  # Lab distances are bounded
     for x in rec:
         _acc(x["bit_acc"])
         _acc(x["null_bit_acc"])
@@ -162,7 +170,7 @@ def test_tables_have_every_row(smoke):
     for row in p.distortions:
         assert f"| {row.label} |" in md, row.label
     for c in p.recolor.colors:
-        assert f"palette {p.recolor.palette_entry} -> {c} |" in md, c
+        assert f"palette {p.recolor.palette_entry} -> {c} (Delta E " in md, c
     for name in p.curves:
         assert f"| {name} |" in md, name
     assert "99.25" in md and "32.39" in md  # the paper's numbers beside ours

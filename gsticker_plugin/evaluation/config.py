@@ -85,6 +85,8 @@ class FinetuneSpec:
     """Palette edit target (entry recolor.palette_entry set to this color); or hue_shift."""
     hue_shift: Optional[float] = None
     rays_per_step: int = 512
+    steps_curve: List[int] = field(default_factory=list)
+    """More fine-tunes of the same edit at these step counts (a curve of bit accuracy against attack length)."""
 
 
 @dataclass

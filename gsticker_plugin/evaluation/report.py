@@ -156,7 +156,8 @@ def _recolor(r) -> List[str]:
     d = r.get("recolor")
     if not d:
         return []
-    rows = [[x["label"], verdict(x.get("geometry")), verdict(x.get("geometry_null")), verdict(x.get("color_baseline")),
+    rows = [[x["label"] + (f" (Delta E {x['delta_e']:.0f})" if x.get("delta_e") is not None else ""),
+             verdict(x.get("geometry")), verdict(x.get("geometry_null")), verdict(x.get("color_baseline")),
              pct(x["bit_acc"]), pct(x["null_bit_acc"]), num(x["psnr"]), num(x["ssim"], 4), paper(x["paper"])]
             for x in d["rows"]]
     return ["## Recolor", "",
@@ -169,7 +170,9 @@ def _recolor(r) -> List[str]:
             "(`ns-recolor palette --set`); model-level hue is `ns-recolor hue --shift`; the fine-tune is `ns-recolor finetune` "
             "(the attacker trains the color branch). The same edit is applied to the watermarked run and to the unwatermarked "
             "base run; PSNR/SSIM compare the two recolored renders. Paper: palette 99.40, hue jitter 99.33 (the paper gives "
-            "no number for model-level hue or the fine-tune).", ""]
+            "no number for model-level hue or the fine-tune). Delta E: CIE76 distance between the palette entry "
+            + (f"(RGB {', '.join(f'{c:.2f}' for c in d['palette_source'])}) " if d.get("palette_source") else "")
+            + "and its new color. Against edit strength: `charts/recolor_strength.png`.", ""]
 
 
 def _fp(r) -> List[str]:
@@ -316,6 +319,42 @@ def chart_geometry_recolor(r, path: Path) -> Optional[Path]:
                         legend_loc="lower left")
 
 
+def chart_recolor_strength(r, path: Path) -> Optional[Path]:
+    """Bit accuracy against edit strength: palette distance (Delta E) and fine-tune steps, sticker vs color baseline."""
+    d = r.get("recolor")
+    if not d:
+        return None
+    pal = sorted((x for x in d["rows"] if x.get("delta_e") is not None and x.get("geometry")), key=lambda x: x["delta_e"])
+    ft = sorted((x for x in d["rows"] if x.get("steps") is not None and x.get("geometry")), key=lambda x: x["steps"])
+    if not pal and not ft:
+        return None
+    plt = _plt()
+    panels = [(p, xk, xl) for p, xk, xl in ((pal, "delta_e", "palette edit distance (Lab Delta E)"),
+                                            (ft, "steps", "attacker's color fine-tune steps")) if p]
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.4), squeeze=False)
+    for ax, (rows, xk, xl) in zip(axes[0], panels):
+        xs = [x[xk] for x in rows]
+        ax.plot(xs, [100 * x["geometry"]["bit_acc"] for x in rows], "o-", label="sticker (density), geometric decoder")
+        cb = [(x[xk], 100 * x["color_baseline"]["bit_acc"]) for x in rows if x.get("color_baseline")]
+        if cb:
+            ax.plot([a for a, _ in cb], [b for _, b in cb], "s--", label="color-branch baseline, color decoder")
+        ax.axhline(100 * r["threshold"] / 48, color="black", lw=0.8, ls="--")
+        ax.axhline(50, color="red", lw=0.8, ls=":")
+        ax.set_xlabel(xl)
+        ax.set_ylim(0, 102)
+        if xk == "delta_e":
+            for x in rows:
+                ax.annotate(x["name"].replace("palette-", ""), (x[xk], 100 * x["geometry"]["bit_acc"]), fontsize=6,
+                            rotation=60, xytext=(0, 4), textcoords="offset points")
+    axes[0][0].set_ylabel("model-level bit accuracy %")
+    axes[0][0].legend(fontsize=7, loc="lower left")
+    fig.suptitle(f"{r['protocol']['name']}: recolor strength (dashed: verdict threshold; dotted: chance)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def chart_purify(r, path: Path) -> Optional[Path]:
     d = r.get("purify")
     if not d or not d["points"]:
@@ -377,7 +416,8 @@ def write_all(results: Dict[str, Any], out: Path) -> Dict[str, Any]:
     charts = out / "charts"
     charts.mkdir(parents=True, exist_ok=True)
     made = {}
-    for name, fn in (("geometry_recolor", chart_geometry_recolor), ("purify", chart_purify), ("curves", chart_curves),
+    for name, fn in (("geometry_recolor", chart_geometry_recolor), ("recolor_strength", chart_recolor_strength),
+                     ("purify", chart_purify), ("curves", chart_curves),
                      ("recolor", chart_recolor), ("speed", chart_speed)):
         p = fn(results, charts / f"{name}.png")
         if p is not None:

@@ -506,9 +506,21 @@ class Runner:
         if ft is not None:
             tgt = ["--set", f"{rc.palette_entry}={ft.color}"] if ft.color is not None else ["--hue-shift", str(ft.hue_shift)]
             what = f"palette {rc.palette_entry} -> {ft.color}" if ft.color is not None else f"hue {ft.hue_shift:+g}"
-            out.append({"name": "finetune", "kind": "finetune", "label": f"attacker's color fine-tune ({what}, {ft.steps} steps)",
-                        "argv": ["finetune", *tgt, "--steps", str(ft.steps), "--rays-per-step", str(ft.rays_per_step)]})
+            for n in sorted({ft.steps, *ft.steps_curve}):
+                out.append({"name": "finetune" if n == ft.steps else f"finetune-{n}steps", "kind": "finetune", "steps": n,
+                            "label": f"attacker's color fine-tune ({what}, {n} steps)",
+                            "argv": ["finetune", *tgt, "--steps", str(n), "--rays-per-step", str(ft.rays_per_step)]})
         return out
+
+    def palette_source(self) -> Optional[List[float]]:
+        """The color of the palette entry the palette edits replace, extracted as ``ns-recolor palette`` does
+        (training images' foreground, k-means with its default k and seed 0)."""
+        from gsticker_plugin.recolor import cli
+
+        pipe = self.load(self.base_config(self.primary))
+        pal = cli._extract(cli._PaletteEdit(), pipe.model, pipe.datamanager.train_dataset, seed=0)
+        e = self.p.recolor.palette_entry
+        return [float(x) for x in pal.rgb[e].tolist()] if e < pal.k else None
 
     def recolored_views(self, variant: Dict[str, Any], which: str) -> Tensor:
         return self.recolored(variant, which)["rgb"]
@@ -574,6 +586,7 @@ class Runner:
                                            "label": f"image-level hue jitter U(-{abs(jitter):g}, {abs(jitter):g})"},
                                           per_seed, null_seed, quality, paper=99.33))
         with_color = self.p.geometry is not None and self.p.geometry.color_baseline and self.color_run() is not None
+        source = self.palette_source() if self.p.recolor.colors else None
         for var in _tqdm(self.recolor_variants(), "recolor", self.progress):
             wm, base = self.recolored(var, "wm"), self.recolored(var, "base")
             a, b = wm["rgb"], base["rgb"]
@@ -583,8 +596,13 @@ class Runner:
             row["geometry_null"] = self._from_tensors(base, "geo", key.num_bits)
             if with_color:
                 row["color_baseline"] = self._from_tensors(self.recolored(var, "color"), "color", key.num_bits)
+            if var["kind"] == "finetune":
+                row["steps"] = var["steps"]
+            if var["kind"] == "palette" and source is not None:
+                row["delta_e"] = palette_distance(source, var["argv"][-1].split("=", 1)[1])
             rows.append(row)
         return {"base": self.primary, "rows": rows, "palette_entry": self.p.recolor.palette_entry,
+                "palette_source": source,
                 "note": "bit accuracy of the watermarked run after the edit; 'null' = the same edit of the unwatermarked base "
                         "decoded with the owner key; PSNR/SSIM = watermarked-recolored vs unwatermarked-recolored render; "
                         "bit_acc/null_* = the blind extractor on the renders; 'geometry' = the informed geometric decoder on "
@@ -765,6 +783,14 @@ class Runner:
         if "report" in stages:
             report.write_all(results, self.out)
         return results
+
+
+def palette_distance(source_rgb: Sequence[float], color: str) -> float:
+    """CIE76 distance (Lab Delta E) between a palette entry and the color an edit gives it."""
+    from gsticker_plugin.recolor.palette import parse_color, rgb_to_lab
+
+    lab = rgb_to_lab(torch.tensor([list(source_rgb), list(parse_color(color))], dtype=torch.float32))
+    return float((lab[0] - lab[1]).norm())
 
 
 def lpips_fn():
