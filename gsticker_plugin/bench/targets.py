@@ -136,6 +136,8 @@ def main(cfg: BenchTargetsConfig) -> Dict[str, Any]:
     results["views"] = summarize(rows, key.num_bits, results.get("train"), len(dataset))
     res_path.write_text(json.dumps(results, indent=2))
     md = report(results["views"])
+    if chart(rows, key.num_bits, results["views"]["threshold"], out / "views.png") is not None:
+        md += "\n![per-view matches and PSNR](views.png)\n"
     (out / "results.md").write_text(md)
     print(md)
     return results
@@ -188,6 +190,33 @@ def report(v: Dict[str, Any]) -> str:
         f"decoding {v['decode_s_per_view']:.1f} s per view.",
     ]
     return "\n".join(lines) + "\n"
+
+
+def chart(rows: List[Dict[str, Any]], num_bits: int, threshold: int, path: Path) -> Optional[Path]:
+    """Per test view: matched bits (with the per-view threshold) and PSNR watermarked vs unwatermarked."""
+    if not rows:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [r["index"] for r in rows]
+    fig, (a, b) = plt.subplots(2, 1, figsize=(7, 4.2), sharex=True)
+    a.plot(x, [r["matches"] for r in rows], ".", ms=4)
+    a.axhline(threshold, color="black", lw=0.8, ls="--")
+    a.axhline(num_bits / 2, color="red", lw=0.8, ls=":")
+    a.set_ylim(0, num_bits + 1)
+    a.set_ylabel(f"matched bits / {num_bits}")
+    b.plot(x, [r["psnr_vs_clean_db"] for r in rows], ".", ms=4, color="green")
+    b.axhline(TARGETS["psnr_vs_clean_db"], color="black", lw=0.8, ls="--")
+    b.set_ylabel("PSNR wm vs clean (dB)")
+    b.set_xlabel("test view")
+    a.set_title("every test view (dashed: per-view threshold / 35 dB target; dotted: chance)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
 
 
 def entrypoint() -> None:

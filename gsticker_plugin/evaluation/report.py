@@ -341,7 +341,7 @@ def chart_recolor_strength(r, path: Path) -> Optional[Path]:
         ax.axhline(100 * r["threshold"] / 48, color="black", lw=0.8, ls="--")
         ax.axhline(50, color="red", lw=0.8, ls=":")
         ax.set_xlabel(xl)
-        ax.set_ylim(0, 102)
+        ax.set_ylim(0, 112 if xk == "delta_e" else 102)  # room for the color names
         if xk == "delta_e":
             for x in rows:
                 ax.annotate(x["name"].replace("palette-", ""), (x[xk], 100 * x["geometry"]["bit_acc"]), fontsize=6,
