@@ -33,8 +33,8 @@ import tyro
 
 
 @dataclass
-class BenchGeometryConfig:
-    """Watermark a base, recolor it, and verify every run with the geometric decoder."""
+class StickerRunConfig:
+    """The watermarked run a benchmark trains on a base (shared by bench.geometry and bench.targets)."""
 
     load_checkpoint: Path
     """The base run's checkpoint (RUN/nerfstudio_models/step-N.ckpt)."""
@@ -50,6 +50,12 @@ class BenchGeometryConfig:
     """Training and novel views each in the sticker's fast-path pool."""
     owner_id: str = "bench-owner"
     """Owner ID of the message."""
+
+
+@dataclass
+class BenchGeometryConfig(StickerRunConfig):
+    """Watermark a base, recolor it, and verify every run with the geometric decoder."""
+
     num_views: int = 24
     """Views per ns-verify-owner run."""
     finetune_steps: int = 100
@@ -81,10 +87,10 @@ def _run(cmd: List[str], log: Path, ok=(0,)) -> Dict[str, Any]:
     return {"command": cmd, "exit": proc.returncode, "wall_s": wall}
 
 
-def train_sticker(out: Path, base_ckpt: Path, data: List[str], steps: int, warmup_steps: int, pool_views: int,
-                  owner_id: str, logs: Path) -> Optional[Dict[str, Any]]:
+def train_sticker(cfg: StickerRunConfig, out: Path, base_ckpt: Path, data: List[str], logs: Path) -> Optional[Dict[str, Any]]:
     """``ns-train geometrysticker`` into ``out/bench/geometrysticker/watermarked`` (skipped, returning None, when
     its checkpoint and key exist)."""
+    steps, warmup_steps, pool_views, owner_id = cfg.steps, cfg.warmup_steps, cfg.pool_views, cfg.owner_id
     wm = out / "bench" / "geometrysticker" / "watermarked"
     if wm.with_name("watermarked.gskey").exists() and list((wm / "nerfstudio_models").glob("step-*.ckpt")):
         print("    (exists)")
@@ -131,7 +137,7 @@ def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
     key = wm.with_name("watermarked.gskey")
 
     print("[1/4] ns-train geometrysticker", flush=True)
-    trained = train_sticker(out, base_ckpt, data, cfg.steps, cfg.warmup_steps, cfg.pool_views, cfg.owner_id, logs)
+    trained = train_sticker(cfg, out, base_ckpt, data, logs)
     if trained is not None:
         results["stages"]["train"] = trained
 

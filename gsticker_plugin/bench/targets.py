@@ -27,27 +27,17 @@ from typing import Any, Dict, List, Optional
 import torch
 import tyro
 
-from gsticker_plugin.bench.geometry import train_sticker
+from gsticker_plugin.bench.geometry import StickerRunConfig, train_sticker
 
 
 @dataclass
-class BenchTargetsConfig:
+class BenchTargetsConfig(StickerRunConfig):
     """Train a sticker on a base and measure the issue's targets on every test view."""
 
-    load_checkpoint: Path
-    """The base run's checkpoint (RUN/nerfstudio_models/step-N.ckpt)."""
-    data: Optional[Path] = None
-    """The base's dataset folder, when its recorded path does not exist from here."""
     output_dir: Path = Path("outputs/bench-targets")
     """Where the run, the per-view rows and the results are written."""
     steps: int = 300
     """Sticker training steps."""
-    warmup_steps: int = 50
-    """Sticker warm-up (no content loss) before the content loss ramps in."""
-    pool_views: int = 16
-    """Training and novel views each in the sticker's fast-path pool."""
-    owner_id: str = "bench-owner"
-    """Owner ID of the message."""
     max_views: Optional[int] = None
     """Stop after this many test views (default: all of them)."""
     chunk: int = 10
@@ -83,7 +73,7 @@ def main(cfg: BenchTargetsConfig) -> Dict[str, Any]:
     results["config"] = {k: str(v) for k, v in vars(cfg).items()}
 
     print("[1/2] ns-train geometrysticker", flush=True)
-    trained = train_sticker(out, base_ckpt, data, cfg.steps, cfg.warmup_steps, cfg.pool_views, cfg.owner_id, logs)
+    trained = train_sticker(cfg, out, base_ckpt, data, logs)
     if trained is not None:
         results["train"] = trained
     res_path.write_text(json.dumps(results, indent=2))
