@@ -358,3 +358,25 @@ def test_demo_verify_stage_reports_both_decoders(runs, ws):
     assert verdicts["watermarked"]["geometry"]["summary"].startswith("VERDICT: OWNED")
     ext = json.loads(Path(verdicts["watermarked"]["extractor"]["report"]).read_text())
     assert ext["decoder"]["kind"] == "extractor" and verdicts["watermarked"]["extractor"]["verdict"] == ext["verdict"]
+
+
+def test_bench_targets_decodes_every_test_view_and_resumes(runs, ws, tiny_scene):
+    """``python -m gsticker_plugin.bench.targets`` on the tiny run (training skipped: the run is already there)."""
+    from gsticker_plugin.bench.targets import BenchTargetsConfig, main
+
+    out = ws / "bench-targets"
+    wm = out / "bench" / "geometrysticker" / "watermarked"
+    wm.parent.mkdir(parents=True)
+    wm.symlink_to(runs["run"].parent, target_is_directory=True)
+    wm.with_name("watermarked.gskey").symlink_to(runs["key"])
+    base_ckpt = max((runs["base"].parent / "nerfstudio_models").glob("step-*.ckpt"))
+    cfg = BenchTargetsConfig(load_checkpoint=base_ckpt, data=tiny_scene, output_dir=out, chunk=1, progress=False)
+    v = main(cfg)["views"]
+    assert v["views"] == v["split_views"] == 2  # the tiny scene's test split
+    assert v["bit_acc"] == 1.0 and v["targets"]["bit_acc >= 99.5 %"] is True
+    assert v["train_minutes"] is None and v["targets"]["training <= 15 min"] is None  # not trained here
+    assert v["psnr_vs_clean_db"] > 20 and abs(v["psnr_drop_db"]) < 3
+    rows = (out / "views.jsonl").read_text().splitlines()
+    assert len(rows) == 2 and (out / "views.png").is_file() and "2 of 2" in (out / "results.md").read_text()
+    main(cfg)  # resumes: nothing decoded again
+    assert (out / "views.jsonl").read_text().splitlines() == rows
