@@ -460,12 +460,13 @@ def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int,
     bits, details, views = [], [], []
     for name, cam, out in suspect_renders(reference, suspect_model, num_views, sampled_share, seed, sticker, progress,
                                           "geometric decoding", cameras):
-        ref_view = cached_reference_view(reference, name, cam, has_expected_depth(out), ref_cache)
+        use_depth = has_expected_depth(out)
+        ref_view = cached_reference_view(reference, name, cam, use_depth, ref_cache)
         d = decode_view(ref_view, st, suspect_signal(out, ref_view), gen, iterations)
         rounds = relinearize if reference.samples_follow_sticker else 0
         for _ in range(rounds):
             first = d["bits"]
-            rv = relinearized_view(reference, name, cam, has_expected_depth(out), first, st)
+            rv = relinearized_view(reference, name, cam, use_depth, first, st)
             d = decode_view(rv, st, suspect_signal(out, rv), gen, iterations)
             d["bits_changed_by_relinearizing"] = int((d["bits"] != first).sum())
         d["relinearized"] = rounds

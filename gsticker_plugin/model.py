@@ -238,7 +238,7 @@ class GeometryStickerModel(Model):
             })
             return out
 
-        old_message = self.message.clone()
+        old_message = None if message is None else self.message.clone()
         object.__setattr__(fld, "forward", forward)
         try:
             if message is not None:
@@ -247,7 +247,8 @@ class GeometryStickerModel(Model):
                 yield records
         finally:
             del fld.__dict__["forward"]
-            self.set_message(old_message)
+            if old_message is not None:
+                self.set_message(old_message)
 
     def background_color(self) -> Tensor:
         renderer = getattr(self.base, "renderer_rgb", None)

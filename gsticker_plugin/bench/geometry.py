@@ -90,17 +90,16 @@ def _run(cmd: List[str], log: Path, ok=(0,)) -> Dict[str, Any]:
 def train_sticker(cfg: StickerRunConfig, out: Path, base_ckpt: Path, data: List[str], logs: Path) -> Optional[Dict[str, Any]]:
     """``ns-train geometrysticker`` into ``out/bench/geometrysticker/watermarked`` (skipped, returning None, when
     its checkpoint and key exist)."""
-    steps, warmup_steps, pool_views, owner_id = cfg.steps, cfg.warmup_steps, cfg.pool_views, cfg.owner_id
     wm = out / "bench" / "geometrysticker" / "watermarked"
     if wm.with_name("watermarked.gskey").exists() and list((wm / "nerfstudio_models").glob("step-*.ckpt")):
         print("    (exists)")
         return None
     return _run([_bin("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
                  "--output-dir", str(out), "--experiment-name", "bench", "--timestamp", "watermarked",
-                 "--max-num-iterations", str(steps), "--steps-per-save", str(steps),
-                 "--pipeline.owner-id", owner_id, "--pipeline.pool-train-views", str(pool_views),
-                 "--pipeline.pool-novel-views", str(pool_views), "--pipeline.monitor-views", "4",
-                 "--pipeline.steps-per-monitor", "50", "--pipeline.warmup-steps", str(warmup_steps),
+                 "--max-num-iterations", str(cfg.steps), "--steps-per-save", str(cfg.steps),
+                 "--pipeline.owner-id", cfg.owner_id, "--pipeline.pool-train-views", str(cfg.pool_views),
+                 "--pipeline.pool-novel-views", str(cfg.pool_views), "--pipeline.monitor-views", "4",
+                 "--pipeline.steps-per-monitor", "50", "--pipeline.warmup-steps", str(cfg.warmup_steps),
                  "--load-checkpoint", str(base_ckpt), *data], logs / "train.log")
 
 

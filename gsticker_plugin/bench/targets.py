@@ -6,8 +6,9 @@
 
 1. ``ns-train geometrysticker`` for ``--steps`` steps on the base (timed; skipped when the run exists);
 2. every view of the test split (``--max-views`` to stop early): the watermarked render decoded with the informed
-   geometric decoder and the owner key, the same view with the sticker off (the unwatermarked render) and the
-   ground truth. Per-view rows are appended to ``views.jsonl`` as they finish, so an interrupted run resumes.
+   geometric decoder and the owner key, compared with the owner's unwatermarked base at the same camera (the
+   decoder's reference render, the same pixels as the run with its sticker off) and with the ground truth. Per-view
+   rows are appended to ``views.jsonl`` as they finish, so an interrupted run resumes.
 
 Writes ``results.json`` and ``results.md`` (the targets of the sticker issue: 48 bits, >= 99.5 % bit accuracy over
 all test views, >= 35 dB watermarked vs unwatermarked, test PSNR within 0.3 dB of the base, <= 15 min of training)
@@ -103,12 +104,13 @@ def main(cfg: BenchTargetsConfig) -> Dict[str, Any]:
         cams = [(f"test/{i:03d}", dataset.cameras[i: i + 1]) for i in idx]
         dec, views = decode_suspect(key, ref, pipe.model, len(cams), 0.0, cfg.seed, sticker=True, progress=False,
                                     ref_cache=ref_cache, cameras=cams)
+        # the unwatermarked render: the owner's base at the same camera, rendered once by the decoder (its reference)
+        base_images = {name: v.image for (name, _), v in ref_cache.items()}
         ref_cache.clear()  # every camera is decoded once
         decode_s = time.time() - t0
         rows = []
         for j, i in enumerate(idx):
-            with torch.no_grad(), pipe.model.sticker_enabled(False):
-                clean = pipe.model.get_outputs_for_camera(dataset.cameras[i: i + 1])["rgb"].float().clamp(0, 1).cpu()
+            clean = base_images[cams[j][0]].permute(1, 2, 0).float().clamp(0, 1)
             marked = views[j].image.permute(1, 2, 0)
             gt = dataset.get_image_float32(i)
             if gt.shape[-1] == 4:

@@ -497,7 +497,8 @@ class Runner:
         rc = self.p.recolor
         out = []
         for c in rc.colors:
-            out.append({"name": f"palette-{c.replace(' ', '')}", "kind": "palette", "label": f"palette {rc.palette_entry} -> {c}",
+            out.append({"name": f"palette-{c.replace(' ', '')}", "kind": "palette", "color": c,
+                        "label": f"palette {rc.palette_entry} -> {c}",
                         "argv": ["palette", "--set", f"{rc.palette_entry}={c}"]})
         for h in rc.model_hue:
             out.append({"name": f"hue-{h:+g}", "kind": "model_hue", "label": f"model-level hue {h:+g}",
@@ -599,7 +600,7 @@ class Runner:
             if var["kind"] == "finetune":
                 row["steps"] = var["steps"]
             if var["kind"] == "palette" and source is not None:
-                row["delta_e"] = palette_distance(source, var["argv"][-1].split("=", 1)[1])
+                row["delta_e"] = palette_distance(source, var["color"])
             rows.append(row)
         return {"base": self.primary, "rows": rows, "palette_entry": self.p.recolor.palette_entry,
                 "palette_source": source,
