@@ -431,6 +431,23 @@ def test_finetune_changes_only_color_parameters(runs, work, base):
     assert load(cfg).model.__class__ is load(runs[base]).model.__class__
 
 
+def test_finetune_save_at_writes_the_runs_a_shorter_finetune_writes(runs, work):
+    """--save-at N: the snapshot after N of M steps holds the weights of an N-step fine-tune (same seed)."""
+    common = ["--load-config", runs["nerfacto"], "--hue-shift", "0.3", "--rays-per-step", "128", "--max-views", "4"]
+    recolor("finetune", *common, "--output-dir", work / "ft-long", "--steps", "5", "--save-at", "2", "3")
+    recolor("finetune", *common, "--output-dir", work / "ft-short", "--steps", "2")
+
+    def weights(out):
+        (ckpt,) = list((run_config(out).parent / "nerfstudio_models").glob("*.ckpt"))
+        return torch.load(ckpt, map_location="cpu", weights_only=False)["pipeline"]
+
+    short, snap2, snap3, long = (weights(work / n) for n in ["ft-short", "ft-long-step2", "ft-long-step3", "ft-long"])
+    assert set(short) == set(snap2) == set(long)
+    assert all(torch.equal(short[k], snap2[k]) for k in short)
+    assert any(not torch.equal(snap2[k], snap3[k]) for k in short) and any(not torch.equal(snap3[k], long[k]) for k in short)
+    assert json.loads((run_config(work / "ft-long-step3").parent / "finetune.json").read_text())["steps"] == 3
+
+
 # ---------------------------------------------------------------------------------------------- bad input
 
 
@@ -448,6 +465,8 @@ BAD = {
     "contains-input": (["hue", "--output-dir", "{base_root}", "--overwrite"], "contains the input run", "--output-dir"),
     "hue-range": (["hue", "--output-dir", "{out}", "--shift", "0.7"], "outside [-0.5, 0.5]", "--shift"),
     "no-targets": (["finetune", "--output-dir", "{out}"], "exactly one kind of target", "--targets"),
+    "save-at-range": (["finetune", "--output-dir", "{out}", "--hue-shift", "0.2", "--steps", "4", "--save-at", "4"],
+                      "must be between 1 and --steps", "--output-dir itself"),
     "missing-config": (["hue", "--output-dir", "{out}", "--load-config", "{work}/nowhere/config.yml"], "does not exist",
                        "--load-config"),
 }

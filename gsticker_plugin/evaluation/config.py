@@ -86,7 +86,10 @@ class FinetuneSpec:
     hue_shift: Optional[float] = None
     rays_per_step: int = 512
     steps_curve: List[int] = field(default_factory=list)
-    """More fine-tunes of the same edit at these step counts (a curve of bit accuracy against attack length)."""
+    """The same fine-tune read after these step counts too (a curve of bit accuracy against attack length; one
+    fine-tune per model, snapshots written by ns-recolor finetune --save-at)."""
+    max_views: Optional[int] = None
+    """Training views the attacker renders as targets (ns-recolor's --max-views; null = its default, all 100)."""
 
 
 @dataclass

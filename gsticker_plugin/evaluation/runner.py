@@ -507,10 +507,16 @@ class Runner:
         if ft is not None:
             tgt = ["--set", f"{rc.palette_entry}={ft.color}"] if ft.color is not None else ["--hue-shift", str(ft.hue_shift)]
             what = f"palette {rc.palette_entry} -> {ft.color}" if ft.color is not None else f"hue {ft.hue_shift:+g}"
-            for n in sorted({ft.steps, *ft.steps_curve}):
+            # one fine-tune per model to the longest step count; the shorter ones are its snapshots (--save-at)
+            counts = sorted({ft.steps, *ft.steps_curve})
+            views = [] if ft.max_views is None else ["--max-views", str(ft.max_views)]
+            argv = ["finetune", *tgt, *views, "--steps", str(counts[-1]), "--rays-per-step", str(ft.rays_per_step)]
+            if len(counts) > 1:
+                argv += ["--save-at", *map(str, counts[:-1])]
+            for n in counts:
                 out.append({"name": "finetune" if n == ft.steps else f"finetune-{n}steps", "kind": "finetune", "steps": n,
-                            "label": f"attacker's color fine-tune ({what}, {n} steps)",
-                            "argv": ["finetune", *tgt, "--steps", str(n), "--rays-per-step", str(ft.rays_per_step)]})
+                            "label": f"attacker's color fine-tune ({what}, {n} steps)", "argv": argv,
+                            "snapshot": n != counts[-1]})
         return out
 
     def palette_source(self) -> Optional[List[float]]:
@@ -534,16 +540,23 @@ class Runner:
 
             src = {"wm": self.wm_dir(self.primary) / "config.yml", "base": self.base_config(self.primary),
                    "color": self.color_run()}[which]
-            dest = self.out / "recolored" / self.primary / variant["name"] / which
-            if dest.exists():
-                shutil.rmtree(dest)
-            argv = [variant["argv"][0], "--load-config", str(src), "--output-dir", str(dest), "--data", str(self.scene_dir),
-                    *variant["argv"][1:]]
-            self.say("  $ ns-recolor " + " ".join(argv))
-            with contextlib.redirect_stdout(sys.stderr):
-                rc = cli.run(argv)
-            if rc != 0:
-                raise GStickerError(f"ns-recolor {' '.join(argv)} failed (exit {rc})")
+            base_dir = self.out / "recolored" / self.primary
+            if variant["kind"] == "finetune":  # the curve's variants share one ns-recolor run: OUT, OUT-stepN
+                out_dir = base_dir / "finetune" / which
+                dest = out_dir.with_name(f"{which}-step{variant['steps']}") if variant["snapshot"] else out_dir
+            else:
+                out_dir = dest = base_dir / variant["name"] / which
+            if not list(dest.glob("*/*/*/config.yml")):
+                for old in [out_dir, *out_dir.parent.glob(f"{which}-step*")]:
+                    if old.exists():
+                        shutil.rmtree(old)
+                argv = [variant["argv"][0], "--load-config", str(src), "--output-dir", str(out_dir), "--data",
+                        str(self.scene_dir), *variant["argv"][1:]]
+                self.say("  $ ns-recolor " + " ".join(argv))
+                with contextlib.redirect_stdout(sys.stderr):
+                    rc = cli.run(argv)
+                if rc != 0:
+                    raise GStickerError(f"ns-recolor {' '.join(argv)} failed (exit {rc})")
             (cfg,) = list(dest.glob("*/*/*/config.yml"))
             pipe = self.load(cfg)
             label = f"{variant['name']} ({which})"

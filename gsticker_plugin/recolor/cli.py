@@ -102,6 +102,9 @@ class FinetuneArgs(_PaletteEdit, _Common):
     """Adam learning rate of the color parameters."""
     rays_per_step: int = 1024
     """Rays per step (random pixels of random training views)."""
+    save_at: Tuple[int, ...] = ()
+    """Also write the run as it is after each of these step counts (each below --steps) to OUT-stepN beside
+    --output-dir: an attack-length curve from one fine-tune (the first N steps are those of an N-step run)."""
 
 
 Args = Union[
@@ -329,6 +332,12 @@ def cmd_finetune(args: FinetuneArgs) -> int:
         raise GStickerError(f"--steps {args.steps} must be at least 1")
     run_cfg, run_dir, _ = runs.check_input_config(args.load_config)
     out = runs.check_output_dir(args.output_dir, run_dir, args.overwrite)
+    snapshots = {}
+    for n_at in sorted(set(args.save_at)):
+        if not 1 <= n_at < args.steps:
+            raise GStickerError(f"--save-at {n_at} must be between 1 and --steps - 1 ({args.steps - 1}); the run after "
+                                f"{args.steps} steps is --output-dir itself")
+        snapshots[n_at] = runs.check_output_dir(out.parent / f"{out.name}-step{n_at}", run_dir, args.overwrite)
     loaded = runs.load_run(args.load_config, args.data)
     model = loaded.pipeline.model
     dataset = loaded.pipeline.datamanager.train_dataset
@@ -365,19 +374,26 @@ def cmd_finetune(args: FinetuneArgs) -> int:
     say(f"fine-tuning {sum(p.numel() for p in color.values())} color parameters ({len(color)} tensors: "
         f"{', '.join(sorted({k.rsplit('.', 1)[0] for k in color}))}); {len(density)} density tensors and everything "
         f"else frozen; toward {what}; {args.steps} steps")
+    cfg = loaded.config  # the run's own config: the output is a run of the same method
+
+    def write(dest: Path, steps: int, loss: List[float]) -> Path:
+        k = max(1, min(10, len(loss) // 5))
+        return runs.write_run(cfg, model, loaded.step, dest, "finetune", run_dir, extra_files={
+            "finetune.json": lambda p: p.write_text(json.dumps({
+                "wrapped_run": str(Path(args.load_config).resolve()), "targets": what, "steps": steps, "lr": args.lr,
+                "rays_per_step": args.rays_per_step, "seed": args.seed, "color_parameters": sorted(color),
+                "loss_first": loss[:k], "loss_last": loss[-k:]}, indent=1))})
+
+    def on_step(step: int, loss: List[float]) -> None:
+        if step in snapshots:
+            say(f"after {step} steps: {write(snapshots[step], step, loss)}")
+
     t0 = time.time()
     hist = finetune_color(model, cameras[:n], targets, args.steps, lr=args.lr, rays_per_step=args.rays_per_step,
-                          seed=args.seed, color_params=color)
+                          seed=args.seed, color_params=color, on_step=on_step if snapshots else None)
     k = max(1, min(10, len(hist["loss"]) // 5))
     say(f"loss {sum(hist['loss'][:k]) / k:.5f} -> {sum(hist['loss'][-k:]) / k:.5f} in {time.time() - t0:.0f} s")
-    cfg = loaded.config
-    cfg.pipeline.model = cfg.pipeline.model  # the run's own model config: the output is a run of the same method
-    cfg_path = runs.write_run(cfg, model, loaded.step, out, "finetune", run_dir, extra_files={
-        "finetune.json": lambda p: p.write_text(json.dumps({
-            "wrapped_run": str(Path(args.load_config).resolve()), "targets": what, "steps": args.steps, "lr": args.lr,
-            "rays_per_step": args.rays_per_step, "seed": args.seed, "color_parameters": sorted(color),
-            "loss_first": hist["loss"][:k], "loss_last": hist["loss"][-k:]}, indent=1))})
-    _done(cfg_path)
+    _done(write(out, args.steps, hist["loss"]))
     return 0
 
 

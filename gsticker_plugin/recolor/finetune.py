@@ -90,10 +90,12 @@ def split_color_parameters(model: nn.Module, cameras) -> Tuple[Dict[str, nn.Para
 
 def finetune_color(model: nn.Module, cameras, targets: Sequence[Tensor], steps: int, lr: float = 5e-3,
                    rays_per_step: int = 1024, seed: int = 0, progress: bool = True,
-                   color_params: Optional[Dict[str, nn.Parameter]] = None) -> Dict[str, List[float]]:
+                   color_params: Optional[Dict[str, nn.Parameter]] = None,
+                   on_step: Optional[Callable[[int, List[float]], None]] = None) -> Dict[str, List[float]]:
     """Adam on the color parameters only, MSE of rendered rays vs target pixels of random training views.
 
-    ``targets[i]`` is the [H, W, 3] target image of ``cameras[i]``. Returns {"loss": per step}.
+    ``targets[i]`` is the [H, W, 3] target image of ``cameras[i]``. ``on_step(k, losses)`` runs after step k
+    (1-based; the model holds the weights after k steps). Returns {"loss": per step}.
     """
     from tqdm import tqdm
 
@@ -134,6 +136,8 @@ def finetune_color(model: nn.Module, cameras, targets: Sequence[Tensor], steps: 
             opt.step()
             history.append(float(loss.detach()))
             bar.set_postfix(loss=f"{history[-1]:.5f}")
+            if on_step is not None:
+                on_step(len(history), history)
     finally:
         for p in params:
             p.requires_grad_(False)
