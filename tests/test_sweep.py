@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from gsticker_plugin.bench.sweep import VARIANTS, SweepConfig, markdown, smallest_meeting, train_seconds
+from gsticker_plugin.bench.sweep import VARIANTS, SweepConfig, cost_lines, markdown, smallest_meeting, train_seconds
 
 
 def test_train_seconds_reads_pool_and_monitor_lines(tmp_path):
@@ -34,6 +34,20 @@ def test_markdown_has_a_row_per_point_and_names_the_command():
     cfg = SweepConfig(load_checkpoint=Path("base/step.ckpt"), variants=("default", "width-16"))
     md = markdown(cfg, [_row("default", 9000, 1.0, 40.0), _row("width-16", 2000, 0.7, 45.0)], "today", "cpu")
     assert "python -m gsticker_plugin.bench.sweep --load-checkpoint base/step.ckpt" in md
-    assert md.count("| default |") == 1 and md.count("| width-16 |") == 1
+    # one row per checkpoint, and one in the cost table
+    assert md.count("| default |") == 2 and md.count("| width-16 |") == 2
     assert "**default**" in md
     assert set(cfg.variants) <= set(VARIANTS)
+
+
+def test_cost_lines_give_the_first_checkpoint_meeting_both_targets_ordered_by_image_size_and_bits():
+    slow = _row("res-200", 50, 1.0, 40.0, size=200)
+    slow["points"].insert(0, {**slow["points"][0], "step": 50, "train_seconds": 30.0, "psnr_vs_unwm": 30.0})
+    early = _row("bits-64", 60, 1.0, 40.0, bits=64)
+    early["points"].insert(0, {**early["points"][0], "step": 50, "train_seconds": 20.0})
+    lines = cost_lines([slow, _row("width-16", 20, 0.7, 45.0), early], 0.99, 35.0)
+    body = [x for x in lines if x.startswith("| ") and not x.startswith("| variant")]
+    assert [x.split(" | ")[0] for x in body] == ["| width-16", "| bits-64", "| res-200"]
+    assert "| not reached | - |" in body[0]
+    assert "| 64 | 50 | 20.0 |" in body[1]  # met at its first checkpoint
+    assert "| 200 px | 48 | 150 | 100.0 |" in body[2]  # its first checkpoint misses the PSNR target

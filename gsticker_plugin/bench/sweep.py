@@ -46,6 +46,7 @@ VARIANTS: Dict[str, Tuple[List[str], Optional[str]]] = {
     "gate-0.25": (["--pipeline.model.gate-quantile", "0.25"], None),
     "gate-0.75": (["--pipeline.model.gate-quantile", "0.75"], None),
     "res-200": ([], "200"),
+    "res-400": ([], "400"),
 }
 
 
@@ -56,10 +57,13 @@ class SweepConfig:
     load_checkpoint: Path
     """The base run's checkpoint (RUN/nerfstudio_models/step-N.ckpt)."""
     data: Optional[Path] = None
-    """The base's dataset folder (e.g. ../shared/data/lego100); ``res-200`` swaps a trailing 100 for 200."""
+    """The base's dataset folder (e.g. ../shared/data/lego100); ``res-200``/``res-400`` swap its trailing number for
+    200/400 (the same scene at that resolution, e.g. ../shared/data/lego200, or ``ns-gsticker-scene --resolution 400``
+    with the base's scene seed)."""
     variants: Tuple[str, ...] = ("default", "width-16", "width-32", "bits-16", "bits-64", "gate-0.25", "gate-0.75",
                                  "res-200")
-    """Which of: default, width-16, width-32, width-128, bits-16, bits-32, bits-64, gate-0.25, gate-0.75, res-200."""
+    """Which of: default, width-16, width-32, width-128, bits-16, bits-32, bits-64, gate-0.25, gate-0.75, res-200,
+    res-400."""
     steps: int = 150
     """Sticker training steps per variant."""
     save_every: int = 50
@@ -183,6 +187,25 @@ def smallest_meeting(rows: List[Dict[str, Any]], bit_acc: float, psnr: float) ->
     return min(ok, key=lambda r: (r["sticker_params"], r["points"][-1]["train_seconds"] or 0)) if ok else None
 
 
+def first_meeting(row: Dict[str, Any], bit_acc: float, psnr: float) -> Optional[Dict[str, Any]]:
+    """The first checkpoint of ``row`` at or above both targets (None if none is)."""
+    return next((p for p in row["points"] if p["bit_acc"] >= bit_acc and p["psnr_vs_unwm"] >= psnr), None)
+
+
+def cost_lines(rows: List[Dict[str, Any]], bit_acc: float, psnr: float) -> List[str]:
+    """How the cost of reaching the targets grows with image size and message length: a table row per variant."""
+    lines = [f"Cost to reach the targets (first checkpoint at >= {100 * bit_acc:g} % and >= {psnr:g} dB; "
+             "'not reached' within the run's steps):", "",
+             "| variant | image | bits | step | train s | decode s/view |", "|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=lambda r: (r["size"][0], r["num_bits"], r["sticker_params"])):
+        p = first_meeting(r, bit_acc, psnr)
+        decode = sum(x["decode_seconds_per_view"] for x in r["points"]) / max(len(r["points"]), 1)
+        lines.append(f"| {r['name']} | {r['size'][0]} px | {r['num_bits']} | "
+                     + (f"{p['step']} | {p['train_seconds'] if p['train_seconds'] is not None else '-'}" if p
+                        else "not reached | -") + f" | {decode:.2f} |")
+    return lines
+
+
 def markdown(cfg: SweepConfig, rows: List[Dict[str, Any]], when: str, machine: str) -> str:
     lines = ["# Speed against accuracy: sticker variants on one base", "",
              f"Command: `python -m gsticker_plugin.bench.sweep --load-checkpoint {cfg.load_checkpoint}"
@@ -205,7 +228,8 @@ def markdown(cfg: SweepConfig, rows: List[Dict[str, Any]], when: str, machine: s
     lines += ["", f"Smallest 48-bit variant at the lowest resolution reaching >= {100 * cfg.target_bit_acc:g} % and >= "
               f"{cfg.target_psnr:g} dB at its last checkpoint: "
               + (f"**{best['name']}** ({best['sticker_params']:,} sticker parameters, {best['points'][-1]['train_seconds']} s)."
-                 if best else "none of the variants."), "", f"Chart: `{cfg.output.with_suffix('.png').name}`.", ""]
+                 if best else "none of the variants."), "", *cost_lines(rows, cfg.target_bit_acc, cfg.target_psnr), "",
+              f"Chart: `{cfg.output.with_suffix('.png').name}`.", ""]
     return "\n".join(lines)
 
 
