@@ -64,8 +64,8 @@ def test_files_written(smoke):
     for name in ("results.json", "results.md", "charts/curves.png", "charts/recolor.png", "charts/speed.png",
                  "charts/geometry_recolor.png", "charts/purify.png", "charts/recolor_strength.png"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
-    for stage in ("scene", "bases", "sticker", "renders", "quality", "geometry", "distortions", "curves", "recolor",
-                  "purify", "false_positives", "speed"):
+    for stage in ("scene", "bases", "sticker", "renders", "quality", "geometry", "seeds", "distortions", "curves",
+                  "recolor", "purify", "false_positives", "speed"):
         assert (out / "stages" / f"{stage}.json").is_file(), stage
         assert stage in smoke["results"], stage
     assert list((out / "runs" / "nerfacto" / "geometrysticker").glob("watermarked.gskey"))
@@ -97,6 +97,18 @@ def test_numbers_in_range(smoke):
         _acc(q[d]["bit_acc"])
         assert len(q[d]["matches"]) == q[d]["views"] == p.num_views
         assert all(0 <= m <= 48 for m in q[d]["matches"])
+    sd = r["seeds"]
+    assert [x["seed"] for x in sd["rows"]] == [42, *p.sticker.seeds] and [x["main_run"] for x in sd["rows"]][0]
+    assert sd["rows"][0]["geometry"] == r["geometry"]["bases"]["nerfacto"]["watermarked"]  # the main run, not re-decoded
+    for x in sd["rows"]:
+        _acc(x["geometry"]["bit_acc"])
+        assert len(x["geometry"]["matches"]) == p.geometry.num_views
+        _psnr(x["psnr_wm_vs_unwm"])
+        _psnr(x["psnr_wm_vs_gt"])
+    assert sd["bit_acc"]["min"] <= sd["bit_acc"]["mean"] <= sd["bit_acc"]["max"] and sd["bit_acc"]["std"] >= 0
+    assert 0 <= sd["verdicts"] <= len(sd["rows"])
+    seed_key = smoke["out"] / "runs" / f"nerfacto-seed{p.sticker.seeds[0]}" / "geometrysticker" / "watermarked.gskey"
+    assert seed_key.is_file()
     rows = r["distortions"]["rows"]
     assert [x["label"] for x in rows] == [x.label for x in p.distortions]
     for x in rows:
@@ -164,7 +176,7 @@ def test_numbers_in_range(smoke):
 def test_tables_have_every_row(smoke):
     md = (smoke["out"] / "results.md").read_text()
     p = _protocol()
-    for section in ("## Bases", "## Model-level verdicts", "## Recolor", "## Model purification", "## Distortions",
+    for section in ("## Bases", "## Model-level verdicts", "## Seeds", "## Recolor", "## Model purification", "## Distortions",
                     "## False positives", "## Where it breaks", "## Speed vs accuracy"):
         assert section in md, section
     for row in p.distortions:
@@ -181,7 +193,7 @@ def test_tables_have_every_row(smoke):
 def test_resume_skips_finished_stages(smoke):
     proc = subprocess.run(smoke["cmd"], capture_output=True, text=True, timeout=300, env=_env(), cwd=REPO_ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert proc.stdout.count("done earlier") == 12, proc.stdout
+    assert proc.stdout.count("done earlier") == 13, proc.stdout
     assert "$ " not in proc.stdout  # nothing trained, generated or recolored again
 
 
@@ -193,6 +205,11 @@ def test_bad_protocol_is_one_error_line(tmp_path, capsys):
     assert cli.run(["--config", str(bad), "--output-dir", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and "num_veiws" in err[0]
+    bad.write_text(SMOKE.read_text().replace("seeds: [1]", "seeds: [42]"))
+    assert cli.run(["--config", str(bad), "--output-dir", str(tmp_path / "out")]) == 2
+    assert "sticker.seeds" in capsys.readouterr().err
+    assert cli.run(["--config", str(SMOKE), "--output-dir", str(tmp_path / "out"), "--sticker-seeds", "42"]) == 2
+    assert "sticker.seeds" in capsys.readouterr().err  # the command-line override is checked like the file
     bad.write_text(SMOKE.read_text().replace('spec: "blur=1"', 'spec: "crop=2"'))
     assert cli.run(["--config", str(bad), "--output-dir", str(tmp_path / "out")]) == 2
     assert "crop" in capsys.readouterr().err

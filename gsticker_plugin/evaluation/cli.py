@@ -28,9 +28,11 @@ class EvalArgs:
     """Override the protocol's output_dir."""
     data: Optional[Path] = None
     """Override the protocol's scene with this dataset folder."""
+    sticker_seeds: Optional[Tuple[int, ...]] = None
+    """Override sticker.seeds: train the primary sticker again with these seeds (stage seeds), e.g. --sticker-seeds 1 2."""
     stages: Tuple[str, ...] = ALL_STAGES
-    """Stages to run (in protocol order): scene bases sticker renders quality distortions curves recolor
-    false_positives speed report."""
+    """Stages to run (in protocol order): scene bases sticker renders quality geometry seeds distortions curves
+    recolor purify false_positives speed report."""
     redo: Tuple[str, ...] = ()
     """Stages to recompute even when their outputs exist (cached renders and trained runs are kept)."""
     progress: bool = True
@@ -50,7 +52,7 @@ def main(args: EvalArgs) -> int:
     bad = [s for s in (*args.stages, *args.redo) if s not in ALL_STAGES]
     if bad:
         raise GStickerError(f"unknown stage(s) {', '.join(bad)}; use {' '.join(ALL_STAGES)}")
-    protocol = load_protocol(args.config, output_dir=args.output_dir, data=args.data)
+    protocol = load_protocol(args.config, output_dir=args.output_dir, data=args.data, sticker_seeds=args.sticker_seeds)
     runner = Runner(protocol, progress=args.progress, redo=args.redo, log=lambda m: print(m, flush=True))
     runner.run(args.stages)
     out = Path(protocol.output_dir)

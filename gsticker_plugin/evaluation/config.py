@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Sequence
 
 from gsticker_plugin.errors import GStickerError
 
@@ -31,7 +31,7 @@ PAPER = {
     "psnr_vs_gt": {"vanilla-nerf": 27.44, "instant-ngp": 28.59, "tensorf": 29.18},
 }
 REFERENCE_COLORS = ("green", "yellow", "orange", "red", "pink", "magenta", "purple", "blue", "dodger blue", "cyan")
-ALL_STAGES = ("scene", "bases", "sticker", "renders", "quality", "geometry", "distortions", "curves", "recolor",
+ALL_STAGES = ("scene", "bases", "sticker", "renders", "quality", "geometry", "seeds", "distortions", "curves", "recolor",
               "purify", "false_positives", "speed", "report")
 
 
@@ -66,6 +66,9 @@ class StickerSpec:
     owner_id: str = "eval-owner"
     args: List[str] = field(default_factory=list)
     """Extra ns-train geometrysticker arguments (pool sizes, monitor cadence, ...)."""
+    seeds: List[int] = field(default_factory=list)
+    """The primary base's sticker trained again with these training seeds (ns-train --machine.seed; the main run has
+    nerfstudio's default, 42): the seeds stage gives the spread of its model-level bit accuracy and PSNR."""
 
 
 @dataclass
@@ -218,6 +221,10 @@ def validate(p: Protocol) -> None:
         raise GStickerError(f"num_views must be >= 1, got {p.num_views}")
     if not p.seeds:
         raise GStickerError("seeds: give at least one seed")
+    if len(set(p.sticker.seeds)) != len(p.sticker.seeds) or 42 in p.sticker.seeds:
+        raise GStickerError(f"sticker.seeds: give distinct training seeds other than 42 (the main run's), got {p.sticker.seeds}")
+    if p.sticker.seeds and p.geometry is None:
+        raise GStickerError("sticker.seeds needs geometry (the seeds stage decodes with the geometric decoder)")
     if not 0 < p.fpr < 1 or not 0 < p.min_share <= 1:
         raise GStickerError(f"fpr must be in (0,1) and min_share in (0,1], got {p.fpr}, {p.min_share}")
     try:
@@ -254,8 +261,9 @@ def validate(p: Protocol) -> None:
             raise GStickerError(f"geometry.purify_steps: give increasing step counts >= 0, got {g.purify_steps}")
 
 
-def load_protocol(path: Path, output_dir: Optional[Path] = None, data: Optional[Path] = None) -> Protocol:
-    """Read and check a protocol YAML; ``output_dir``/``data`` override the file's values."""
+def load_protocol(path: Path, output_dir: Optional[Path] = None, data: Optional[Path] = None,
+                  sticker_seeds: Optional[Sequence[int]] = None) -> Protocol:
+    """Read and check a protocol YAML; ``output_dir``/``data``/``sticker_seeds`` override the file's values."""
     import yaml
 
     path = Path(path)
@@ -280,6 +288,8 @@ def load_protocol(path: Path, output_dir: Optional[Path] = None, data: Optional[
         p.scene = SceneSpec(data=Path(data))
     if p.scene.data is not None and not Path(p.scene.data).is_dir():
         raise GStickerError(f"scene.data {p.scene.data} is not a folder (paths are relative to the current folder)")
+    if sticker_seeds is not None:
+        p.sticker.seeds = [int(x) for x in sticker_seeds]
     validate(p)
     return p
 

@@ -51,12 +51,14 @@ def markdown(r: Dict[str, Any]) -> str:
              f"Python {m['python']}. Date: {r['date']}.", "",
              f"Scene: `{r.get('scene', {}).get('data', '?')}`; bases: {', '.join(b['name'] for b in p['bases'])}; "
              f"{p['num_views']} test views per model (evenly spaced over the test split); seeds {p['seeds']} (distortion "
-             f"randomness only; every model is trained once); sticker {p['sticker']['steps']} steps, owner id "
+             "randomness; " + (f"the primary sticker is also trained with seeds {p['sticker']['seeds']}, see Seeds; the "
+                               "other models are trained once" if p["sticker"].get("seeds") else "every model is trained once")
+             + f"); sticker {p['sticker']['steps']} steps, owner id "
              f"`{p['sticker']['owner_id']}`.",
              f"Verdict: a view passes with >= {r['threshold']} of 48 matching bits (per-view FPR {p['fpr']:g} under "
              f"Binomial(48, 1/2)); a model is flagged when >= {p['min_share']:g} of its views pass (as `ns-verify-owner`).",
              "Paper numbers: Blender column of ../shared/docs/method.md. Bit accuracies in %.", ""]
-    lines += _quality(r) + _geometry(r) + _recolor(r) + _purify(r) + _distortions(r) + _fp(r) + _curves(r) + _speed(r)
+    lines += _quality(r) + _geometry(r) + _seeds(r) + _recolor(r) + _purify(r) + _distortions(r) + _fp(r) + _curves(r) + _speed(r)
     lines += ["## Not measured by this protocol", "",
               "- CLIP-guided recolor (paper: 99.50): no CLIP model offline.",
               "- The paper's own color-branch baselines (CopyRNeRF, StegaNeRF, HiDDeN+NeRF; paper 50-54 after recolor): "
@@ -124,6 +126,24 @@ def _geometry(r) -> List[str]:
                 f"dB, target {num(c['target_psnr'])} dB = the sticker's); color decoder {verdict(c['color_decoder'])}; "
                 f"geometric decoder on it {verdict(c['geometry_decoder'])}. {c['note'][:1].upper() + c['note'][1:]}.", ""]
     return out
+
+
+def _seeds(r) -> List[str]:
+    d = r.get("seeds")
+    if not d:
+        return []
+    rows = [[f"{x['seed']}" + (" (main run)" if x["main_run"] else ""), num(x["train_seconds"], 0), verdict(x["geometry"]),
+             num(x["psnr_wm_vs_unwm"]), num(x["psnr_wm_vs_gt"])] for x in d["rows"]]
+
+    def ms(k, scale=1.0, digits=2):
+        v = d.get(k)
+        return "-" if not v else f"{scale * v['mean']:.{digits}f} ± {scale * v['std']:.{digits}f}"
+
+    rows.append([f"mean ± std ({len(d['rows'])} runs)", "-", f"{ms('bit_acc', 100, 1)} ({d['verdicts']}/{len(d['rows'])} OWNED)",
+                 ms("psnr_wm_vs_unwm"), ms("psnr_wm_vs_gt")])
+    return [f"## Seeds: the {d['base']} sticker trained with other seeds", "",
+            table(["training seed", "train s", "geometric decoder", "PSNR wm vs unwm", "PSNR wm vs GT"], rows), "",
+            d["note"][:1].upper() + d["note"][1:] + ".", ""]
 
 
 def _purify(r) -> List[str]:

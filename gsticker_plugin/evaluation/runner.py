@@ -296,25 +296,29 @@ class Runner:
             res[b.name]["checkpoint"] = str(self.latest_ckpt(cfg.parent))
         return res
 
+    def train_sticker(self, base: str, experiment: str, extra: Sequence[str] = ()) -> Optional[float]:
+        """``ns-train geometrysticker`` on base ``base`` into runs/<experiment>/geometrysticker/watermarked (skipped,
+        returning None, when its checkpoint and key exist); returns the wall seconds."""
+        s = self.p.sticker
+        wm = self.out / "runs" / experiment / "geometrysticker" / "watermarked"
+        if wm.with_name("watermarked.gskey").is_file() and self.latest_ckpt(wm) is not None:
+            return None
+        t0 = time.time()
+        self.run_cmd([_bin("ns-train"), "geometrysticker", "--machine.device-type", self.p.device, "--vis",
+                      "tensorboard", "--output-dir", str(self.out / "runs"), "--experiment-name", experiment,
+                      "--timestamp", "watermarked", "--max-num-iterations", str(s.steps),
+                      "--pipeline.owner-id", s.owner_id, *[str(a) for a in s.args], *extra,
+                      "--load-checkpoint", str(self.latest_ckpt(self.base_config(base).parent)),
+                      "--data", str(self.scene_dir)], f"sticker-{experiment}")
+        return round(time.time() - t0, 1)
+
     def stage_sticker(self) -> Dict[str, Any]:
         res = {}
-        s = self.p.sticker
         for b in self.p.bases:
-            wm = self.wm_dir(b.name)
-            log = f"sticker-{b.name}"
-            if not self.key_path(b.name).is_file() or self.latest_ckpt(wm) is None:
-                t0 = time.time()
-                self.run_cmd([_bin("ns-train"), "geometrysticker", "--machine.device-type", self.p.device, "--vis",
-                              "tensorboard", "--output-dir", str(self.out / "runs"), "--experiment-name", b.name,
-                              "--timestamp", "watermarked", "--max-num-iterations", str(s.steps),
-                              "--pipeline.owner-id", s.owner_id, *[str(a) for a in s.args],
-                              "--load-checkpoint", str(self.latest_ckpt(self.base_config(b.name).parent)),
-                              "--data", str(self.scene_dir)], log)
-                secs = round(time.time() - t0, 1)
-            else:
-                secs = None
-            res[b.name] = {"config": str(wm / "config.yml"), "key": str(self.key_path(b.name)), "steps": s.steps,
-                           "train_seconds": secs, "monitor": parse_monitor_log(self.out / "logs" / f"{log}.log")}
+            secs = self.train_sticker(b.name, b.name)
+            res[b.name] = {"config": str(self.wm_dir(b.name) / "config.yml"), "key": str(self.key_path(b.name)),
+                           "steps": self.p.sticker.steps, "train_seconds": secs,
+                           "monitor": parse_monitor_log(self.out / "logs" / f"sticker-{b.name}.log")}
         return res
 
     def stage_renders(self) -> Dict[str, Any]:
@@ -397,6 +401,54 @@ class Runner:
         if g.color_baseline:
             res["color_baseline"] = self.color_baseline()
         return res
+
+    def stage_seeds(self) -> Dict[str, Any]:
+        """The primary base's sticker trained again with other training seeds: each run's model-level geometric
+        decode (its own owner key) and its PSNRs on the protocol's test views; mean and spread with the main run."""
+        from gsticker_plugin.geometry import decode_suspect, load_base_reference
+        from gsticker_plugin.key import OwnerKey
+
+        g, b = self.p.geometry, self.primary
+        q = json.loads(self.stage_path("quality").read_text())[b]
+        main = json.loads(self.stage_path("geometry").read_text())["bases"][b]["watermarked"]
+        st = json.loads(self.stage_path("sticker").read_text())[b]
+        rows = [{"seed": 42, "main_run": True, "train_seconds": st.get("train_seconds"), "geometry": main,
+                 "psnr_wm_vs_unwm": q["wm_vs_unwm"]["psnr"], "psnr_wm_vs_gt": q["wm_vs_gt"]["psnr"]}]
+        for seed in self.p.sticker.seeds:
+            name = f"{b}-seed{seed}"
+            self.say(f"  [seeds] {name}")
+            secs = self.train_sticker(b, name, ["--machine.seed", str(seed)])
+            wm = self.out / "runs" / name / "geometrysticker" / "watermarked"
+            key_path = wm.with_name("watermarked.gskey")
+            pipe = self.load(wm / "config.yml")
+            on, off = self.render(pipe, f"{name} watermarked", sticker=True), self.render(pipe, f"{name} sticker off", sticker=False)
+            key = OwnerKey.load(key_path)
+            ref = load_base_reference(key, key_path, self.base_config(b), self.scene_dir, self.device)
+            t0 = time.time()
+            with contextlib.redirect_stdout(sys.stderr):
+                dec, _ = decode_suspect(key, ref, pipe.model, g.num_views, g.sampled_share, self.p.seeds[0], sticker=True,
+                                        progress=self.progress)
+            geo = self.summarize(dec["matches"], dec["bit_acc"], key.num_bits)
+            geo["seconds_per_view"] = round((time.time() - t0) / max(1, geo["views"]), 2)
+            self.say(f"    geometry {name}: matches {geo['matches']} -> {'OWNED' if geo['verdict'] else 'not shown'}")
+            rows.append({"seed": seed, "main_run": False, "train_seconds": secs, "geometry": geo,
+                         "psnr_wm_vs_unwm": self.image_metrics(on["rgb"], off["rgb"])["psnr"],
+                         "psnr_wm_vs_gt": self.image_metrics(on["rgb"], on["gt"])["psnr"]})
+            del pipe, ref
+
+        def spread(vals):
+            v = torch.tensor([float(x) for x in vals if isinstance(x, (int, float))], dtype=torch.float64)
+            return {"mean": float(v.mean()), "std": float(v.std(unbiased=False)), "min": float(v.min()),
+                    "max": float(v.max())} if len(v) else None
+
+        return {"base": b, "rows": rows,
+                "bit_acc": spread(r["geometry"]["bit_acc"] for r in rows),
+                "psnr_wm_vs_unwm": spread(r["psnr_wm_vs_unwm"] for r in rows),
+                "psnr_wm_vs_gt": spread(r["psnr_wm_vs_gt"] for r in rows),
+                "verdicts": sum(bool(r["geometry"]["verdict"]) for r in rows),
+                "note": "the same protocol's sticker (steps, arguments, owner id) trained with other ns-train seeds on the "
+                        "same frozen base; each run decoded with its own owner key (informed geometric decoder, the "
+                        "geometry stage's cameras); std over runs (population)"}
 
     def color_baseline(self) -> Dict[str, Any]:
         """Write the color-marked run (amplitude matched to the sticker's PSNR) and decode it unedited."""
@@ -771,11 +823,14 @@ class Runner:
         t0 = time.time()
         fns = {"scene": self.stage_scene, "bases": self.stage_bases, "sticker": self.stage_sticker,
                "renders": self.stage_renders, "quality": self.stage_quality, "geometry": self.stage_geometry,
+               "seeds": self.stage_seeds,
                "distortions": self.stage_distortions, "curves": self.stage_curves, "recolor": self.stage_recolor,
                "purify": self.stage_purify, "false_positives": self.stage_false_positives, "speed": self.stage_speed}
         want = [s for s in fns if s in stages]
         if self.p.geometry is None:
-            want = [s for s in want if s not in ("geometry", "purify")]
+            want = [s for s in want if s not in ("geometry", "purify", "seeds")]
+        if not self.p.sticker.seeds and "seeds" in want:
+            want.remove("seeds")
         elif not self.p.geometry.purify_steps and "purify" in want:
             want.remove("purify")
         if self.p.recolor is None and "recolor" in want:
