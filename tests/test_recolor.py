@@ -26,6 +26,8 @@ from typing import Dict, List, Sequence
 import pytest
 import torch
 
+from gsticker_plugin.errors import GStickerError
+
 BIN = Path(sys.executable).parent
 MESSAGE = "101100111000111100001111100000111111000000111111"
 COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
@@ -446,6 +448,32 @@ def test_finetune_save_at_writes_the_runs_a_shorter_finetune_writes(runs, work):
     assert all(torch.equal(short[k], snap2[k]) for k in short)
     assert any(not torch.equal(snap2[k], snap3[k]) for k in short) and any(not torch.equal(snap3[k], long[k]) for k in short)
     assert json.loads((run_config(work / "ft-long-step3").parent / "finetune.json").read_text())["steps"] == 3
+
+
+def test_ray_targets_are_the_full_renders_pixels_and_train_the_same(runs):
+    """The fine-tune's targets rendered only at the pixels it visits equal those pixels of full renders, and a
+    fine-tune from them matches one from the full images (the images' path draws the same rays)."""
+    import copy
+
+    from gsticker_plugin.recolor import runs as R
+    from gsticker_plugin.recolor.finetune import RayTargets, finetune_color, ray_schedule, render_ray_targets
+
+    loaded = R.load_run(Path(runs["nerfacto"]), None)
+    model, cams = loaded.pipeline.model, loaded.pipeline.datamanager.train_dataset.cameras[:3]
+    hw = (int(cams.height[0]), int(cams.width[0]))
+    sched = ray_schedule(3, hw, steps=4, rays_per_step=64, seed=5)
+    assert sched.shape == (4, 64, 3) and int(sched[..., 0].max()) < 3
+    assert int(sched[..., 1].max()) < hw[0] and int(sched[..., 2].max()) < hw[1]
+    assert torch.equal(sched, ray_schedule(3, hw, 4, 64, seed=5)) and not torch.equal(sched, ray_schedule(3, hw, 4, 64, 6))
+    full = torch.stack(R.render_views(model, cams, range(3), progress=False)["rgb"])
+    sparse = render_ray_targets(model, cams, sched, chunk=50, progress=False)
+    assert torch.allclose(sparse.values, full[sched[..., 0], sched[..., 1], sched[..., 2]], atol=1e-5)
+    a, b = copy.deepcopy(model), copy.deepcopy(model)
+    ha = finetune_color(a, cams, list(full), 4, rays_per_step=64, seed=5, progress=False)
+    hb = finetune_color(b, cams, sparse, 4, rays_per_step=64, seed=5, progress=False)
+    assert ha["loss"] == pytest.approx(hb["loss"], rel=1e-4)
+    with pytest.raises(GStickerError, match="needs 5 of 64"):
+        finetune_color(b, cams, RayTargets(sched, sparse.values), 5, rays_per_step=64, progress=False)
 
 
 # ---------------------------------------------------------------------------------------------- bad input

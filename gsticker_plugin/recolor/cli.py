@@ -317,7 +317,7 @@ def cmd_finetune(args: FinetuneArgs) -> int:
 
     from gsticker_plugin.recolor import palette as P
     from gsticker_plugin.recolor import runs
-    from gsticker_plugin.recolor.finetune import finetune_color, split_color_parameters
+    from gsticker_plugin.recolor.finetune import finetune_color, ray_schedule, render_ray_targets, split_color_parameters
     from gsticker_plugin.recolor.model import ColorWrap, require_color_fields, unwrap
 
     P.check_k(args.k)
@@ -364,9 +364,11 @@ def cmd_finetune(args: FinetuneArgs) -> int:
             shift = float(args.hue_shift)
             transform = lambda rgb: P.hue_rotate(rgb, shift).to(rgb.dtype)  # noqa: E731
             what = f"hue-rotated renders ({shift:+g} turns)"
+        # the edited model's colors at the pixels the fine-tune visits (its rays do not depend on the model)
+        schedule = ray_schedule(n, size, args.steps, args.rays_per_step, args.seed)
         wraps = [ColorWrap(f, transform) for _, f in require_color_fields(unwrap(model))]
         try:
-            targets = runs.render_views(model, cameras, range(n), desc="rendering targets")["rgb"]
+            targets = render_ray_targets(model, cameras[:n], schedule)
         finally:
             for w in reversed(wraps):
                 w.remove()
