@@ -293,13 +293,33 @@ def predict_color_change(ref: ColorReferenceView, sticker: Sticker, signs: Float
                          amplitude: float) -> Float[Tensor, "R 3"]:
     """The suspect's RGB change at the rays for continuous message ``signs``: ``clamp(base + sum_j w_j a psi_j
     m_j(s)) - base`` (the renderer clamps the composite to [0, 1]); differentiable in ``signs``."""
+    return color_of_sticker(ref, sticker.mix(ref.view.features, signs), amplitude)
+
+
+def color_of_sticker(ref: ColorReferenceView, m: Float[Tensor, "N 1"], amplitude: float) -> Float[Tensor, "R 3"]:
+    """The RGB change at the rays for sticker values ``m`` at the gate-open samples."""
     v = ref.view
     r, s = v.density.shape[:2]
-    m = sticker.mix(v.features, signs)  # [N 1]
     per_sample = torch.zeros(r * s, 1, dtype=m.dtype, device=m.device).index_add(0, v.open_index,
                                                                                  amplitude * ref.psi * m)
     change = (ref.weights * per_sample.reshape(r, s, 1)).sum(dim=-2)  # [R 1], the same on the 3 channels
     return (ref.base_rgb + change).clamp(0.0, 1.0) - ref.base_rgb
+
+
+def color_change_jacobian(ref: ColorReferenceView, sticker: Sticker, signs: Float[Tensor, "K"],
+                          amplitude: float) -> Optional[Float[Tensor, "M K"]]:
+    """d predict_color_change / d signs, flattened like ``predict_color_change(...).reshape(-1)`` (None for a
+    sticker without a closed-form message Jacobian)."""
+    from gsticker_plugin import geometry as G
+
+    dm_ds = sticker.mix_jacobian(ref.view.features, signs)
+    if dm_ds is None:
+        return None
+    with torch.no_grad():
+        m = sticker.mix(ref.view.features, signs)
+    r, s = ref.view.density.shape[:2]
+    j = G.per_ray_jacobian(lambda x: color_of_sticker(ref, x, amplitude).T, m, dm_ds, ref.view.open_index // s, r)
+    return j.permute(1, 0, 2).reshape(-1, j.shape[-1])  # [3 R K] -> rows r * 3 + c
 
 
 def decode_color_view(ref: ColorReferenceView, sticker: Sticker, suspect_rgb: Float[Tensor, "R 3"], amplitude: float,
@@ -313,7 +333,7 @@ def decode_color_view(ref: ColorReferenceView, sticker: Sticker, suspect_rgb: Fl
         fit = G.Fit(signs=torch.zeros(k), explained=0.0, residual_rms=0.0, iterations=0)
     else:
         fit = G.fit_message(lambda x: predict_color_change(ref, sticker, x, amplitude), target, k,
-                            iterations=iterations)
+                            iterations=iterations, jac=lambda x: color_change_jacobian(ref, sticker, x, amplitude))
     bits, undetermined = G.decide_bits(fit.signs, generator)
     return {"bits": bits, "signs_abs_mean": float(fit.signs.abs().mean()), "undetermined": undetermined,
             "explained": fit.explained, "residual_rms": fit.residual_rms, "iterations": fit.iterations,

@@ -124,8 +124,12 @@ def predict_change(ref: ReferenceView, sticker: Sticker, signs: Float[Tensor, "K
     Same wrap as :class:`gsticker_plugin.sticker.DensityWrap` (``relu(sigma + psi * scale * m)``, zero where
     the gate is closed) and the same quadrature as Nerfstudio's renderer; differentiable in ``signs``.
     """
+    return signal_of_sticker(ref, sticker.mix(ref.features, signs))
+
+
+def signal_of_sticker(ref: ReferenceView, m: Float[Tensor, "N 1"]) -> Float[Tensor, "C R"]:
+    """The geometry signal of the base's samples with sticker values ``m`` at the gate-open samples."""
     r, s = ref.density.shape[:2]
-    m = sticker.mix(ref.features, signs)  # [N 1]
     delta = torch.zeros(r * s, 1, dtype=m.dtype, device=m.device).index_add(0, ref.open_index, ref.psi_scale * m)
     density = torch.relu(ref.density + delta.reshape(r, s, 1))
     w = render_weights(density, ref.deltas)
@@ -146,6 +150,37 @@ def jacobian(fn: Callable[[Tensor], Tensor], s: Float[Tensor, "K"], chunk: int =
     return torch.cat(cols).T
 
 
+def per_ray_jacobian(change: Callable[[Tensor], Tensor], m: Float[Tensor, "N 1"], dm_ds: Float[Tensor, "N K"],
+                     ray_of_sample: Int[Tensor, "N"], num_rays: int) -> Float[Tensor, "C R K"]:
+    """d change(m(s)) / d s when output ``[c, r]`` of ``change`` ([C R]) depends on the samples of ray ``r`` only.
+
+    Then d sum_r change[c, r] / d m_j is d change[c, ray(j)] / d m_j, so C backward passes give every sample's
+    derivative, and the chain rule through ``dm_ds`` (the sticker's own Jacobian, :meth:`Sticker.mix_jacobian`)
+    sums them per ray: the same matrix as forward-mode AD over the K directions, without K passes of the renderer.
+    """
+    m = m.detach().requires_grad_(True)
+    with torch.enable_grad():
+        out = change(m)
+        grads = [torch.autograd.grad(out[c].sum(), m, retain_graph=c + 1 < out.shape[0])[0]
+                 for c in range(out.shape[0])]
+    k = dm_ds.shape[1]
+    return torch.stack([torch.zeros(num_rays, k, dtype=dm_ds.dtype, device=dm_ds.device)
+                        .index_add(0, ray_of_sample, g * dm_ds) for g in grads])
+
+
+def change_jacobian(ref: ReferenceView, sticker: Sticker, signs: Float[Tensor, "K"]) -> Optional[Float[Tensor, "M K"]]:
+    """d predict_change / d signs, flattened like ``predict_change(...).reshape(-1)``; None for a sticker without a
+    closed-form message Jacobian (``concat``: use :func:`jacobian`)."""
+    dm_ds = sticker.mix_jacobian(ref.features, signs)
+    if dm_ds is None:
+        return None
+    with torch.no_grad():
+        m = sticker.mix(ref.features, signs)
+    r, s = ref.density.shape[:2]
+    j = per_ray_jacobian(lambda x: signal_of_sticker(ref, x), m, dm_ds, ref.open_index // s, r)
+    return j.reshape(-1, j.shape[-1])
+
+
 @dataclass
 class Fit:
     signs: Float[Tensor, "K"]
@@ -155,11 +190,12 @@ class Fit:
 
 
 def fit_message(predict: Callable[[Tensor], Tensor], target: Float[Tensor, "M"], num_bits: int,
-                iterations: int = 10, damping: float = 1e-3) -> Fit:
+                iterations: int = 10, damping: float = 1e-3,
+                jac: Optional[Callable[[Tensor], Optional[Tensor]]] = None) -> Fit:
     """Least squares ``min_s |target - (predict(s) - predict(0))|^2`` over ``s in [-1, 1]^K``.
 
-    Levenberg-Marquardt from ``s = 0`` (Jacobians by forward-mode AD, normal equations in float64, steps clamped
-    to the box). A zero target returns ``s = 0`` exactly.
+    Levenberg-Marquardt from ``s = 0`` (Jacobians from ``jac(s)`` when it gives one, else by forward-mode AD;
+    normal equations in float64, steps clamped to the box). A zero target returns ``s = 0`` exactly.
     """
     s = torch.zeros(num_bits, dtype=target.dtype, device=target.device)
     with torch.no_grad():
@@ -174,7 +210,10 @@ def fit_message(predict: Callable[[Tensor], Tensor], target: Float[Tensor, "M"],
     lam = damping
     it = 0
     for it in range(1, iterations + 1):
-        j = jacobian(lambda x: predict(x).reshape(-1) - f0, s).double()
+        j = jac(s) if jac is not None else None
+        if j is None:
+            j = jacobian(lambda x: predict(x).reshape(-1) - f0, s)
+        j = j.double()
         a = j.T @ j
         g = j.T @ e.double()
         diag = torch.diagonal(a).clone()
@@ -420,7 +459,8 @@ def decode_view(ref_view: ReferenceView, sticker: Sticker, suspect: Float[Tensor
     if ref_view.rays.numel() == 0:  # the gate opens nowhere in this view: nothing to read
         fit = Fit(signs=torch.zeros(k), explained=0.0, residual_rms=0.0, iterations=0)
     else:
-        fit = fit_message(lambda s: predict_change(ref_view, sticker, s), target, k, iterations=iterations)
+        fit = fit_message(lambda s: predict_change(ref_view, sticker, s), target, k, iterations=iterations,
+                          jac=lambda s: change_jacobian(ref_view, sticker, s))
     bits, undetermined = decide_bits(fit.signs, generator)
     return {"bits": bits, "signs": fit.signs, "undetermined": undetermined, "explained": fit.explained,
             "residual_rms": fit.residual_rms, "iterations": fit.iterations, "rays": int(ref_view.rays.numel())}

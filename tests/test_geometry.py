@@ -125,6 +125,31 @@ def test_jacobian_matches_finite_differences():
         assert torch.allclose(j[:, i].double(), fd, atol=2e-3, rtol=2e-2)
 
 
+@pytest.mark.parametrize("signals", [("accumulation",), ("accumulation", "expected_depth")])
+def test_per_ray_jacobian_equals_forward_mode_ad(signals):
+    """The closed-form message Jacobian (bilinear sticker, one backward pass per signal) is the AD one, for the
+    geometric fit and the color decoder's fit; the concat sticker has none (the fit falls back to AD)."""
+    from gsticker_plugin import colormark as CM
+
+    torch.manual_seed(3)
+    st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
+    ref = _synthetic_view(st, r=80, s=12)
+    if len(signals) == 1:
+        ref.signals, ref.base_signal = signals, ref.base_signal[:1]
+    s0 = torch.rand(48) * 1.6 - 0.8
+    ad = G.jacobian(lambda s: G.predict_change(ref, st, s).reshape(-1), s0)
+    closed = G.change_jacobian(ref, st, s0)
+    assert closed.shape == ad.shape == (len(signals) * 80, 48)
+    assert torch.allclose(closed, ad, atol=1e-6, rtol=1e-4) and float(closed.abs().max()) > 1e-3
+    cref = CM.ColorReferenceView(view=ref, psi=ref.psi_scale / 2.0, weights=G.render_weights(ref.density, ref.deltas),
+                                 base_rgb=torch.rand(80, 3) * 0.98)
+    ad_c = G.jacobian(lambda s: CM.predict_color_change(cref, st, s, 0.3).reshape(-1), s0)
+    closed_c = CM.color_change_jacobian(cref, st, s0, 0.3)
+    assert closed_c.shape == ad_c.shape == (80 * 3, 48)
+    assert torch.allclose(closed_c, ad_c, atol=1e-6, rtol=1e-4) and float(closed_c.abs().max()) > 1e-3
+    assert G.change_jacobian(ref, Sticker(48, 5, 16, 2, 0.5, "concat"), s0) is None
+
+
 # ---------------------------------------------------------------------------------------------- real runs
 @pytest.fixture(scope="module")
 def ws(tmp_path_factory) -> Path:
