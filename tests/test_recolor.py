@@ -213,6 +213,27 @@ def test_palette_is_deterministic_and_finds_the_dominant_colors(tiny_scene):
     assert torch.equal(P.extract_palette(px, k=6).rgb, P.extract_palette(px, k=6).rgb)
 
 
+def test_palette_of_the_same_pixels_is_extracted_once_per_process(monkeypatch):
+    from gsticker_plugin.recolor import palette as P
+
+    g = torch.Generator().manual_seed(0)
+    px = torch.cat([torch.rand(400, 3, generator=g) * 0.1 + torch.tensor(c) for c in
+                    ([0.8, 0.1, 0.1], [0.1, 0.7, 0.2], [0.1, 0.2, 0.8], [0.9, 0.9, 0.9])]).clamp(0, 1)
+    first = P.extract_palette(px, seed=3)
+    calls = []
+    real = P._kmeans_palette
+    monkeypatch.setattr(P, "_kmeans_palette", lambda *a: calls.append(a) or real(*a))
+    again = P.extract_palette(px.clone(), seed=3)
+    assert not calls, "the same pixels, k and seed must not run k-means again"
+    assert torch.equal(first.rgb, again.rgb) and torch.equal(first.share, again.share) and first.curve == again.curve
+    again.rgb[0] = -1.0  # a copy: editing it leaves the remembered palette alone
+    assert torch.equal(P.extract_palette(px, seed=3).rgb, first.rgb)
+    other = P.extract_palette(px[:-1], seed=3)  # other pixels (or k, or seed): computed
+    assert len(calls) == 1 and other.k >= P.K_MIN
+    P.extract_palette(px, k=4, seed=3)
+    assert len(calls) == 2
+
+
 def test_color_parsing_presets_and_recolor_identity():
     from gsticker_plugin.errors import GStickerError
     from gsticker_plugin.recolor import palette as P
