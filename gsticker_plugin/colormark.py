@@ -308,18 +308,15 @@ def color_of_sticker(ref: ColorReferenceView, m: Float[Tensor, "N 1"], amplitude
 
 def color_change_jacobian(ref: ColorReferenceView, sticker: Sticker, signs: Float[Tensor, "K"],
                           amplitude: float) -> Optional[Float[Tensor, "M K"]]:
-    """d predict_color_change / d signs, flattened like ``predict_color_change(...).reshape(-1)`` (None for a
-    sticker without a closed-form message Jacobian)."""
+    """d predict_color_change / d signs, flattened like ``predict_color_change(...).reshape(-1)`` (None: no closed
+    form)."""
     from gsticker_plugin import geometry as G
 
-    dm_ds = sticker.mix_jacobian(ref.view.features, signs)
-    if dm_ds is None:
-        return None
-    with torch.no_grad():
-        m = sticker.mix(ref.view.features, signs)
-    r, s = ref.view.density.shape[:2]
-    j = G.per_ray_jacobian(lambda x: color_of_sticker(ref, x, amplitude).T, m, dm_ds, ref.view.open_index // s, r)
-    return j.permute(1, 0, 2).reshape(-1, j.shape[-1])  # [3 R K] -> rows r * 3 + c
+    v = ref.view
+    r, s = v.density.shape[:2]
+    j = G.per_ray_jacobian(lambda x: color_of_sticker(ref, x, amplitude).T, sticker, v.features, signs,
+                           v.open_index // s, r)
+    return None if j is None else j.permute(1, 0, 2).reshape(-1, j.shape[-1])  # [3 R K] -> rows r * 3 + c
 
 
 def decode_color_view(ref: ColorReferenceView, sticker: Sticker, suspect_rgb: Float[Tensor, "R 3"], amplitude: float,

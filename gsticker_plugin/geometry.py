@@ -150,15 +150,23 @@ def jacobian(fn: Callable[[Tensor], Tensor], s: Float[Tensor, "K"], chunk: int =
     return torch.cat(cols).T
 
 
-def per_ray_jacobian(change: Callable[[Tensor], Tensor], m: Float[Tensor, "N 1"], dm_ds: Float[Tensor, "N K"],
-                     ray_of_sample: Int[Tensor, "N"], num_rays: int) -> Float[Tensor, "C R K"]:
-    """d change(m(s)) / d s when output ``[c, r]`` of ``change`` ([C R]) depends on the samples of ray ``r`` only.
+def per_ray_jacobian(change: Callable[[Tensor], Tensor], sticker: Sticker, features: Float[Tensor, "N F"],
+                     signs: Float[Tensor, "K"], ray_of_sample: Int[Tensor, "N"],
+                     num_rays: int) -> Optional[Float[Tensor, "C R K"]]:
+    """d change(mix(features, s)) / d s at ``signs``, when output ``[c, r]`` of ``change`` ([C R], a function of the
+    sticker values at the gate-open samples) depends on the samples of ray ``r`` only; None for a sticker without a
+    closed-form :meth:`Sticker.mix_jacobian` (``concat``: use :func:`jacobian`).
 
     Then d sum_r change[c, r] / d m_j is d change[c, ray(j)] / d m_j, so C backward passes give every sample's
-    derivative, and the chain rule through ``dm_ds`` (the sticker's own Jacobian, :meth:`Sticker.mix_jacobian`)
-    sums them per ray: the same matrix as forward-mode AD over the K directions, without K passes of the renderer.
+    derivative, and the chain rule through the sticker's own Jacobian sums them per ray: the same matrix as
+    forward-mode AD over the K directions, without K passes of the renderer.
     """
-    m = m.detach().requires_grad_(True)
+    if sticker.kind != "bilinear":
+        return None
+    with torch.no_grad():
+        m = sticker.mix(features, signs)
+    dm_ds = sticker.mix_jacobian(features, m)
+    m = m.requires_grad_(True)
     with torch.enable_grad():
         out = change(m)
         grads = [torch.autograd.grad(out[c].sum(), m, retain_graph=c + 1 < out.shape[0])[0]
@@ -169,16 +177,10 @@ def per_ray_jacobian(change: Callable[[Tensor], Tensor], m: Float[Tensor, "N 1"]
 
 
 def change_jacobian(ref: ReferenceView, sticker: Sticker, signs: Float[Tensor, "K"]) -> Optional[Float[Tensor, "M K"]]:
-    """d predict_change / d signs, flattened like ``predict_change(...).reshape(-1)``; None for a sticker without a
-    closed-form message Jacobian (``concat``: use :func:`jacobian`)."""
-    dm_ds = sticker.mix_jacobian(ref.features, signs)
-    if dm_ds is None:
-        return None
-    with torch.no_grad():
-        m = sticker.mix(ref.features, signs)
+    """d predict_change / d signs, flattened like ``predict_change(...).reshape(-1)`` (None: no closed form)."""
     r, s = ref.density.shape[:2]
-    j = per_ray_jacobian(lambda x: signal_of_sticker(ref, x), m, dm_ds, ref.open_index // s, r)
-    return j.reshape(-1, j.shape[-1])
+    j = per_ray_jacobian(lambda x: signal_of_sticker(ref, x), sticker, ref.features, signs, ref.open_index // s, r)
+    return None if j is None else j.reshape(-1, j.shape[-1])
 
 
 @dataclass

@@ -164,13 +164,11 @@ class Sticker(nn.Module):
             return torch.tanh(self.mlp(features + self.msg_in(signs)))
         return torch.tanh(features @ signs[:, None] / math.sqrt(self.num_bits))
 
-    def mix_jacobian(self, features: Float[Tensor, "N F"], signs: Float[Tensor, "K"]) -> Optional[Float[Tensor, "N K"]]:
-        """d mix / d signs in closed form for the bilinear sticker, ``(1 - m^2) f / sqrt(K)``; None for ``concat``
-        (its message passes through the MLP: differentiate :meth:`mix` instead)."""
+    def mix_jacobian(self, features: Float[Tensor, "N F"], m: Float[Tensor, "N 1"]) -> Optional[Float[Tensor, "N K"]]:
+        """d mix / d signs in closed form for the bilinear sticker, from its value ``m`` at those signs:
+        ``(1 - m^2) f / sqrt(K)``; None for ``concat`` (its message passes through the MLP: differentiate :meth:`mix`)."""
         if self.msg_in is not None:
             return None
-        with torch.no_grad():
-            m = self.mix(features, signs)
         return (1.0 - m * m) * features / math.sqrt(self.num_bits)
 
     def forward(self, positions01: Float[Tensor, "N 3"], message: Float[Tensor, "K"]) -> Float[Tensor, "N 1"]:

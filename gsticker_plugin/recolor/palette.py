@@ -18,6 +18,7 @@ Every bad input raises :class:`GStickerError` with one line naming the fix.
 
 from __future__ import annotations
 
+import hashlib
 import re
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence, Tuple
@@ -241,7 +242,7 @@ def subsample(pixels: Tensor, max_pixels: int, seed: int = 0) -> Tensor:
     return pixels[idx.sort().values]
 
 
-_PALETTES: Dict[Tuple[str, int, int, int], "Palette"] = {}  # extract_palette's results in this process
+_PALETTES: Dict[Tuple[str, int, int], "Palette"] = {}  # extract_palette's results in this process
 
 
 def extract_palette(pixels_rgb: Tensor, k: Optional[int] = None, seed: int = 0, max_pixels: int = 20000) -> Palette:
@@ -250,15 +251,13 @@ def extract_palette(pixels_rgb: Tensor, k: Optional[int] = None, seed: int = 0, 
     Deterministic, so a process that extracts the palette of the same pixels again (the evaluation protocol recolors
     three runs of one scene ten times each) gets a copy of the first result instead of running k-means again.
     """
-    import hashlib
-
     check_k(k)
     px = subsample(pixels_rgb.reshape(-1, 3).float(), max_pixels, seed)
     if px.shape[0] < K_MAX * 4:
         raise GStickerError(f"only {px.shape[0]} foreground pixels to build a palette from; use a scene whose "
                             "images show the object (alpha > 0.5), or --source renders")
     key = (hashlib.sha256(px.detach().contiguous().cpu().numpy().tobytes()).hexdigest(), -1 if k is None else int(k),
-           int(seed), int(px.shape[0]))
+           int(seed))
     if key not in _PALETTES:
         if len(_PALETTES) >= 16:
             _PALETTES.clear()
