@@ -78,3 +78,43 @@ def test_composite_matches_closed_form():
     assert torch.allclose(color, torch.tensor([[0.0, 1.0, 0.0]]), atol=1e-4)
     empty, w0 = composite(torch.zeros_like(density), rgb, deltas, torch.ones(3))
     assert torch.allclose(empty, torch.ones(1, 3)) and float(w0.sum()) == 0.0
+
+
+def test_render_cached_keeps_the_clean_composite_and_renders_bit_identically():
+    """The fast path composites each view's clean rays once: same image, psi and gradients as recomputing them."""
+    from gsticker_plugin.fastpath import ViewCache, render_cached
+    from gsticker_plugin.sticker import DensityWrap, WrapState
+
+    torch.manual_seed(0)
+    a, s = 12, 6
+    density = torch.rand(a, s, 1) * 5
+    view = ViewCache(image=torch.rand(4, 4, 3), active=torch.randperm(16)[:a], positions=torch.rand(a, s, 3).half(),
+                     deltas=torch.full((a, s, 1), 0.1), density=density, rgb=torch.rand(a, s, 3).half())
+    gate = Gate()
+    gate.calibrate(density.reshape(-1, 1), torch.ones(a * s, 1))
+    st = Sticker(num_bits=8, num_frequencies=2, hidden_dim=8)
+    class Field(torch.nn.Module):
+        def get_density(self, ray_samples):  # never called: render_cached only uses the wrap's delta()
+            raise AssertionError
+
+    wrap = DensityWrap(Field(), "f", st, gate, WrapState(), torch.tensor([[0.0] * 3, [1.0] * 3]))
+    msg = torch.randint(0, 2, (8,))
+
+    def step(v, bg):
+        st.zero_grad()
+        img, psi = render_cached(v, wrap, msg, bg)
+        img.square().sum().backward()
+        return img.detach(), psi.detach(), [p.grad.clone() for p in st.parameters()]
+
+    white = torch.ones(3)
+    first = step(view, white)
+    assert view.clean_rgb is not None
+    kept = view.clean_rgb[1]
+    again = step(view, white)
+    assert view.clean_rgb[1] is kept  # reused, not recomputed
+    fresh = ViewCache(**{k: v for k, v in vars(view).items() if k != "clean_rgb"})
+    recomputed = step(fresh, white)
+    for x, y, z in zip(first[:2] + tuple(first[2]), again[:2] + tuple(again[2]), recomputed[:2] + tuple(recomputed[2])):
+        assert torch.equal(x, y) and torch.equal(x, z)
+    black = step(view, torch.zeros(3))  # another background: recomputed for it
+    assert torch.equal(view.clean_rgb[0], torch.zeros(3)) and not torch.equal(black[0], first[0])
