@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Optional
 
 import torch
 from jaxtyping import Float
@@ -32,7 +32,6 @@ class ViewCache:
     density: Tensor  # [A S 1] (float32: densities span orders of magnitude)
     rgb: Tensor  # [A S 3]
     novel: bool = False
-    clean_rgb: Optional[Tuple[Tensor, Tensor]] = None  # (background, composite of the active rays): see render_cached
 
     @property
     def hw(self):
@@ -114,22 +113,10 @@ def render_cached(view: ViewCache, wrap, message: Tensor, background: Tensor) ->
     delta, psi = wrap.delta(density, positions, message)
     rgb = view.rgb.float()
     marked, _ = composite(torch.relu(density + delta), rgb, view.deltas, background)
-    clean = clean_composite(view, background)
+    clean, _ = composite(density, rgb, view.deltas, background)
     flat = view.image.reshape(-1, 3)
     change = torch.zeros_like(flat).index_add(0, view.active, marked - clean)
     return (flat + change).clamp(0.0, 1.0).reshape(h, w, 3), psi
-
-
-def clean_composite(view: ViewCache, background: Tensor) -> Tensor:
-    """The active rays composited without the sticker, [A 3]: the same for every step, so computed once per view
-    (and background) and kept in ``view.clean_rgb``; the same operation on the same tensors as recomputing it."""
-    kept = view.clean_rgb
-    if kept is not None and kept[0].shape == background.shape and torch.equal(kept[0], background.detach()):
-        return kept[1]
-    with torch.no_grad():
-        clean, _ = composite(view.density, view.rgb.float(), view.deltas, background)
-    view.clean_rgb = (background.detach().clone(), clean)
-    return clean
 
 
 def pool_memory_mb(views: List[ViewCache]) -> float:
