@@ -130,3 +130,14 @@ def resolve_data_path(recorded: Optional[Path], override: Optional[Path]) -> Pat
 def base_summary(config) -> Tuple[str, str]:
     model_cfg = config.pipeline.model
     return config.method_name, type(model_cfg).__name__
+
+
+def final_rgb(outputs: Dict[str, Any]) -> torch.Tensor:
+    """The final image of any run's ``get_outputs_for_camera`` (vanilla-nerf names it ``rgb_fine``)."""
+    rgb = outputs.get("rgb")
+    if rgb is None:
+        rgb = outputs.get("rgb_fine")
+    if rgb is None:
+        raise GStickerError(f"the model renders no 'rgb' (or 'rgb_fine') output, only {sorted(outputs)}; "
+                            "use a NeRF-style run (nerfacto, vanilla-nerf, tensorf)")
+    return rgb

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from gsticker_plugin import metrics
+from gsticker_plugin.base_run import final_rgb
 from gsticker_plugin.key import OwnerKey
 
 
@@ -44,7 +45,7 @@ def render_split(pipeline, split: str = "test", limit: Optional[int] = None, sti
         for i in iterator:
             camera = dataset.cameras[i: i + 1].to(model.device)
             out = model.get_outputs_for_camera(camera)
-            rgbs.append(out["rgb"].clamp(0, 1).cpu())
+            rgbs.append(final_rgb(out).clamp(0, 1).cpu())
             img = dataset.get_image_float32(i)
             if img.shape[-1] == 4:
                 img = img[..., :3] * img[..., 3:] + (1.0 - img[..., 3:])  # Blender scenes: white background

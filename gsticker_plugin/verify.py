@@ -38,6 +38,7 @@ import torch
 from torch import Tensor
 
 from gsticker_plugin import metrics
+from gsticker_plugin.base_run import final_rgb
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import KEY_SUFFIX, OwnerKey, bits_to_str
 
@@ -454,7 +455,7 @@ def model_views(config_path: Path, num_views: int, sampled_share: float, seed: i
     try:
         for name, cam in _tqdm(cams, f"rendering {Path(config_path).parent.name}", progress):
             o = model.get_outputs_for_camera(cam.to(model.device))
-            rgb = o["rgb"].detach().float().clamp(0, 1).cpu()
+            rgb = final_rgb(o).detach().float().clamp(0, 1).cpu()
             out.views.append(View(name=name, image=rgb.permute(2, 0, 1).contiguous()))
     finally:
         if ctx is not None:

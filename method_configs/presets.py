@@ -11,7 +11,7 @@ from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
 from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
-from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig, RAdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.models.nerfacto import NerfactoModelConfig
@@ -20,6 +20,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 import method_configs  # noqa: F401  (host fixes)
+from gsticker_plugin.small_nerf import SmallNeRFModelConfig
 
 
 def nerfacto_small_config(max_num_iterations: int = 3000) -> TrainerConfig:
@@ -134,6 +135,41 @@ def tensorf_small_config(max_num_iterations: int = 2000) -> TrainerConfig:
     )
 
 
+def vanilla_nerf_small_config(max_num_iterations: int = 3000) -> TrainerConfig:
+    """vanilla-nerf (stock model and fields, 4 x 64 MLPs, 32 + 32 samples) for a 100 px object scene."""
+    return TrainerConfig(
+        method_name="gsticker-vanilla-nerf-small",
+        steps_per_eval_batch=500,
+        steps_per_eval_image=1000,
+        steps_per_eval_all_images=1_000_000,
+        steps_per_save=500,
+        save_only_latest_checkpoint=True,
+        max_num_iterations=max_num_iterations,
+        mixed_precision=False,
+        pipeline=VanillaPipelineConfig(
+            datamanager=VanillaDataManagerConfig(
+                dataparser=BlenderDataParserConfig(),
+                train_num_rays_per_batch=1024,
+                eval_num_rays_per_batch=4096,
+            ),
+            model=SmallNeRFModelConfig(
+                num_coarse_samples=32,
+                num_importance_samples=32,
+                background_color="white",
+                eval_num_rays_per_chunk=1 << 12,
+            ),
+        ),
+        optimizers={
+            "fields": {
+                "optimizer": RAdamOptimizerConfig(lr=2e-3, eps=1e-8),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=2e-4, max_steps=max_num_iterations),
+            },
+        },
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 12),
+        vis="tensorboard",
+    )
+
+
 nerfacto_small = MethodSpecification(
     config=nerfacto_small_config(),
     description="[gsticker] nerfacto sized for <=200 px object scenes on a CPU (2^15 hash, 8 levels, 1024 rays).",
@@ -141,4 +177,8 @@ nerfacto_small = MethodSpecification(
 tensorf_small = MethodSpecification(
     config=tensorf_small_config(),
     description="[gsticker] TensoRF VM sized for <=200 px object scenes on a CPU (64->160 voxels, 2000 steps).",
+)
+vanilla_nerf_small = MethodSpecification(
+    config=vanilla_nerf_small_config(),
+    description="[gsticker] vanilla-nerf sized for <=200 px object scenes on a CPU (4 x 64 MLPs, 32 + 32 samples).",
 )

@@ -35,6 +35,8 @@ import numpy as np
 import torch
 import tyro
 
+from gsticker_plugin.base_run import final_rgb
+
 DEFAULT_PRESETS = ("gsticker-nerfacto-small", "gsticker-tensorf-small")
 QUICK_ITERATIONS = 20
 QUICK_TEST_VIEWS = 3
@@ -231,7 +233,7 @@ def evaluate(config_path: Path, checkpoint: Path, data: Path, num_views: int) ->
     for i in range(n):
         camera = dataset.cameras[i : i + 1]
         with torch.no_grad():
-            rgb = pipeline.model.get_outputs_for_camera(camera)["rgb"].clamp(0.0, 1.0)
+            rgb = final_rgb(pipeline.model.get_outputs_for_camera(camera)).clamp(0.0, 1.0)
         gt = white_composite(dataset.get_numpy_image(i))
         if gt.shape != rgb.shape:
             raise RuntimeError(f"test view {i}: rendered {tuple(rgb.shape)} but the image is {tuple(gt.shape)}")

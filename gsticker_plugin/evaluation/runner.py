@@ -28,6 +28,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 import torch
 from torch import Tensor
 
+from gsticker_plugin.base_run import final_rgb
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.evaluation.config import Protocol, to_plain
 
@@ -158,7 +159,7 @@ class Runner:
         with ctx:
             for i in _tqdm(idx, f"rendering {desc}", self.progress):
                 cam = dataset.cameras[i: i + 1].to(model.device)
-                rgbs.append(model.get_outputs_for_camera(cam)["rgb"].float().clamp(0, 1).cpu())
+                rgbs.append(final_rgb(model.get_outputs_for_camera(cam)).float().clamp(0, 1).cpu())
                 img = dataset.get_image_float32(i)
                 if img.shape[-1] == 4:
                     img = img[..., :3] * img[..., 3:] + (1.0 - img[..., 3:])
