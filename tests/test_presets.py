@@ -21,7 +21,7 @@ from gsticker_plugin.bench import presets as bench
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED = REPO_ROOT.parent / "shared"
-PRESETS = ("gsticker-nerfacto-small", "gsticker-tensorf-small")
+PRESETS = ("gsticker-nerfacto-small", "gsticker-tensorf-small", "gsticker-vanilla-nerf-small")
 
 
 def _env() -> dict:
@@ -64,10 +64,48 @@ def test_preset_trains_with_ns_train_and_loads_back(preset, tiny_scene, tmp_path
     camera = pipeline.datamanager.train_dataset.cameras[0:1]
     with torch.no_grad():
         outputs = pipeline.model.get_outputs_for_camera(camera)
-    rgb = outputs["rgb"]
+    fine = "_fine" if "rgb" not in outputs else ""  # vanilla-nerf: rgb_coarse/rgb_fine, depth_coarse/depth_fine
+    rgb = outputs[f"rgb{fine}"]
     assert rgb.shape == (32, 32, 3)
     assert torch.isfinite(rgb).all() and float(rgb.min()) >= 0.0 and float(rgb.max()) <= 1.0
-    assert "depth" in outputs and torch.isfinite(outputs["depth"]).all()
+    assert f"depth{fine}" in outputs and torch.isfinite(outputs[f"depth{fine}"]).all()
+
+
+def test_small_vanilla_nerf_builds_stock_fields_of_the_configured_size(monkeypatch):
+    import method_configs  # noqa: F401  (host fixes: offline LPIPS)
+    from nerfstudio.data.scene_box import SceneBox
+    from nerfstudio.fields.vanilla_nerf_field import NeRFField
+    from nerfstudio.models.vanilla_nerf import NeRFModel
+
+    from gsticker_plugin.small_nerf import SmallNeRFModel, SmallNeRFModelConfig
+
+    monkeypatch.setenv("GSTICKER_NO_DOWNLOAD", "1")
+
+    def build(**kw):
+        box = SceneBox(aabb=torch.tensor([[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]]))
+        return SmallNeRFModelConfig(**kw).setup(scene_box=box, num_train_data=4)
+
+    def mlp_params(model):
+        return sum(p.numel() for n, p in model.named_parameters() if n.startswith(("field_coarse", "field_fine")))
+
+    model = build()
+    assert isinstance(model, SmallNeRFModel) and isinstance(model, NeRFModel)
+    for fld in (model.field_coarse, model.field_fine):
+        assert type(fld) is NeRFField
+        linears = [m for m in fld.mlp_base.modules() if isinstance(m, torch.nn.Linear)]
+        assert len(linears) == 4 and all(m.out_features == 64 for m in linears)
+        assert fld.position_encoding.get_out_dim() == 3 + 2 * 3 * 10
+    wide = build(base_mlp_num_layers=8, base_mlp_layer_width=256, head_mlp_layer_width=128, skip_connections=(4,))
+    assert mlp_params(wide) > 20 * mlp_params(model)  # the stock size, for comparison
+    # stock get_outputs on a few rays: the coarse and fine images vanilla-nerf renders
+    from nerfstudio.cameras.rays import RayBundle
+
+    n = 5
+    rays = RayBundle(origins=torch.tensor([[0.0, 0.0, 4.0]]).repeat(n, 1), directions=torch.tensor([[0.0, 0.0, -1.0]]).repeat(n, 1),
+                     pixel_area=torch.ones(n, 1), camera_indices=torch.zeros(n, 1, dtype=torch.long),
+                     nears=torch.full((n, 1), 2.0), fars=torch.full((n, 1), 6.0))
+    out = model.get_outputs(rays)
+    assert out["rgb_fine"].shape == (n, 3) and out["rgb_coarse"].shape == (n, 3)
 
 
 # ----------------------------------------------------------------------------- benchmark helpers

@@ -18,7 +18,7 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-METHODS = ("geometrysticker", "gsticker-nerfacto-small", "gsticker-tensorf-small")
+METHODS = ("geometrysticker", "gsticker-nerfacto-small", "gsticker-tensorf-small", "gsticker-vanilla-nerf-small")
 
 
 def _env(**extra: str) -> dict:

@@ -51,3 +51,7 @@ def test_cost_lines_give_the_first_checkpoint_meeting_both_targets_ordered_by_im
     assert "| not reached | - |" in body[0]
     assert "| 64 | 50 | 20.0 |" in body[1]  # met at its first checkpoint
     assert "| 200 px | 48 | 150 | 100.0 |" in body[2]  # its first checkpoint misses the PSNR target
+    assert body[2].endswith("| 3.00 | - | - |")  # no pool seconds recorded: no per-step cost
+    slow["pool_seconds"] = 40.0
+    body = [x for x in cost_lines([slow], 0.99, 35.0) if x.startswith("| res-200")]
+    assert body[0].endswith("| 3.00 | 40 | 0.40 |")  # (100 s at step 150 - 40 s pool) / 150 steps

@@ -196,14 +196,25 @@ def cost_lines(rows: List[Dict[str, Any]], bit_acc: float, psnr: float) -> List[
     """How the cost of reaching the targets grows with image size and message length: a table row per variant."""
     lines = [f"Cost to reach the targets (first checkpoint at >= {100 * bit_acc:g} % and >= {psnr:g} dB; "
              "'not reached' within the run's steps):", "",
-             "| variant | image | bits | step | train s | decode s/view |", "|---|---|---|---|---|---|"]
+             "| variant | image | bits | step | train s | decode s/view | pool s | s/step |", "|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: (r["size"][0], r["num_bits"], r["sticker_params"])):
         p = first_meeting(r, bit_acc, psnr)
         decode = sum(x["decode_seconds_per_view"] for x in r["points"]) / max(len(r["points"]), 1)
+        pool, per_step = step_cost(r)
         lines.append(f"| {r['name']} | {r['size'][0]} px | {r['num_bits']} | "
                      + (f"{p['step']} | {p['train_seconds'] if p['train_seconds'] is not None else '-'}" if p
-                        else "not reached | -") + f" | {decode:.2f} |")
+                        else "not reached | -") + f" | {decode:.2f} | {'-' if pool is None else f'{pool:g}'} | "
+                     f"{'-' if per_step is None else f'{per_step:.2f}'} |")
     return lines
+
+
+def step_cost(row: Dict[str, Any]) -> Tuple[Optional[float], Optional[float]]:
+    """(pool build seconds, training seconds per step after it) of a variant, from its last checkpoint."""
+    pool = row.get("pool_seconds")
+    last = row["points"][-1] if row["points"] else None
+    if pool is None or last is None or last.get("train_seconds") is None or not last.get("step"):
+        return pool, None
+    return pool, (last["train_seconds"] - pool) / last["step"]
 
 
 def markdown(cfg: SweepConfig, rows: List[Dict[str, Any]], when: str, machine: str) -> str:
