@@ -387,6 +387,9 @@ def reference_view(ref: BaseReference, name: str, camera, use_depth: bool,
                    message: Optional[Int[Tensor, "K"]] = None) -> ReferenceView:
     """Render the base at ``camera`` once (sticker off) and keep the rays whose samples the sticker can change.
 
+    ``use_depth`` is honoured only when the base renders expected depth too (vanilla-nerf does not): the view's
+    ``signals`` say which were kept, and :func:`suspect_signal` takes the same ones from the suspect.
+
     ``message``: take the samples the base marked with ``message`` draws instead (see
     :func:`relinearized_view`); the returned ``base_signal`` is then the render's, to be replaced by the caller.
     """
@@ -413,6 +416,7 @@ def reference_view(ref: BaseReference, name: str, camera, use_depth: bool,
     feats = model.sticker.features(wrap.normalize(pos_open.to(model.device))).cpu() if open_index.numel() else \
         torch.zeros(0, model.sticker.num_bits)
     psi_scale = psi.reshape(-1, 1)[open_index] * float(wrap.gate.scale)
+    use_depth = use_depth and has_expected_depth(outputs)  # e.g. a vanilla-nerf base: accumulation only
     signal, names = geometry_signal(outputs, use_depth)
     weights = render_weights(density, deltas)
     wsum = float(weights.sum())

@@ -396,6 +396,28 @@ def test_relinearized_view_at_the_true_message_predicts_the_marked_render(gs_run
         assert plain > 10 * relin, (plain, relin)
 
 
+def test_a_base_without_expected_depth_reads_a_suspect_that_has_it(gs_runs, val_pipeline):
+    """A vanilla-nerf base renders no expected depth, a nerfacto suspect does (decoding another model of the scene
+    with the vanilla-nerf owner's key): the reference keeps accumulation only, and so does the suspect's signal."""
+    from gsticker_plugin import geometry as G
+
+    pipeline = val_pipeline("vanilla-nerf")
+    ref = G.BaseReference(config_path=gs_runs["vanilla-nerf"]["config"], checkpoint=gs_runs["vanilla-nerf"]["ckpt"],
+                          method="vanilla-nerf", pipeline=pipeline, model=pipeline.model)
+    camera = pipeline.datamanager.train_dataset.cameras[0:1]
+    suspect = val_pipeline("nerfacto").model
+    with torch.no_grad():
+        out = {k: v.float().cpu() for k, v in suspect.get_outputs_for_camera(camera).items() if isinstance(v, torch.Tensor)}
+    assert G.has_expected_depth(out)
+    view = G.reference_view(ref, "cam0", camera, use_depth=G.has_expected_depth(out))
+    assert view.signals == ("accumulation",) and view.base_signal.shape[0] == 1
+    assert G.suspect_signal(out, view).shape == view.base_signal.shape
+    own = val_pipeline("nerfacto")
+    ref_n = G.BaseReference(config_path=gs_runs["nerfacto"]["config"], checkpoint=gs_runs["nerfacto"]["ckpt"],
+                            method="nerfacto", pipeline=own, model=own.model)
+    assert G.reference_view(ref_n, "cam0", camera, use_depth=True).signals == ("accumulation", "expected_depth")
+
+
 @pytest.mark.parametrize("base", BASES)
 def test_base_weights_are_bit_identical_after_training(gs_runs, base):
     ours = load_raw(gs_runs[base]["ckpt"])["pipeline"]
