@@ -214,3 +214,19 @@ def test_bad_protocol_is_one_error_line(tmp_path, capsys):
     assert cli.run(["--config", str(bad), "--output-dir", str(tmp_path / "out")]) == 2
     assert "crop" in capsys.readouterr().err
     assert cli.run(["--config", str(tmp_path / "missing.yaml")]) == 2
+
+
+def test_protocols_load_and_an_empty_purification_prints_no_table():
+    from gsticker_plugin.evaluation import report
+    from gsticker_plugin.evaluation.config import load_protocol
+
+    for path in sorted(SMOKE.parent.glob("*.yaml")):  # every shipped protocol is valid (its files exist here)
+        if "shared" in path.read_text() and not (REPO_ROOT.parent / "shared").is_dir():
+            continue
+        p = load_protocol(path)
+        assert p.bases and p.name
+    vanilla = load_protocol(SMOKE.parent / "lego100-vanilla-nerf.yaml") if (REPO_ROOT.parent / "shared").is_dir() else None
+    if vanilla is not None:
+        assert vanilla.bases[0].preset == "gsticker-vanilla-nerf-small" and vanilla.recolor is None
+    assert report._purify({"purify": {"points": []}}) == []
+    assert report._purify({}) == []

@@ -148,7 +148,7 @@ def _seeds(r) -> List[str]:
 
 def _purify(r) -> List[str]:
     d = r.get("purify")
-    if not d:
+    if not d or not d.get("points"):  # geometry.purify_steps: [] (nothing run)
         return []
     rows = [[str(p["steps"]), num(p["train_seconds"], 0), num(p["loss"], 5), num(p["psnr_vs_gt"]), pct(p["bit_acc"]),
              pct(p["share_passing"]), "OWNED" if p["verdict"] else "not shown"] for p in d["points"]]
