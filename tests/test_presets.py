@@ -226,3 +226,14 @@ def test_bench_evaluate_reproduces_shared_nerfacto_psnr(monkeypatch):
     assert scored["test_views"] == 2
     assert 20.0 < scored["test_psnr"] < 40.0, scored
     assert 500_000 < scored["parameters"] < 5_000_000
+
+
+def test_final_rgb_takes_vanilla_nerfs_fine_image_and_names_the_fix_otherwise():
+    from gsticker_plugin.base_run import final_rgb
+    from gsticker_plugin.errors import GStickerError
+
+    a, b = torch.zeros(2, 2, 3), torch.ones(2, 2, 3)
+    assert final_rgb({"rgb": a, "rgb_fine": b}) is a
+    assert final_rgb({"rgb_coarse": a, "rgb_fine": b}) is b
+    with pytest.raises(GStickerError, match="NeRF-style"):
+        final_rgb({"depth": a})
