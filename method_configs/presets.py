@@ -23,10 +23,11 @@ import method_configs  # noqa: F401  (host fixes)
 from gsticker_plugin.small_nerf import SmallNeRFModelConfig
 
 
-def nerfacto_small_config(max_num_iterations: int = 3000) -> TrainerConfig:
-    """nerfacto (torch implementation) sized for a 100-200 px object scene, with the Blender recipe."""
+def _small_trainer(method_name: str, max_num_iterations: int, model, optimizers, viewer_chunk: int) -> TrainerConfig:
+    """The trainer every preset shares: Blender data, 1024 training rays, checkpoints every 500 steps (latest only),
+    an eval image every 1000, no mixed precision (CPU), tensorboard."""
     return TrainerConfig(
-        method_name="gsticker-nerfacto-small",
+        method_name=method_name,
         steps_per_eval_batch=500,
         steps_per_eval_image=1000,
         steps_per_eval_all_images=1_000_000,
@@ -40,30 +41,42 @@ def nerfacto_small_config(max_num_iterations: int = 3000) -> TrainerConfig:
                 train_num_rays_per_batch=1024,
                 eval_num_rays_per_batch=4096,
             ),
-            model=NerfactoModelConfig(
-                implementation="torch",
-                log2_hashmap_size=15,
-                num_levels=8,
-                max_res=256,
-                hidden_dim=32,
-                hidden_dim_color=64,
-                num_nerf_samples_per_ray=32,
-                num_proposal_samples_per_ray=(64, 32),
-                proposal_net_args_list=[
-                    {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 128, "use_linear": False},
-                    {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 256, "use_linear": False},
-                ],
-                background_color="white",
-                near_plane=2.0,
-                far_plane=6.0,
-                proposal_initial_sampler="uniform",
-                disable_scene_contraction=True,
-                distortion_loss_mult=0.0,
-                use_average_appearance_embedding=False,
-                average_init_density=0.01,
-                camera_optimizer=CameraOptimizerConfig(mode="off"),
-                eval_num_rays_per_chunk=1 << 13,
-            ),
+            model=model,
+        ),
+        optimizers=optimizers,
+        viewer=ViewerConfig(num_rays_per_chunk=viewer_chunk),
+        vis="tensorboard",
+    )
+
+
+def nerfacto_small_config(max_num_iterations: int = 3000) -> TrainerConfig:
+    """nerfacto (torch implementation) sized for a 100-200 px object scene, with the Blender recipe."""
+    return _small_trainer(
+        "gsticker-nerfacto-small",
+        max_num_iterations,
+        model=NerfactoModelConfig(
+            implementation="torch",
+            log2_hashmap_size=15,
+            num_levels=8,
+            max_res=256,
+            hidden_dim=32,
+            hidden_dim_color=64,
+            num_nerf_samples_per_ray=32,
+            num_proposal_samples_per_ray=(64, 32),
+            proposal_net_args_list=[
+                {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 128, "use_linear": False},
+                {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 256, "use_linear": False},
+            ],
+            background_color="white",
+            near_plane=2.0,
+            far_plane=6.0,
+            proposal_initial_sampler="uniform",
+            disable_scene_contraction=True,
+            distortion_loss_mult=0.0,
+            use_average_appearance_embedding=False,
+            average_init_density=0.01,
+            camera_optimizer=CameraOptimizerConfig(mode="off"),
+            eval_num_rays_per_chunk=1 << 13,
         ),
         optimizers={
             "proposal_networks": {
@@ -80,41 +93,27 @@ def nerfacto_small_config(max_num_iterations: int = 3000) -> TrainerConfig:
                 "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
             },
         },
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 13),
-        vis="tensorboard",
+        viewer_chunk=1 << 13,
     )
 
 
 def tensorf_small_config(max_num_iterations: int = 2000) -> TrainerConfig:
     """TensoRF (VM) with a 64 -> 160 voxel schedule compressed into 2000 steps, white background."""
-    return TrainerConfig(
-        method_name="gsticker-tensorf-small",
-        steps_per_eval_batch=500,
-        steps_per_eval_image=1000,
-        steps_per_eval_all_images=1_000_000,
-        steps_per_save=500,
-        save_only_latest_checkpoint=True,
-        max_num_iterations=max_num_iterations,
-        mixed_precision=False,
-        pipeline=VanillaPipelineConfig(
-            datamanager=VanillaDataManagerConfig(
-                dataparser=BlenderDataParserConfig(),
-                train_num_rays_per_batch=1024,
-                eval_num_rays_per_batch=4096,
-            ),
-            model=TensoRFModelConfig(
-                init_resolution=64,
-                final_resolution=160,
-                upsampling_iters=(300, 600, 900, 1200),
-                num_samples=128,
-                num_uniform_samples=64,
-                num_den_components=16,
-                num_color_components=48,
-                background_color="white",
-                regularization="tv",
-                camera_optimizer=CameraOptimizerConfig(mode="off"),
-                eval_num_rays_per_chunk=1 << 12,
-            ),
+    return _small_trainer(
+        "gsticker-tensorf-small",
+        max_num_iterations,
+        model=TensoRFModelConfig(
+            init_resolution=64,
+            final_resolution=160,
+            upsampling_iters=(300, 600, 900, 1200),
+            num_samples=128,
+            num_uniform_samples=64,
+            num_den_components=16,
+            num_color_components=48,
+            background_color="white",
+            regularization="tv",
+            camera_optimizer=CameraOptimizerConfig(mode="off"),
+            eval_num_rays_per_chunk=1 << 12,
         ),
         optimizers={
             "fields": {
@@ -130,34 +129,20 @@ def tensorf_small_config(max_num_iterations: int = 2000) -> TrainerConfig:
                 "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=5000),
             },
         },
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 12),
-        vis="tensorboard",
+        viewer_chunk=1 << 12,
     )
 
 
 def vanilla_nerf_small_config(max_num_iterations: int = 3000) -> TrainerConfig:
     """vanilla-nerf (stock model and fields, 4 x 64 MLPs, 32 + 32 samples) for a 100 px object scene."""
-    return TrainerConfig(
-        method_name="gsticker-vanilla-nerf-small",
-        steps_per_eval_batch=500,
-        steps_per_eval_image=1000,
-        steps_per_eval_all_images=1_000_000,
-        steps_per_save=500,
-        save_only_latest_checkpoint=True,
-        max_num_iterations=max_num_iterations,
-        mixed_precision=False,
-        pipeline=VanillaPipelineConfig(
-            datamanager=VanillaDataManagerConfig(
-                dataparser=BlenderDataParserConfig(),
-                train_num_rays_per_batch=1024,
-                eval_num_rays_per_batch=4096,
-            ),
-            model=SmallNeRFModelConfig(
-                num_coarse_samples=32,
-                num_importance_samples=32,
-                background_color="white",
-                eval_num_rays_per_chunk=1 << 12,
-            ),
+    return _small_trainer(
+        "gsticker-vanilla-nerf-small",
+        max_num_iterations,
+        model=SmallNeRFModelConfig(
+            num_coarse_samples=32,
+            num_importance_samples=32,
+            background_color="white",
+            eval_num_rays_per_chunk=1 << 12,
         ),
         optimizers={
             "fields": {
@@ -165,8 +150,7 @@ def vanilla_nerf_small_config(max_num_iterations: int = 3000) -> TrainerConfig:
                 "scheduler": ExponentialDecaySchedulerConfig(lr_final=2e-4, max_steps=max_num_iterations),
             },
         },
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 12),
-        vis="tensorboard",
+        viewer_chunk=1 << 12,
     )
 
 
