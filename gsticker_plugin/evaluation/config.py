@@ -50,7 +50,7 @@ class BaseSpec:
     config: Optional[Path] = None
     """An existing base run (RUN/config.yml). When absent, the base is trained with ``preset``."""
     preset: Optional[str] = None
-    """ns-train method used to train the base (gsticker-nerfacto-small, gsticker-tensorf-small, vanilla-nerf)."""
+    """ns-train method used to train the base (gsticker-nerfacto-small, gsticker-tensorf-small, gsticker-vanilla-nerf-small, ...)."""
     steps: int = 2000
     """Training steps of the base when it is trained here."""
     args: List[str] = field(default_factory=list)
