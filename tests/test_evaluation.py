@@ -227,6 +227,6 @@ def test_protocols_load_and_an_empty_purification_prints_no_table():
         assert p.bases and p.name
     vanilla = load_protocol(SMOKE.parent / "lego100-vanilla-nerf.yaml") if (REPO_ROOT.parent / "shared").is_dir() else None
     if vanilla is not None:
-        assert vanilla.bases[0].preset == "gsticker-vanilla-nerf-small" and vanilla.recolor is None
+        assert vanilla.bases[0].preset == "gsticker-vanilla-nerf-small" and vanilla.recolor.finetune is None
     assert report._purify({"purify": {"points": []}}) == []
     assert report._purify({}) == []

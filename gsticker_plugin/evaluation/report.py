@@ -306,7 +306,7 @@ def _finish_bars(plt, fig, ax, names: List[str], path: Path, title: str, legend_
     ax.set_ylabel("bit accuracy %")
     ax.set_ylim(0, 102)
     ax.legend(fontsize=7, loc=legend_loc)
-    ax.set_title(title, fontsize=9)
+    ax.set_title(title.replace(": ", ":\n", 1) if len(title) > 60 else title, fontsize=9)  # long names: two lines
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
