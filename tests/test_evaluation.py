@@ -230,3 +230,11 @@ def test_protocols_load_and_an_empty_purification_prints_no_table():
         assert vanilla.bases[0].preset == "gsticker-vanilla-nerf-small" and vanilla.recolor.finetune is None
     assert report._purify({"purify": {"points": []}}) == []
     assert report._purify({}) == []
+
+
+def test_fine_tune_bars_name_their_step_count():
+    from gsticker_plugin.evaluation.report import bar_label
+
+    assert bar_label({"name": "finetune", "kind": "finetune", "steps": 100}) == "finetune-100steps"
+    assert bar_label({"name": "finetune-25steps", "kind": "finetune", "steps": 25}) == "finetune-25steps"
+    assert bar_label({"name": "palette-blue", "kind": "palette"}) == "palette-blue"

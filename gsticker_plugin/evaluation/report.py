@@ -281,6 +281,14 @@ def chart_curves(r, path: Path) -> Optional[Path]:
     return path
 
 
+def bar_label(row: Dict[str, Any]) -> str:
+    """A recolor row's bar label: its name, with the step count for every fine-tune (the main one is named
+    ``finetune`` for its cache files, which would read as a step-less edit beside ``finetune-25steps``)."""
+    if row.get("kind") == "finetune" and row.get("steps") is not None and row["name"] == "finetune":
+        return f"finetune-{row['steps']}steps"
+    return row["name"]
+
+
 def chart_recolor(r, path: Path) -> Optional[Path]:
     d = r.get("recolor")
     if not d or not d["rows"]:
@@ -294,7 +302,7 @@ def chart_recolor(r, path: Path) -> Optional[Path]:
     for i, row in enumerate(rows):
         if row["paper"] is not None:
             ax.plot([i - 0.4, i + 0.4], [row["paper"]] * 2, "k-", lw=1.5)
-    return _finish_bars(plt, fig, ax, [row["name"] for row in rows], path,
+    return _finish_bars(plt, fig, ax, [bar_label(row) for row in rows], path,
                         f"{r['protocol']['name']}: bit accuracy after recolor (black: paper)", legend_loc="best")
 
 
@@ -323,7 +331,7 @@ def chart_geometry_recolor(r, path: Path) -> Optional[Path]:
     base = g["bases"].get(d["base"], {})
     c = g.get("color_baseline") or {}
     rows = [("no edit", base.get("watermarked"), c.get("color_decoder"), base.get("base_run"))]
-    rows += [(row["name"], row.get("geometry"), row.get("color_baseline"), row.get("geometry_null"))
+    rows += [(bar_label(row), row.get("geometry"), row.get("color_baseline"), row.get("geometry_null"))
              for row in d["rows"] if row.get("geometry")]
     fig, ax = plt.subplots(figsize=(max(5, 0.75 * len(rows) + 2), 3.8))
     x = list(range(len(rows)))
