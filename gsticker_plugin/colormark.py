@@ -45,6 +45,7 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
+from gsticker_plugin.base_run import final_rgb
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.model import GeometryStickerModel, GeometryStickerModelConfig
 from gsticker_plugin.sticker import DensityWrap, Sticker, WrapState, render_weights
@@ -338,10 +339,7 @@ def decode_color_view(ref: ColorReferenceView, sticker: Sticker, suspect_rgb: Fl
 
 
 def suspect_rgb_at(outputs: Dict[str, Tensor], rays: Int[Tensor, "R"], hw: Tuple[int, int]) -> Float[Tensor, "R 3"]:
-    rgb = outputs.get("rgb", outputs.get("rgb_fine"))
-    if not isinstance(rgb, Tensor):
-        raise GStickerError(f"the suspect renders no rgb (outputs: {sorted(outputs)[:12]}); the color decoder needs a "
-                            "NeRF-style model")
+    rgb = final_rgb(outputs)
     flat = rgb.float().reshape(-1, 3)
     if flat.shape[0] != hw[0] * hw[1]:
         raise GStickerError(f"the suspect rendered {flat.shape[0]} pixels for a {hw[0]}x{hw[1]} camera; the color "
@@ -380,6 +378,6 @@ def decode_color_suspect(key, reference, suspect_model, num_views: int, sampled_
                               iterations)
         bits.append(d.pop("bits"))
         per_view.append(d)
-        img = rendered.get("rgb", rendered.get("rgb_fine"))
+        img = final_rgb(rendered)
         views.append(View(name=name, image=img.clamp(0, 1).permute(2, 0, 1).contiguous()))
     return G.decoded(key, bits, "color", per_view), views

@@ -23,6 +23,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from gsticker_plugin import metrics
 from gsticker_plugin.attacks import RandomDistortion, RandomDistortionConfig
+from gsticker_plugin.base_run import final_rgb
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import ViewCache, cache_view, orbit_cameras, pool_memory_mb, render_cached
 from gsticker_plugin.geometry import geometry_reference
@@ -237,9 +238,8 @@ class GeometryStickerPipeline(VanillaPipeline):
             self.model.wrap_state.record = False
             with torch.no_grad(), self.model.sticker_enabled(False):
                 ref = self.model.base.forward(patch)
-            rgb_key = "rgb" if "rgb" in out else "rgb_fine"  # vanilla-nerf: rgb_coarse / rgb_fine
-            marked.append(out[rgb_key].reshape(ph, pw, 3).permute(2, 0, 1))
-            clean.append(ref[rgb_key].reshape(ph, pw, 3).permute(2, 0, 1))
+            marked.append(final_rgb(out).reshape(ph, pw, 3).permute(2, 0, 1))  # vanilla-nerf: rgb_fine
+            clean.append(final_rgb(ref).reshape(ph, pw, 3).permute(2, 0, 1))
             wrap = self.model.final_wrap
             psis.append(torch.zeros(1, device=self.device))
         return torch.stack(marked), torch.stack(clean), torch.cat(psis)

@@ -18,6 +18,7 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor, nn
 
+from gsticker_plugin.base_run import final_rgb
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.recolor.model import require_color_fields, unwrap
 
@@ -133,9 +134,7 @@ def render_ray_targets(model, cameras, schedule: Int[Tensor, "T R 3"], chunk: in
     for i in tqdm(range(0, uniq.shape[0], chunk), desc=f"rendering targets ({uniq.shape[0]} pixels)", leave=False,
                   disable=not progress):
         out = model.forward(gen(uniq[i: i + chunk].to(model.device)))
-        rgb = out.get("rgb", out.get("rgb_fine"))
-        if rgb is None:
-            raise GStickerError("the model renders no 'rgb' output; it is not a NeRF-style run ns-recolor supports")
+        rgb = final_rgb(out)
         parts.append(rgb.detach().float().clamp(0.0, 1.0).cpu())
     values = torch.cat(parts)[inverse].reshape(*schedule.shape[:2], 3)
     return RayTargets(schedule=schedule, values=values)
@@ -184,7 +183,7 @@ def finetune_color(model: nn.Module, cameras, targets: Union[Sequence[Tensor], R
             bundle = gen(schedule[t].to(model.device))
             target = values[t].to(model.device)
             out = model.forward(bundle)
-            rgb = out.get("rgb", out.get("rgb_fine"))
+            rgb = final_rgb(out)
             loss = torch.nn.functional.mse_loss(rgb, target)
             if isinstance(out.get("rgb_coarse"), Tensor):  # vanilla-nerf: its coarse field renders color too
                 loss = loss + torch.nn.functional.mse_loss(out["rgb_coarse"], target)
