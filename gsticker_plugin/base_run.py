@@ -67,6 +67,9 @@ def checkpoint_step(checkpoint: Path) -> int:
 
 
 def load_checkpoint_state(checkpoint: Path) -> Dict[str, Any]:
+    from gsticker_plugin.compat import allow_numpy_checkpoint_types
+
+    allow_numpy_checkpoint_types()  # numpy 2 scalars in the optimizer state; not only after the plugin's host fixes ran
     try:
         state = torch.load(checkpoint, map_location="cpu")
     except Exception as e:
