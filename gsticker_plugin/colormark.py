@@ -349,7 +349,8 @@ def suspect_rgb_at(outputs: Dict[str, Tensor], rays: Int[Tensor, "R"], hw: Tuple
 
 def decode_color_suspect(key, reference, suspect_model, num_views: int, sampled_share: float, seed: int,
                          amplitude: float, sticker: Optional[bool] = None, progress: bool = False,
-                         iterations: int = 10, ref_cache: Optional[Dict[Any, Any]] = None):
+                         iterations: int = 10, ref_cache: Optional[Dict[Any, Any]] = None,
+                         full_renders: bool = True):
     """The informed color decoder: :func:`gsticker_plugin.geometry.decode_suspect` with the suspect's RGB instead of
     its geometry, and the color mark of ``amplitude`` as the model of the change.
 
@@ -357,7 +358,8 @@ def decode_color_suspect(key, reference, suspect_model, num_views: int, sampled_
     (:func:`gsticker_plugin.geometry.load_base_reference`). ``sticker``: render the suspect with its mark on/off
     (None: as it is). ``ref_cache``: a dict the caller keeps to reuse reference views (same keys as
     ``decode_suspect``'s). Returns ``(dec, views)``: ``dec`` holds per view ``bits``, ``matches``, ``bit_acc``,
-    ``pvalues``, ``scores`` (None) and ``color`` (per-view fit details); ``views`` the suspect's RGB renders.
+    ``pvalues``, ``scores`` (None) and ``color`` (per-view fit details); ``views`` the suspect's RGB renders
+    (none with ``full_renders=False``: the suspect is rendered only at the rays the fit reads).
     """
     from gsticker_plugin import geometry as G
     from gsticker_plugin.verify import View
@@ -368,16 +370,18 @@ def decode_color_suspect(key, reference, suspect_model, num_views: int, sampled_
     gen = G.tie_generator(seed)
     per_view: List[Dict[str, Any]] = []
     bits, views = [], []
+    ref_cache = {} if ref_cache is None else ref_cache  # one base render per camera
+    rays_for = None if full_renders else (lambda name, cam: G.any_reference_view(reference, name, cam, ref_cache).rays)
     for name, cam, rendered in G.suspect_renders(reference, suspect_model, num_views, sampled_share, seed, sticker,
-                                                 progress, "color decoding"):
+                                                 progress, "color decoding", rays_for=rays_for):
         # any reference view of this camera will do (the color fit uses no depth)
-        ref_view = next((ref_cache[k] for k in ((name, False), (name, True)) if ref_cache and k in ref_cache), None) \
-            or G.cached_reference_view(reference, name, cam, False, ref_cache)
+        ref_view = G.any_reference_view(reference, name, cam, ref_cache)
         ref = color_reference(ref_view, gate_scale)
         d = decode_color_view(ref, st, suspect_rgb_at(rendered, ref_view.rays, ref_view.hw), float(amplitude), gen,
                               iterations)
         bits.append(d.pop("bits"))
         per_view.append(d)
-        img = final_rgb(rendered)
-        views.append(View(name=name, image=img.clamp(0, 1).permute(2, 0, 1).contiguous()))
+        if full_renders:
+            img = final_rgb(rendered)
+            views.append(View(name=name, image=img.clamp(0, 1).permute(2, 0, 1).contiguous()))
     return G.decoded(key, bits, "color", per_view), views

@@ -487,7 +487,7 @@ def cpu_sticker(model) -> Sticker:
 def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int, sampled_share: float, seed: int,
                    sticker: Optional[bool] = None, progress: bool = False, iterations: int = 10,
                    ref_cache: Optional[Dict[Any, ReferenceView]] = None, cameras: Optional[List[Tuple[str, Any]]] = None,
-                   relinearize: int = 1):
+                   relinearize: int = 1, full_renders: bool = True):
     """Render the base and the suspect at ``num_views`` cameras of the base run (or the given ``(name, camera)``
     list), fit and decode every view.
 
@@ -497,15 +497,19 @@ def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int,
     RGB renders (for the report's figure). ``ref_cache``: a dict kept by the caller to reuse the base's reference
     views across suspects decoded with the same reference, cameras and seed. ``relinearize``: for bases whose
     samples follow the wrapped density, refit this many times around the previous fit's bits
-    (:func:`relinearized_view`; a reference render and a fit more per view).
+    (:func:`relinearized_view`; a reference render and a fit more per view). ``full_renders=False``: render the
+    suspect only at the rays the fit reads (:func:`suspect_renders`; the same numbers, a quarter of the rays on
+    lego100) and return no views (there is no whole suspect image to show).
     """
     from gsticker_plugin.verify import View
 
     st = cpu_sticker(reference.model)
     gen = tie_generator(seed)
     bits, details, views = [], [], []
+    ref_cache = {} if ref_cache is None else ref_cache  # one base render per camera
+    rays_for = None if full_renders else (lambda name, cam: any_reference_view(reference, name, cam, ref_cache).rays)
     for name, cam, out in suspect_renders(reference, suspect_model, num_views, sampled_share, seed, sticker, progress,
-                                          "geometric decoding", cameras):
+                                          "geometric decoding", cameras, rays_for=rays_for):
         use_depth = has_expected_depth(out)
         ref_view = cached_reference_view(reference, name, cam, use_depth, ref_cache)
         d = decode_view(ref_view, st, suspect_signal(out, ref_view), gen, iterations)
@@ -513,6 +517,8 @@ def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int,
         for _ in range(rounds):
             first = d["bits"]
             rv = relinearized_view(reference, name, cam, use_depth, first, st)
+            if not full_renders:  # the marked samples may open the gate on rays the first view did not keep
+                out = complete_rays(suspect_model, cam, out, rv.rays)
             d = decode_view(rv, st, suspect_signal(out, rv), gen, iterations)
             d["bits_changed_by_relinearizing"] = int((d["bits"] != first).sum())
         d["relinearized"] = rounds
@@ -520,9 +526,10 @@ def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int,
         d["signs_abs_mean"] = float(d.pop("signs").abs().mean())
         d["signals"] = list(ref_view.signals)
         details.append(d)
-        rgb = out.get("rgb", out.get("rgb_fine"))
-        img = rgb.clamp(0, 1).permute(2, 0, 1).contiguous() if rgb is not None else ref_view.image
-        views.append(View(name=name, image=img))
+        if full_renders:
+            rgb = out.get("rgb", out.get("rgb_fine"))
+            img = rgb.clamp(0, 1).permute(2, 0, 1).contiguous() if rgb is not None else ref_view.image
+            views.append(View(name=name, image=img))
     return decoded(key, bits, "geometry", details), views
 
 
@@ -532,30 +539,106 @@ def tie_generator(seed: int) -> torch.Generator:
 
 
 def suspect_renders(reference: BaseReference, suspect_model, num_views: int, sampled_share: float, seed: int,
-                    sticker: Optional[bool], progress: bool, desc: str, cameras: Optional[List[Tuple[str, Any]]] = None):
+                    sticker: Optional[bool], progress: bool, desc: str, cameras: Optional[List[Tuple[str, Any]]] = None,
+                    rays_for: Optional[Callable[[str, Any], Int[Tensor, "R"]]] = None):
     """Yield ``(name, camera, outputs)`` of the suspect at the base run's chosen cameras, or at ``cameras``
-    (outputs float, on the CPU); ``sticker``: render with the suspect's sticker on/off (None: as it is)."""
+    (outputs float [H W C], on the CPU); ``sticker``: render with the suspect's sticker on/off (None: as it is).
+
+    ``rays_for(name, camera)``: render only these flat pixel indices (the rays a decoder reads) through the
+    model's public ``get_outputs_for_camera_ray_bundle``; the other pixels of the outputs are NaN. Nerfstudio's
+    ray-based models render every ray on its own, so the rendered pixels equal a whole render's (tested); a model
+    that overrides ``get_outputs_for_camera`` is rendered whole.
+    """
     from gsticker_plugin.verify import _tqdm, select_cameras
 
     cams = cameras if cameras is not None else select_cameras(reference.pipeline, num_views, sampled_share, seed)
     ctx = (suspect_model.sticker_enabled(sticker) if (sticker is not None and hasattr(suspect_model, "sticker_enabled"))
            else contextlib.nullcontext())
+    per_ray = rays_for is not None and renders_rays_alone(suspect_model)
     with ctx:
         for name, cam in _tqdm(cams, desc, progress):
+            rays = rays_for(name, cam) if per_ray else None
             with torch.no_grad():
-                out = suspect_model.get_outputs_for_camera(cam.to(suspect_model.device))
+                if rays is None or rays.numel() == 0:
+                    out = suspect_model.get_outputs_for_camera(cam.to(suspect_model.device))
+                else:
+                    out = render_rays(suspect_model, cam, rays)
             yield name, cam, {k: v.detach().float().cpu() for k, v in out.items() if isinstance(v, Tensor)}
+
+
+def complete_rays(model, camera, outputs: Dict[str, Tensor], rays: Int[Tensor, "R"]) -> Dict[str, Tensor]:
+    """``outputs`` of :func:`render_rays` with the pixels of ``rays`` that were not rendered yet rendered too."""
+    acc_key = next((k for k in ACCUMULATION_KEYS if isinstance(outputs.get(k), Tensor)), None)
+    if acc_key is None or rays.numel() == 0:
+        return outputs
+    missing = rays[torch.isnan(outputs[acc_key].reshape(-1)[rays])]
+    if missing.numel() == 0:
+        return outputs
+    extra = render_rays(model, camera, missing)
+    out = dict(outputs)
+    for k, v in outputs.items():
+        if k in extra:
+            flat = v.clone().reshape(-1, v.shape[-1])
+            flat[missing] = extra[k].detach().float().cpu().reshape(-1, v.shape[-1])[missing]
+            out[k] = flat.reshape(v.shape)
+    return out
+
+
+def renders_rays_alone(model) -> bool:
+    """Whether ``model`` renders a camera through the stock ``Model.get_outputs_for_camera`` (every ray alone)."""
+    from nerfstudio.models.base_model import Model
+
+    return type(model).get_outputs_for_camera is Model.get_outputs_for_camera
+
+
+@torch.no_grad()
+def render_rays(model, camera, rays: Int[Tensor, "R"]) -> Dict[str, Tensor]:
+    """The model's outputs at the flat pixel indices ``rays`` of a one-camera ``camera``, scattered into whole
+    [H W C] images whose other pixels are NaN."""
+    bundle = camera.to(model.device).generate_rays(camera_indices=0, keep_shape=True)
+    h, w = bundle.origins.shape[:2]
+    index = rays.to(model.device)
+    sub = model.get_outputs_for_camera_ray_bundle(bundle.flatten()[index].reshape((-1, 1)))
+    out: Dict[str, Tensor] = {}
+    for k, v in sub.items():
+        if not isinstance(v, Tensor) or v.shape[0] != index.numel():
+            continue
+        flat = v.reshape(index.numel(), -1)
+        full = torch.full((h * w, flat.shape[1]), float("nan"), dtype=flat.dtype, device=flat.device)
+        full[index] = flat
+        out[k] = full.reshape(h, w, -1)
+    return out
 
 
 def cached_reference_view(reference: BaseReference, name: str, cam, use_depth: bool,
                           ref_cache: Optional[Dict[Any, ReferenceView]]) -> ReferenceView:
-    """:func:`reference_view`, kept in ``ref_cache`` (when given) under ``(name, use_depth)``."""
+    """:func:`reference_view`, kept in ``ref_cache`` (when given) under ``(name, use_depth)``. The view without
+    depth is the one with depth less its second signal (the same rays and base render): derived, not re-rendered."""
     if ref_cache is not None and (name, use_depth) in ref_cache:
         return ref_cache[(name, use_depth)]
-    ref_view = reference_view(reference, name, cam, use_depth=use_depth)
+    with_depth = ref_cache.get((name, True)) if ref_cache is not None and not use_depth else None
+    ref_view = without_depth(with_depth) if with_depth is not None else \
+        reference_view(reference, name, cam, use_depth=use_depth)
     if ref_cache is not None:
         ref_cache[(name, use_depth)] = ref_view
     return ref_view
+
+
+def without_depth(view: ReferenceView) -> ReferenceView:
+    """The reference view that reads accumulation only (what :func:`reference_view` returns for ``use_depth=False``)."""
+    import dataclasses
+
+    return dataclasses.replace(view, base_signal=view.base_signal[:1], signals=view.signals[:1])
+
+
+def any_reference_view(reference: BaseReference, name: str, cam,
+                       ref_cache: Optional[Dict[Any, ReferenceView]]) -> ReferenceView:
+    """A cached reference view of camera ``name`` (either signal set), else one with depth (its rays do not depend
+    on the signals read)."""
+    for k in ((name, True), (name, False)):
+        if ref_cache is not None and k in ref_cache:
+            return ref_cache[k]
+    return cached_reference_view(reference, name, cam, True, ref_cache)
 
 
 def decoded(key, bits: List[Tensor], details_name: str, details: List[Dict[str, Any]]) -> Dict[str, Any]:

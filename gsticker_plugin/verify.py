@@ -973,7 +973,7 @@ def _calibrate_geometry(config: CalibrateConfig, key_path: Path, key: OwnerKey, 
         with contextlib.redirect_stdout(sys.stderr):
             run_cfg, pipeline, _ = load_run(cfg, data=geometry.data_if_missing(cfg, config.data), device=device)
         dec, _ = geometry.decode_suspect(key, ref, pipeline.model, config.num_views, config.sampled_share,
-                                         config.seed + i, sticker=False, progress=config.progress)
+                                         config.seed + i, sticker=False, progress=config.progress, full_renders=False)
         m = [int(x) for x in dec["matches"].tolist()]
         matches += m
         src_info.append({"kind": "model", "source": str(cfg), "n": len(m), "mean_matches": sum(m) / len(m),

@@ -396,6 +396,65 @@ def test_relinearized_view_at_the_true_message_predicts_the_marked_render(gs_run
         assert plain > 10 * relin, (plain, relin)
 
 
+@pytest.mark.parametrize("base", BASES)
+def test_decoding_from_the_read_rays_only_equals_decoding_whole_renders(gs_runs, val_pipeline, base):
+    """``full_renders=False`` renders the suspect only at the rays the fit reads: those pixels equal a whole
+    render's, and the decoded bits, fits and matches are the whole render's (TensoRF and vanilla-nerf refit on
+    the rays of the relinearized view, which the first view may not hold); the view without depth is derived."""
+    from gsticker_plugin import geometry as G
+    from gsticker_plugin.colormark import decode_color_suspect
+    from gsticker_plugin.key import OwnerKey
+
+    pipeline = val_pipeline(base)
+    model = pipeline.model
+    ref = G.BaseReference(config_path=gs_runs[base]["config"], checkpoint=gs_runs[base]["ckpt"], method=base,
+                          pipeline=pipeline, model=model, samples_follow_sticker=base != "nerfacto")
+    key = OwnerKey.load(gs_runs[base]["key"])
+    cams = pipeline.datamanager.train_dataset.cameras
+    cameras = [(f"cam{i}", cams[i: i + 1]) for i in range(3)]
+    with torch.no_grad():
+        whole = model.get_outputs_for_camera(cams[0:1])
+    rays = torch.tensor([0, 5, 17, whole["rgb"].shape[0] * whole["rgb"].shape[1] - 1])
+    part = G.render_rays(model, cams[0:1], rays)
+    for k, v in part.items():
+        flat, ref_flat = v.reshape(-1, v.shape[-1]), whole[k].reshape(-1, v.shape[-1])
+        assert torch.allclose(flat[rays], ref_flat[rays], atol=1e-6), k
+        assert torch.isnan(flat[1]).all()  # not rendered
+    more = torch.tensor([0, 1, 2, 17, 40])  # a relinearized view may keep rays the first one did not
+    done = G.complete_rays(model, cams[0:1], {k: v.cpu() for k, v in part.items()}, more)
+    for k, v in done.items():
+        flat = v.reshape(-1, v.shape[-1])
+        assert torch.allclose(flat[more], whole[k].reshape(-1, v.shape[-1])[more], atol=1e-6), k
+        assert torch.allclose(flat[rays], whole[k].reshape(-1, v.shape[-1])[rays], atol=1e-6), k
+        assert torch.isnan(flat[3]).all()
+    results = {}
+    for full in (True, False):
+        for sticker in (True, False):
+            cache: dict = {}
+            dec, views = G.decode_suspect(key, ref, model, len(cameras), 0.0, 0, sticker=sticker, cameras=cameras,
+                                          ref_cache=cache, full_renders=full)
+            assert len(views) == (len(cameras) if full else 0)
+            results[full, sticker] = dec
+    for sticker in (True, False):
+        a, b = results[True, sticker], results[False, sticker]
+        assert torch.equal(a["bits"], b["bits"]) and torch.equal(a["matches"], b["matches"])
+        for x, y in zip(a["geometry"], b["geometry"]):
+            assert x["undetermined"] == y["undetermined"] and x["rays"] == y["rays"]
+            assert abs(x["explained"] - y["explained"]) < 1e-6 and abs(x["signs_abs_mean"] - y["signs_abs_mean"]) < 1e-6
+    assert results[True, True]["matches"].float().mean() > results[True, False]["matches"].float().mean()
+    # the view without depth is the one with depth less its second signal
+    with_depth = G.reference_view(ref, "cam0", cams[0:1], True)
+    plain, derived = G.reference_view(ref, "cam0", cams[0:1], False), G.without_depth(with_depth)
+    assert plain.signals == derived.signals == ("accumulation",)
+    assert torch.equal(plain.rays, derived.rays) and torch.equal(plain.base_signal, derived.base_signal)
+    # the color decoder reads the same pixels either way
+    c_full, _ = decode_color_suspect(key, ref, model, len(cameras), 0.0, 0, amplitude=0.5, sticker=True,
+                                     full_renders=True)
+    c_part, v_part = decode_color_suspect(key, ref, model, len(cameras), 0.0, 0, amplitude=0.5, sticker=True,
+                                          full_renders=False)
+    assert torch.equal(c_full["bits"], c_part["bits"]) and v_part == []
+
+
 def test_a_base_without_expected_depth_reads_a_suspect_that_has_it(gs_runs, val_pipeline):
     """A vanilla-nerf base renders no expected depth, a nerfacto suspect does (decoding another model of the scene
     with the vanilla-nerf owner's key): the reference keeps accumulation only, and so does the suspect's signal."""

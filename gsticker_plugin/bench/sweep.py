@@ -112,7 +112,7 @@ def decode_checkpoint(pipeline, key, base_config: Path, data: Optional[Path], nu
     ref = load_base_reference(ref_key, "(checkpoint)", base_config, data, model.device)
     t0 = time.time()
     with contextlib.redirect_stdout(sys.stderr):
-        dec, _ = decode_suspect(ref_key, ref, model, num_views, 0.25, 0, sticker=True)
+        dec, _ = decode_suspect(ref_key, ref, model, num_views, 0.25, 0, sticker=True, full_renders=False)
     per_view = (time.time() - t0) / num_views
     on = render_split(pipeline, "test", psnr_views, sticker=True, progress=False)
     off = render_split(pipeline, "test", psnr_views, sticker=False, progress=False)

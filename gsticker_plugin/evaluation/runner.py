@@ -193,7 +193,7 @@ class Runner:
         t0 = time.time()
         with contextlib.redirect_stdout(sys.stderr):
             dec, _ = decode_suspect(key, ref, suspect_model, g.num_views, g.sampled_share, self.p.seeds[0],
-                                    sticker=sticker, progress=self.progress, ref_cache=views)
+                                    sticker=sticker, progress=self.progress, ref_cache=views, full_renders=False)
         res = self.summarize(dec["matches"], dec["bit_acc"], key.num_bits)
         res["seconds_per_view"] = round((time.time() - t0) / max(1, res["views"]), 2)
         if desc:
@@ -205,11 +205,12 @@ class Runner:
         from gsticker_plugin.colormark import decode_color_suspect
 
         g = self.p.geometry
-        ref, _ = self.geo_reference(self.primary)
+        ref, views = self.geo_reference(self.primary)  # the same cameras as geo_decode's: its reference views serve
         key = self.key(self.primary)
         with contextlib.redirect_stdout(sys.stderr):
             dec, _ = decode_color_suspect(key, ref, suspect_model, g.num_views, g.sampled_share, self.p.seeds[0],
-                                          amplitude=amplitude, progress=self.progress)
+                                          amplitude=amplitude, progress=self.progress, ref_cache=views,
+                                          full_renders=False)
         res = self.summarize(dec["matches"], dec["bit_acc"], key.num_bits)
         if desc:
             self.say(f"    color baseline {desc}: matches {res['matches']} -> {'OWNED' if res['verdict'] else 'not shown'}")
@@ -428,7 +429,7 @@ class Runner:
             t0 = time.time()
             with contextlib.redirect_stdout(sys.stderr):
                 dec, _ = decode_suspect(key, ref, pipe.model, g.num_views, g.sampled_share, self.p.seeds[0], sticker=True,
-                                        progress=self.progress)
+                                        progress=self.progress, full_renders=False)
             geo = self.summarize(dec["matches"], dec["bit_acc"], key.num_bits)
             geo["seconds_per_view"] = round((time.time() - t0) / max(1, geo["views"]), 2)
             self.say(f"    geometry {name}: matches {geo['matches']} -> {'OWNED' if geo['verdict'] else 'not shown'}")
