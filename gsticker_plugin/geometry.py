@@ -62,6 +62,7 @@ def geometry_reference(model) -> Dict[str, Any]:
                            "num_layers": int(cfg.sticker_num_layers)},
         "gate_threshold": float(cfg.gate_threshold),
         "wrap_proposal_networks": bool(cfg.wrap_proposal_networks),
+        "mark_sampling_passes": bool(cfg.mark_sampling_passes),
         "sticker_state": {k: v.detach().cpu().clone() for k, v in model.sticker.state_dict().items()},
         "gates_state": {k: v.detach().cpu().clone() for k, v in model.gates.state_dict().items()},
         "fields": [w.name for w in model.wraps],
@@ -349,6 +350,7 @@ def load_base_reference(key, key_path, base_config: Optional[Path], data: Option
         sticker_hidden_dim=int(sc["hidden_dim"]), sticker_num_layers=int(sc["num_layers"]),
         sticker_kind=sc["kind"], gate_threshold=float(geo["gate_threshold"]), base_step=base_run.checkpoint_step(ckpt),
         wrap_proposal_networks=bool(geo["wrap_proposal_networks"]),
+        mark_sampling_passes=bool(geo.get("mark_sampling_passes", True)),  # keys written before the option: on
         eval_num_rays_per_chunk=int(getattr(base_model_cfg, "eval_num_rays_per_chunk", 4096)))
     ds = pipeline.datamanager.train_dataset
     with contextlib.redirect_stdout(sys.stderr):
@@ -376,8 +378,10 @@ def load_base_reference(key, key_path, base_config: Optional[Path], data: Option
         w.aabb = stored
     model.to(device)
     model.eval()
-    # nerfacto's proposal networks place its samples and are not wrapped (by default): its samples do not move
-    follows = not (hasattr(model.base, "proposal_sampler") and not mcfg.wrap_proposal_networks)
+    # nerfacto's proposal networks place its samples and are not wrapped (by default): its samples do not move;
+    # without marked sampling passes no base's samples move
+    follows = mcfg.mark_sampling_passes and not (hasattr(model.base, "proposal_sampler")
+                                                 and not mcfg.wrap_proposal_networks)
     return BaseReference(config_path=cfg_path, checkpoint=ckpt, method=config.method_name, pipeline=pipeline,
                          model=model, notes=notes, samples_follow_sticker=follows)
 

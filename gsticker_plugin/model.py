@@ -58,6 +58,12 @@ class GeometryStickerModelConfig(ModelConfig):
     """The sticker is evaluated only at samples whose psi exceeds this."""
     wrap_proposal_networks: bool = False
     """Also wrap nerfacto's proposal density fields (they only place samples; off by default)."""
+    mark_sampling_passes: bool = True
+    """Also mark the density evaluations that only place samples or answer queries: TensoRF's coarse (uniform)
+    pass, vanilla-nerf's coarse field, direct ``get_density``/``density_fn`` calls. False (what ``ns-train
+    geometrysticker`` writes): the sticker acts only inside the final field's rendering pass, so every base draws
+    its own samples (the fast path and the geometric decoder are then exact for TensoRF and vanilla-nerf too).
+    Runs written before this option had it on and load so."""
 
 
 class GeometryStickerModel(Model):
@@ -81,7 +87,7 @@ class GeometryStickerModel(Model):
                                self.config.sticker_hidden_dim, self.config.sticker_num_layers,
                                self.config.sticker_init_scale, self.config.sticker_kind)
         self.register_buffer("message", torch.zeros(self.config.num_bits, dtype=torch.long))
-        self.wrap_state = WrapState(enabled=True)
+        self.wrap_state = WrapState(enabled=True, final_only=not self.config.mark_sampling_passes)
         self.gates = nn.ModuleDict()
         self.wraps: List[DensityWrap] = []
         for name, fld in self.rendering_fields():
@@ -94,6 +100,7 @@ class GeometryStickerModel(Model):
         if not self.wraps:
             raise GStickerError(f"{type(self.base).__name__} has no density field that gsticker can wrap; "
                                 "use a NeRF-style base (nerfacto, vanilla-nerf, tensorf, instant-ngp)")
+        self.wraps[-1].is_final = True
         self._viewer_elements()
 
     def _viewer_elements(self) -> None:
@@ -167,7 +174,11 @@ class GeometryStickerModel(Model):
 
         def forward(ray_samples, *args, **kwargs):
             masks.append(kwargs.get("mask"))
-            return call(ray_samples, *args, **kwargs)
+            self.wrap_state.in_final = True  # the final field's rendering pass (mark_sampling_passes=False marks only it)
+            try:
+                return call(ray_samples, *args, **kwargs)
+            finally:
+                self.wrap_state.in_final = False
 
         object.__setattr__(fld, "forward", forward)
         try:

@@ -10,6 +10,8 @@
 The wrap replaces ``get_density`` on a base field *instance* (not its class), so every path that computes
 density goes through it (``forward``, ``density_fn``, TensoRF's direct ``get_density`` calls), and the base
 field's state dict is untouched: the sticker and gates live in the GeometrySticker model, not in the field.
+With ``WrapState.final_only`` (the model's ``mark_sampling_passes=False``) it marks only the final field's
+rendering pass: the passes that place samples see the base's density.
 """
 
 from __future__ import annotations
@@ -182,6 +184,8 @@ class WrapState:
     enabled: bool = True
     message: Optional[Tensor] = None
     record: bool = False
+    final_only: bool = False  # mark only the final field's rendering pass (not the passes that place samples)
+    in_final: bool = False  # set by the model while the final field renders
 
 
 class DensityWrap:
@@ -198,6 +202,7 @@ class DensityWrap:
         self.gate_threshold = gate_threshold
         self.original: Callable = field.get_density
         self.last: Dict[str, Tensor] = {}
+        self.is_final = False  # set by the model on the field whose samples make the final image
         object.__setattr__(field, "get_density", self.get_density)
 
     def remove(self) -> None:
@@ -221,7 +226,8 @@ class DensityWrap:
     def get_density(self, ray_samples, *args, **kwargs):
         result = self.original(ray_samples, *args, **kwargs)
         density, rest = (result[0], result[1:]) if isinstance(result, tuple) else (result, None)
-        if self.state.enabled and self.state.message is not None and self.gate.calibrated:
+        marks = not self.state.final_only or (self.is_final and self.state.in_final)
+        if marks and self.state.enabled and self.state.message is not None and self.gate.calibrated:
             positions = ray_samples.frustums.get_positions()
             delta, _ = self.delta(density, positions.reshape(*density.shape[:-1], 3), self.state.message)
             if self.state.record:

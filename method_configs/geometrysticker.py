@@ -8,6 +8,7 @@ from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 import method_configs  # noqa: F401  (host fixes)
+from gsticker_plugin.model import GeometryStickerModelConfig
 from gsticker_plugin.pipeline import GeometryStickerPipelineConfig
 from gsticker_plugin.trainer import GeometryStickerTrainerConfig
 
@@ -22,7 +23,9 @@ def geometrysticker_config(max_num_iterations: int = 1500) -> GeometryStickerTra
         steps_per_eval_image=1_000_000,
         steps_per_eval_all_images=1_000_000,
         mixed_precision=False,
-        pipeline=GeometryStickerPipelineConfig(),
+        # the sticker marks only the final rendering pass: every base draws its own samples (exact fast path and
+        # geometric decoding for TensoRF and vanilla-nerf too)
+        pipeline=GeometryStickerPipelineConfig(model=GeometryStickerModelConfig(mark_sampling_passes=False)),
         optimizers={
             "sticker": {
                 "optimizer": AdamOptimizerConfig(lr=2e-3, eps=1e-15),

@@ -405,3 +405,19 @@ def test_bench_targets_decodes_every_test_view_and_resumes(runs, ws, tiny_scene)
     assert len(rows) == 2 and (out / "views.png").is_file() and "2 of 2" in (out / "results.md").read_text()
     main(cfg)  # resumes: nothing decoded again
     assert (out / "views.jsonl").read_text().splitlines() == rows
+
+
+def test_bench_decode_times_whole_and_read_ray_renders_with_the_same_bits(runs, ws, tiny_scene):
+    """``python -m gsticker_plugin.bench.decode`` on the tiny run: both render modes, sticker on and off."""
+    from gsticker_plugin.bench.decode import BenchDecodeConfig, main
+
+    out = ws / "bench-decode" / "decode.md"
+    res = main(BenchDecodeConfig(key=runs["key"], load_config=runs["run"], data=tiny_scene, num_views=2,
+                                 sampled_share=0.5, output=out))
+    rows = res["rows"]
+    assert [(r["sticker"], r["renders"]) for r in rows] == [("on", "whole views"), ("on", "read rays only"),
+                                                            ("off", "whole views"), ("off", "read rays only")]
+    assert all(r["bits_identical_to_whole"] for r in rows) and all(r["seconds"] > 0 for r in rows)
+    assert rows[0]["matches"] == rows[1]["matches"] == [48, 48]
+    assert 0 < rows[1]["rays_read_mean"] <= res["pixels_per_view"]
+    assert out.is_file() and out.with_suffix(".json").is_file() and "| on | read rays only |" in out.read_text()
