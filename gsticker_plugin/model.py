@@ -165,30 +165,11 @@ class GeometryStickerModel(Model):
     def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Any]:
         self.wrap_state.message = self.message
         self.wrap_state.record = True
-        # TensoRF's final field evaluates density only on the rays of a mask (forward(..., mask=acc_mask)):
-        # remember it, to put the recorded per-sample delta back on all rays.
-        fld = self.final_wrap.field
-        inner = fld.__dict__.get("forward")  # an instance override (capture_final_samples) or None
-        call = inner if inner is not None else type(fld).forward.__get__(fld)
-        masks: List[Any] = []
-
-        def forward(ray_samples, *args, **kwargs):
-            masks.append(kwargs.get("mask"))
-            self.wrap_state.in_final = True  # the final field's rendering pass (mark_sampling_passes=False marks only it)
-            try:
-                return call(ray_samples, *args, **kwargs)
-            finally:
-                self.wrap_state.in_final = False
-
-        object.__setattr__(fld, "forward", forward)
         try:
-            outputs = self.base.forward(ray_bundle)
+            with self.final_pass() as masks:
+                outputs = self.base.forward(ray_bundle)
         finally:
             self.wrap_state.record = False
-            if inner is not None:
-                object.__setattr__(fld, "forward", inner)
-            else:
-                del fld.__dict__["forward"]
         if "rgb" not in outputs and isinstance(outputs.get("rgb_fine"), Tensor):
             outputs["rgb"] = outputs["rgb_fine"]  # vanilla-nerf names its final image rgb_fine
         delta = self.final_wrap.last.get("delta") if self.wrap_state.enabled else None
@@ -218,6 +199,34 @@ class GeometryStickerModel(Model):
 
     def get_image_metrics_and_images(self, outputs, batch):
         return self.base.get_image_metrics_and_images(outputs, batch)
+
+    @contextmanager
+    def final_pass(self) -> Iterator[List[Any]]:
+        """While the base renders inside this block, its final field's ``forward`` calls are the *final pass* (the
+        only density the sticker marks with ``mark_sampling_passes=False``); yields the ``mask`` argument of each
+        call (TensoRF's final field evaluates density only on the rays of a mask: the recorded per-sample delta is
+        put back on all rays with it)."""
+        fld = self.final_wrap.field
+        inner = fld.__dict__.get("forward")  # an instance override (capture_final_samples) or None
+        call = inner if inner is not None else type(fld).forward.__get__(fld)
+        masks: List[Any] = []
+
+        def forward(ray_samples, *args, **kwargs):
+            masks.append(kwargs.get("mask"))
+            self.wrap_state.in_final = True
+            try:
+                return call(ray_samples, *args, **kwargs)
+            finally:
+                self.wrap_state.in_final = False
+
+        object.__setattr__(fld, "forward", forward)
+        try:
+            yield masks
+        finally:
+            if inner is not None:
+                object.__setattr__(fld, "forward", inner)
+            else:
+                del fld.__dict__["forward"]
 
     # ------------------------------------------------------------------------------------------ capture
     @contextmanager

@@ -234,7 +234,8 @@ class GeometryStickerPipeline(VanillaPipeline):
             patch = patch2d.flatten()
             self.model.wrap_state.message = msg
             self.model.wrap_state.record = True
-            out = self.model.base.forward(patch)
+            with self.model.final_pass():  # the sticker marks the final field's pass
+                out = self.model.base.forward(patch)
             self.model.wrap_state.record = False
             with torch.no_grad(), self.model.sticker_enabled(False):
                 ref = self.model.base.forward(patch)

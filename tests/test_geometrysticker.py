@@ -279,10 +279,21 @@ def test_wrap_changes_density_only_where_the_gate_is_open(gs_runs, val_pipeline,
                     with torch.no_grad():
                         with model.sticker_enabled(False):
                             off = wrap.field.get_density(rs)
-                        on = wrap.field.get_density(rs)
+                        outside = wrap.field.get_density(rs)  # a direct query, outside the final rendering pass
+                        model.wrap_state.in_final = True  # as inside the final field's forward (model.final_pass)
+                        try:
+                            on = wrap.field.get_density(rs)
+                        finally:
+                            model.wrap_state.in_final = False
                     off = off[0] if isinstance(off, tuple) else off
                     on = on[0] if isinstance(on, tuple) else on
+                    outside = outside[0] if isinstance(outside, tuple) else outside
                     assert off.shape == on.shape and off.shape[-1] == 1
+                    # only the final pass is marked (mark_sampling_passes=False): sampling passes see the base
+                    assert torch.equal(outside, off), f"{wrap.name}: density changed outside the final pass"
+                    if not wrap.is_final:  # vanilla-nerf's coarse field only places samples
+                        assert torch.equal(on, off), f"{wrap.name}: the sampling field's density changed"
+                        continue
                     psi = wrap.gate(off)
                     closed = psi <= wrap.gate_threshold
                     assert torch.equal(on[closed], off[closed]), f"{wrap.name}: density changed where the gate is closed"
@@ -296,6 +307,8 @@ def test_wrap_changes_density_only_where_the_gate_is_open(gs_runs, val_pipeline,
                     assert torch.allclose(on[~closed], expected, rtol=1e-5, atol=1e-6)
                     if forced:
                         assert float((on[~closed] > off[~closed]).float().mean()) > 0.99
+                if not wrap.is_final:
+                    continue
                 assert n_open > 0, f"{wrap.name}: the gate is closed at every sample (calibration failed?)"
                 if forced:
                     assert n_changed > 0, f"{wrap.name}: a big sticker output changed no density"
