@@ -242,3 +242,14 @@ def test_fine_tune_bars_name_their_step_count():
     assert bar_label({"name": "finetune", "kind": "finetune", "steps": 100}) == "finetune-100steps"
     assert bar_label({"name": "finetune-25steps", "kind": "finetune", "steps": 25}) == "finetune-25steps"
     assert bar_label({"name": "palette-blue", "kind": "palette"}) == "palette-blue"
+
+
+def test_a_protocol_without_geometry_or_seeds_plans_its_stages(tmp_path):
+    """Stage planning reads ``geometry.purify_steps`` only when there is a geometry section (it raised before)."""
+    from gsticker_plugin.evaluation.config import load_protocol
+    from gsticker_plugin.evaluation.runner import Runner
+
+    p = load_protocol(SMOKE)
+    p.geometry, p.sticker.seeds, p.output_dir = None, [], tmp_path / "out"
+    res = Runner(p, progress=False, log=lambda _: None).run([])
+    assert (tmp_path / "out" / "results.json").is_file() and "sticker" not in res

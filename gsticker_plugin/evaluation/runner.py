@@ -833,7 +833,7 @@ class Runner:
             want = [s for s in want if s not in ("geometry", "purify", "seeds")]
         if not self.p.sticker.seeds and "seeds" in want:
             want.remove("seeds")
-        elif not self.p.geometry.purify_steps and "purify" in want:
+        if self.p.geometry is not None and not self.p.geometry.purify_steps and "purify" in want:
             want.remove("purify")
         if self.p.recolor is None and "recolor" in want:
             want.remove("recolor")
