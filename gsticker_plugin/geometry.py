@@ -576,16 +576,7 @@ def complete_rays(model, camera, outputs: Dict[str, Tensor], rays: Int[Tensor, "
     if acc_key is None or rays.numel() == 0:
         return outputs
     missing = rays[torch.isnan(outputs[acc_key].reshape(-1)[rays])]
-    if missing.numel() == 0:
-        return outputs
-    extra = render_rays(model, camera, missing)
-    out = dict(outputs)
-    for k, v in outputs.items():
-        if k in extra:
-            flat = v.clone().reshape(-1, v.shape[-1])
-            flat[missing] = extra[k].detach().float().cpu().reshape(-1, v.shape[-1])[missing]
-            out[k] = flat.reshape(v.shape)
-    return out
+    return render_rays(model, camera, missing, into=outputs) if missing.numel() else outputs
 
 
 def renders_rays_alone(model) -> bool:
@@ -596,20 +587,24 @@ def renders_rays_alone(model) -> bool:
 
 
 @torch.no_grad()
-def render_rays(model, camera, rays: Int[Tensor, "R"]) -> Dict[str, Tensor]:
+def render_rays(model, camera, rays: Int[Tensor, "R"], into: Optional[Dict[str, Tensor]] = None) -> Dict[str, Tensor]:
     """The model's outputs at the flat pixel indices ``rays`` of a one-camera ``camera``, scattered into whole
-    [H W C] images whose other pixels are NaN."""
+    [H W C] images whose other pixels are NaN, or into copies of ``into``'s images (on their device and dtype)."""
     bundle = camera.to(model.device).generate_rays(camera_indices=0, keep_shape=True)
     h, w = bundle.origins.shape[:2]
     index = rays.to(model.device)
     sub = model.get_outputs_for_camera_ray_bundle(bundle.flatten()[index].reshape((-1, 1)))
-    out: Dict[str, Tensor] = {}
+    out: Dict[str, Tensor] = dict(into) if into is not None else {}
     for k, v in sub.items():
-        if not isinstance(v, Tensor) or v.shape[0] != index.numel():
+        if not isinstance(v, Tensor) or v.shape[0] != index.numel() or (into is not None and k not in into):
             continue
         flat = v.reshape(index.numel(), -1)
-        full = torch.full((h * w, flat.shape[1]), float("nan"), dtype=flat.dtype, device=flat.device)
-        full[index] = flat
+        if into is not None:
+            full = into[k].clone().reshape(h * w, -1)
+            flat = flat.to(full)
+        else:
+            full = torch.full((h * w, flat.shape[1]), float("nan"), dtype=flat.dtype, device=flat.device)
+        full[index.to(full.device)] = flat
         out[k] = full.reshape(h, w, -1)
     return out
 

@@ -84,13 +84,13 @@ def main(cfg: BenchDecodeConfig) -> Dict[str, Any]:
                          "matches": [int(m) for m in dec["matches"].tolist()]})
         same = bool(torch.equal(decoded[True]["bits"], decoded[False]["bits"]))
         rows[-1]["bits_identical_to_whole"] = rows[-2]["bits_identical_to_whole"] = same
-    h, w = ref.pipeline.datamanager.train_dataset.cameras[0:1].height.item(), \
-        ref.pipeline.datamanager.train_dataset.cameras[0:1].width.item()
+    cam0 = ref.pipeline.datamanager.train_dataset.cameras[0:1]
+    h, w = int(cam0.height.item()), int(cam0.width.item())
     res = {"command": "python -m gsticker_plugin.bench.decode " + " ".join(sys.argv[1:]),
            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "cpu": platform.processor() or platform.machine(),
            "threads": torch.get_num_threads(), "suspect": str(cfg.load_config), "pixels_per_view": int(h * w),
            "num_views": cfg.num_views, "reference_views_seconds": round(reference_s, 2), "rows": rows}
-    lines = [f"# Decoding cost: whole renders vs read rays only", "",
+    lines = ["# Decoding cost: whole renders vs read rays only", "",
              f"`{res['command']}` ({res['date']}, {res['threads']} threads). Suspect `{cfg.load_config}`, "
              f"{cfg.num_views} views of {res['pixels_per_view']} pixels; the base's reference views rendered once "
              f"before ({reference_s:.1f} s, as the protocol caches them).", "",
