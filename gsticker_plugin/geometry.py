@@ -94,6 +94,7 @@ class ReferenceView:
     depth_scale: float  # divides acc * depth so both signals are O(1) per unit of weight
     signals: Tuple[str, ...]  # ("accumulation",) or ("accumulation", "expected_depth")
     image: Optional[Tensor] = None  # [3 H W] the base render (for figures)
+    rgb: Optional[Float[Tensor, "R S 3"]] = None  # the base's colour at the samples (the informed image decoder's)
 
 
 def geometry_signal(outputs: Dict[str, Tensor], use_depth: bool) -> Tuple[Float[Tensor, "C P"], Tuple[str, ...]]:
@@ -411,6 +412,7 @@ def reference_view(ref: BaseReference, name: str, camera, use_depth: bool,
     keep = open_.any(dim=-1)
     rays = view.active[keep]
     density, open_, psi = density[keep], open_[keep], psi[keep]
+    rgb = view.rgb[keep].float()
     positions = view.positions[keep].float()
     deltas = view.deltas[keep].float()
     origin = cam.camera_to_worlds[0, :3, 3].float().cpu()
@@ -432,7 +434,7 @@ def reference_view(ref: BaseReference, name: str, camera, use_depth: bool,
     return ReferenceView(name=name, hw=(h, w), rays=rays, density=density, deltas=deltas, steps=steps,
                          open_index=open_index, psi_scale=psi_scale, features=feats, base_signal=base_signal,
                          depth_scale=depth_scale, signals=names,
-                         image=view.image.permute(2, 0, 1).contiguous())
+                         image=view.image.permute(2, 0, 1).contiguous(), rgb=rgb)
 
 
 def relinearized_view(ref: BaseReference, name: str, camera, use_depth: bool, bits: Int[Tensor, "K"],

@@ -421,3 +421,29 @@ def test_bench_decode_times_whole_and_read_ray_renders_with_the_same_bits(runs, 
     assert rows[0]["matches"] == rows[1]["matches"] == [48, 48]
     assert 0 < rows[1]["rays_read_mean"] <= res["pixels_per_view"]
     assert out.is_file() and out.with_suffix(".json").is_file() and "| on | read rays only |" in out.read_text()
+
+
+def test_image_decoder_reads_8_bit_renders_of_the_watermarked_run_at_their_cameras(runs, tiny_scene):
+    """The informed image decoder (gsticker_plugin/image_decoder.py) on real renders: the watermarked run's 8-bit
+    images at the base's cameras decode to the owner's message; the sticker-off renders (the base's image) decode
+    to coin flips; noise costs bits but the fit stays bounded."""
+    from gsticker_plugin.image_decoder import decode_posed_images
+
+    key = OwnerKey.load(runs["key"])
+    ref = G.load_base_reference(key, runs["key"], None, tiny_scene, torch.device("cpu"))
+    _, pipe, _ = V.load_run(runs["run"], data=tiny_scene, device=torch.device("cpu"))
+    model = pipe.model
+    cams = V.select_cameras(ref.pipeline, 4, 0.5, 0)
+    with torch.no_grad():
+        on = torch.stack([model.get_outputs_for_camera(c)["rgb"] for _, c in cams])
+        with model.sticker_enabled(False):
+            off = torch.stack([model.get_outputs_for_camera(c)["rgb"] for _, c in cams])
+    q = lambda x: torch.round(x.clamp(0, 1) * 255) / 255  # noqa: E731
+    cache: dict = {}
+    dec = decode_posed_images(key, ref, q(on), cams, seed=0, ref_cache=cache)
+    assert dec["scores"] is None and len(dec["image"]) == 4 and len(cache) == 4
+    assert min(dec["matches"].tolist()) >= 41, dec["matches"].tolist()
+    null = decode_posed_images(key, ref, q(off), cams, seed=0, ref_cache=cache)
+    assert all(d["undetermined"] == 48 for d in null["image"]) and max(null["matches"].tolist()) < 41
+    with pytest.raises(Exception, match="one \\[H W 3\\] image per camera"):
+        decode_posed_images(key, ref, q(on)[:3], cams, seed=0)

@@ -139,6 +139,10 @@ class GeometrySpec:
     color_baseline: bool = True
     """Also build the color-branch baseline (the same sticker added to color instead of density, its amplitude
     matched to the sticker's PSNR) and decode it with the informed color decoder, unedited and after each recolor."""
+    image_decoder: bool = True
+    """Also read the image-level tables (distortions, curves, image hue jitter, image false positives) with the
+    informed image decoder (``gsticker_plugin.image_decoder``: the owner's base and each test view's camera; the
+    images quantized to 8 bits first), beside the blind extractor."""
 
 
 @dataclass

@@ -164,27 +164,55 @@ def _distortions(r) -> List[str]:
     d = r.get("distortions")
     if not d:
         return []
-    rows = [[x["label"], f"`{x['spec'] or '-'}`", pct(x["bit_acc"], x["bit_acc_seed_std"]), pct(x["share_passing"]),
-             pct(x["verdict_rate"]), num(x["attack_psnr"]), paper(x["paper"])] for x in d["rows"]]
+    img = any("image_decoder" in x for x in d["rows"])
+    rows = []
+    for x in d["rows"]:
+        row = [x["label"], f"`{x['spec'] or '-'}`"]
+        if img:
+            e = x.get("image_decoder")
+            row += [pct(e["bit_acc"], e["bit_acc_seed_std"]) if e else "-", pct(e["share_passing"]) if e else "-",
+                    pct(e["verdict_rate"]) if e else "-"]
+        row += [pct(x["bit_acc"], x["bit_acc_seed_std"]), pct(x["share_passing"]), pct(x["verdict_rate"]),
+                num(x["attack_psnr"]), paper(x["paper"])]
+        rows.append(row)
+    head = ["attack", "spec"]
+    if img:
+        head += ["image decoder bit acc (± over seeds)", "views passing %", "verdict rate %"]
+    head += ["blind extractor bit acc" if img else "bit acc (± over seeds)", "views passing %", "verdict rate %",
+             "PSNR attacked vs clean", "paper"]
     defs = [f"- `{x['spec']}`: {x['definition'].replace('``', '`')}" for x in d["rows"] if x["spec"]]
-    return ["## Distortions (image-level, on the watermarked renders)", "",
-            table(["attack", "spec", "bit acc (± over seeds)", "views passing %", "verdict rate %", "PSNR attacked vs clean", "paper"], rows),
-            "", "Exact definitions (from `gsticker_plugin.attacks`):", "", *defs, ""]
+    note = (["Image decoder: the informed image decoder (`gsticker_plugin.image_decoder`: the owner's base and each "
+             "test view's camera; images quantized to 8 bits; each image's blur, resize or rotation estimated from the base "
+             "render alone, `image_decoder.DEGRADATION_GRID`), per seed (deterministic attacks give the same images for "
+             "every seed). Blind extractor: the paper's decoder (at chance before any attack, see the status).", ""]
+            if img else [])
+    return ["## Distortions (image-level, on the watermarked renders)", "", table(head, rows), "", *note,
+            "Exact definitions (from `gsticker_plugin.attacks`):", "", *defs, ""]
 
 
 def _recolor(r) -> List[str]:
     d = r.get("recolor")
     if not d:
         return []
+    img = any("image_decoder" in x for x in d["rows"])
+
+    def rate(e):
+        return f"{pct(e['bit_acc'])} ({pct(e['verdict_rate'])})" if e else "-"
+
     rows = [[x["label"] + (f" (Delta E {x['delta_e']:.0f})" if x.get("delta_e") is not None else ""),
-             verdict(x.get("geometry")), verdict(x.get("geometry_null")), verdict(x.get("color_baseline")),
-             pct(x["bit_acc"]), pct(x["null_bit_acc"]), num(x["psnr"]), num(x["ssim"], 4), paper(x["paper"])]
+             verdict(x.get("geometry")), verdict(x.get("geometry_null")), verdict(x.get("color_baseline"))]
+            + ([rate(x.get("image_decoder")), rate(x.get("image_decoder_null"))] if img else [])
+            + [pct(x["bit_acc"]), pct(x["null_bit_acc"]), num(x["psnr"]), num(x["ssim"], 4), paper(x["paper"])]
             for x in d["rows"]]
     return ["## Recolor", "",
-            table(["edit", "sticker: geometric decoder", "null: base, same edit", "color-branch baseline",
-                   "blind extractor bit acc", "extractor null", "PSNR wm-rec vs unwm-rec", "SSIM", "paper"], rows), "",
+            table(["edit", "sticker: geometric decoder", "null: base, same edit", "color-branch baseline"]
+                  + (["image decoder (verdict rate)", "image decoder null"] if img else [])
+                  + ["blind extractor bit acc", "extractor null", "PSNR wm-rec vs unwm-rec", "SSIM", "paper"], rows), "",
             "Geometric / color decoders: mean bit accuracy (views passing: model verdict) of the edited model; the image-level "
-            "hue jitter acts on images, which those model-level decoders do not read (\"-\"). Blind extractor: on the renders.",
+            "hue jitter acts on images, which those model-level decoders do not read (\"-\"). Blind extractor: on the renders."
+            + (" Image decoder: the informed image decoder on the hue-jittered 8-bit images (mean over seeds); it "
+               "predicts the change with the *base's* colours, so a colour edit is residual it cannot explain, and the "
+               "edited models are read by the geometric decoder instead." if img else ""),
             "",
             f"Palette edits replace entry {d['palette_entry']} (entries ordered by pixel share) with each reference color "
             "(`ns-recolor palette --set`); model-level hue is `ns-recolor hue --shift`; the fine-tune is `ns-recolor finetune` "
@@ -202,11 +230,23 @@ def _fp(r) -> List[str]:
     rows = [[s["name"], s["kind"], str(s["views"]), str(s["passing"]), num(s["fpr"], 3), str(s["max_matches"]),
              pct(s["bit_acc"]), "flagged" if s["verdict"] else "no"] for s in d["sources"]]
     up = d.get("fpr_upper_95")
+    img = [s for s in d["sources"] if s.get("image_decoder")]
+    extra = []
+    if img:
+        irows = [[s["name"], str(s["image_decoder"]["views"]), str(s["image_decoder"]["passing"]),
+                  str(s["image_decoder"]["max_matches"]), pct(s["image_decoder"]["bit_acc"]),
+                  "flagged" if s["image_decoder"]["verdict"] else "no"] for s in img]
+        n = sum(s["image_decoder"]["views"] for s in img)
+        x = sum(s["image_decoder"]["passing"] for s in img)
+        extra = ["", "The informed image decoder on the unwatermarked images of the test views' size (image `j` read at "
+                 "test camera `j mod views`; any image is a valid null, the decoder never uses the message):", "",
+                 table(["source", "views", "views passing", "max matches", "mean bit acc", "verdict"], irows), "",
+                 f"Image decoder, all null views: {x} of {n} pass at >= {d['threshold']} matches."]
     return ["## False positives (owner key on unwatermarked models and images)", "",
             table(["source", "kind", "views", "views passing", "empirical FPR", "max matches", "mean bit acc", "model verdict"], rows),
-            "", f"All null views: {d['passing']} of {d['views']} pass at >= {d['threshold']} matches: empirical per-view FPR "
+            "", f"All null views (blind extractor): {d['passing']} of {d['views']} pass at >= {d['threshold']} matches: empirical per-view FPR "
             f"{num(d['empirical_fpr'], 4)} (95% upper bound {num(up, 4)}; target {d['fpr_target']:g}). Unwatermarked models flagged: "
-            f"{d['models_flagged']} of {d['models']}. {d['note'][:1].upper() + d['note'][1:]}.", ""]
+            f"{d['models_flagged']} of {d['models']}. {d['note'][:1].upper() + d['note'][1:]}.", *extra, ""]
 
 
 def _curves(r) -> List[str]:
@@ -215,10 +255,17 @@ def _curves(r) -> List[str]:
         return []
     out = ["## Where it breaks (bit accuracy and verdict vs attack strength)", "", d["note"][:1].upper() + d["note"][1:], ""]
     rows = []
+    img = bool(d.get("image_decoder"))
     for name, c in d["curves"].items():
+        if img:
+            e = c["image_decoder"]
+            pts = "; ".join(f"{p['strength']:g}: {pct(p['image_decoder']['bit_acc'], p['image_decoder']['bit_acc_seed_std'])}"
+                            f" / {pct(p['image_decoder']['verdict_rate'])}" for p in c["points"])
+            rows.append([name, "image decoder", pts, paper(e["bit_acc_below_90_at"]), paper(e["verdict_fails_at"])])
         pts = "; ".join(f"{p['strength']:g}: {pct(p['bit_acc_mean'], p['bit_acc_std'])} / {pct(p['verdict_rate'])}" for p in c["points"])
-        rows.append([name, pts, paper(c["bit_acc_below_90_at"]), paper(c["verdict_fails_at"])])
-    out += [table(["attack", "strength: bit acc (± over seeds) / verdict rate", "bit acc < 90 % from", "verdict fails from"], rows),
+        rows.append([name] + (["blind extractor"] if img else []) + [pts, paper(c["bit_acc_below_90_at"]), paper(c["verdict_fails_at"])])
+    out += [table(["attack"] + (["decoder"] if img else []) + ["strength: bit acc (± over seeds) / verdict rate",
+                                                                "bit acc < 90 % from", "verdict fails from"], rows),
             "", "Chart: `charts/curves.png`.", ""]
     return out
 
@@ -262,13 +309,23 @@ def chart_curves(r, path: Path) -> Optional[Path]:
         s = [p["strength"] for p in c["points"]]
         mu = [100 * p["bit_acc_mean"] for p in c["points"]]
         sd = [100 * p["bit_acc_std"] for p in c["points"]]
-        ax.plot(s, mu, "o-", label="bit acc (mean over seeds)")
-        ax.fill_between(s, [a - b for a, b in zip(mu, sd)], [a + b for a, b in zip(mu, sd)], alpha=0.25)
-        ax.plot(s, [100 * p["verdict_rate"] for p in c["points"]], "s--", label="verdict rate")
+        img = "image_decoder" in c
+        if img:
+            imu = [100 * p["image_decoder"]["bit_acc"] for p in c["points"]]
+            isd = [100 * p["image_decoder"]["bit_acc_seed_std"] for p in c["points"]]
+            ax.plot(s, imu, "o-", color="tab:green", label="image decoder: bit acc")
+            ax.fill_between(s, [a - b for a, b in zip(imu, isd)], [a + b for a, b in zip(imu, isd)], color="tab:green", alpha=0.25)
+            ax.plot(s, [100 * p["image_decoder"]["verdict_rate"] for p in c["points"]], "s--", color="tab:green",
+                    label="image decoder: verdict rate")
+        pre = "blind extractor: " if img else ""
+        ax.plot(s, mu, "o-", color="tab:blue", label=pre + "bit acc (mean over seeds)")
+        ax.fill_between(s, [a - b for a, b in zip(mu, sd)], [a + b for a, b in zip(mu, sd)], color="tab:blue", alpha=0.25)
+        ax.plot(s, [100 * p["verdict_rate"] for p in c["points"]], "s--", color="tab:orange", label=pre + "verdict rate")
         ax.axhline(90, color="gray", lw=0.8, ls=":")
         ax.axhline(50, color="red", lw=0.8, ls=":")
-        if c["bit_acc_below_90_at"] is not None:
-            ax.axvline(c["bit_acc_below_90_at"], color="orange", lw=0.8)
+        below = c["image_decoder"]["bit_acc_below_90_at"] if img else c["bit_acc_below_90_at"]
+        if below is not None:
+            ax.axvline(below, color="tab:green" if img else "orange", lw=0.8)
         ax.set_title(name)
         ax.set_xlabel("strength")
         ax.set_ylim(-2, 102)

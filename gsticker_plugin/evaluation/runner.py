@@ -23,7 +23,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -215,6 +215,53 @@ class Runner:
         if desc:
             self.say(f"    color baseline {desc}: matches {res['matches']} -> {'OWNED' if res['verdict'] else 'not shown'}")
         return res
+
+    @property
+    def reads_images(self) -> bool:
+        """Whether the image-level tables are read by the informed image decoder too."""
+        return self.p.geometry is not None and self.p.geometry.image_decoder
+
+    @property
+    def test_hw(self) -> Tuple[int, int]:
+        return tuple(self.views(self.primary)["watermarked"].shape[1:3])
+
+    def test_cameras(self, name: str) -> List[Tuple[str, Any]]:
+        """``(name, camera)`` of the protocol's test views (the renders stage's ``indices``), from the owner's base run.
+        Named as the geometric decoder names eval cameras, so both decoders share one reference cache."""
+        if not hasattr(self, "_test_cams"):
+            self._test_cams: Dict[str, List[Tuple[str, Any]]] = {}
+        if name not in self._test_cams:
+            ref, _ = self.geo_reference(name)
+            ds = ref.pipeline.datamanager.eval_dataset
+            self._test_cams[name] = [(f"eval/{int(i):03d}", ds.cameras[int(i): int(i) + 1])
+                                     for i in self.views(name)["indices"].tolist()]
+        return self._test_cams[name]
+
+    def image_decode(self, images_nhw3: Tensor) -> Dict[str, Any]:
+        """The informed image decoder on images of the primary base's test views, quantized to 8 bits first (as
+        saved image files are). Image ``j`` is read as if taken at test view ``j mod num_views``: for unmarked
+        images (false positives) any image of that size is a valid null, the decoder never uses the message."""
+        from gsticker_plugin.image_decoder import decode_posed_images
+
+        import hashlib
+
+        images = torch.round(images_nhw3.float().clamp(0, 1) * 255.0) / 255.0
+        digest = hashlib.sha1((images * 255.0).to(torch.uint8).numpy().tobytes()).hexdigest()
+        if not hasattr(self, "_image_decoded"):
+            self._image_decoded: Dict[str, Dict[str, Any]] = {}
+        if digest in self._image_decoded:  # the same 8-bit images (a deterministic attack, another seed): same fit
+            return dict(self._image_decoded[digest])
+        ref, cache = self.geo_reference(self.primary)
+        key = self.key(self.primary)
+        cams = self.test_cameras(self.primary)
+        cams = [cams[j % len(cams)] for j in range(images.shape[0])]  # more images than views (nulls): cycle
+        with contextlib.redirect_stdout(sys.stderr):
+            dec = decode_posed_images(key, ref, images, cams, self.p.seeds[0], ref_cache=cache)
+        res = self.summarize(dec["matches"], dec["bit_acc"], key.num_bits)
+        res["explained"] = [round(float(d["explained"]), 4) for d in dec["image"]]
+        res["degradation"] = [d["degradation"] for d in dec["image"]]
+        self._image_decoded[digest] = res
+        return dict(res)
 
     @staticmethod
     def _as_tensors(d: Dict[str, Any], prefix: str) -> Dict[str, Tensor]:
@@ -505,19 +552,25 @@ class Runner:
         key = self.key(self.primary)
         rows = []
         for r in _tqdm(self.p.distortions, "distortions", self.progress):
-            per_seed = []
+            per_seed, image_per_seed = [], []
             for seed in self.p.seeds:
                 x = self.attacked(v["watermarked"], v["sticker_off"], r.spec, seed)
                 d = self.decode(key, x)
                 d["attack_psnr"] = self.image_metrics(x, v["watermarked"])["psnr"]
                 per_seed.append({"seed": seed, **d})
+                if self.reads_images:
+                    image_per_seed.append({"seed": seed, **self.image_decode(x)})
             accs = torch.tensor([s["bit_acc"] for s in per_seed])
-            rows.append({"label": r.label, "spec": r.spec, "paper": r.paper, "definition": describe_spec(r.spec),
-                         "bit_acc": float(accs.mean()), "bit_acc_seed_std": float(accs.std(unbiased=False)),
-                         "share_passing": float(sum(s["share_passing"] for s in per_seed) / len(per_seed)),
-                         "verdict_rate": float(sum(s["verdict"] for s in per_seed) / len(per_seed)),
-                         "attack_psnr": per_seed[0]["attack_psnr"], "per_seed": per_seed})
-        return {"base": self.primary, "rows": rows, "threshold": self.threshold}
+            row = {"label": r.label, "spec": r.spec, "paper": r.paper, "definition": describe_spec(r.spec),
+                   "bit_acc": float(accs.mean()), "bit_acc_seed_std": float(accs.std(unbiased=False)),
+                   "share_passing": float(sum(s["share_passing"] for s in per_seed) / len(per_seed)),
+                   "verdict_rate": float(sum(s["verdict"] for s in per_seed) / len(per_seed)),
+                   "attack_psnr": per_seed[0]["attack_psnr"], "per_seed": per_seed}
+            if image_per_seed:
+                row["image_decoder"] = over_seeds(image_per_seed)
+            rows.append(row)
+        return {"base": self.primary, "rows": rows, "threshold": self.threshold,
+                "image_decoder": self.reads_images}
 
     def stage_curves(self) -> Dict[str, Any]:
         from gsticker_plugin.attacks import ATTACKS
@@ -528,21 +581,31 @@ class Runner:
         for name, strengths in self.p.curves.items():
             pts = []
             for s in _tqdm(strengths, f"curve {name}", self.progress):
-                accs, shares, verdicts = [], [], []
+                accs, shares, verdicts, image_per_seed = [], [], [], []
                 for seed in self.p.seeds:
-                    d = self.decode(key, self.attacked(v["watermarked"], v["sticker_off"], [(name, float(s))], seed))
+                    x = self.attacked(v["watermarked"], v["sticker_off"], [(name, float(s))], seed)
+                    d = self.decode(key, x)
                     accs.append(d["bit_acc"])
                     shares.append(d["share_passing"])
                     verdicts.append(float(d["verdict"]))
+                    if self.reads_images:
+                        image_per_seed.append({"seed": seed, **self.image_decode(x)})
                 a = torch.tensor(accs)
-                pts.append({"strength": float(s), "bit_acc_mean": float(a.mean()), "bit_acc_std": float(a.std(unbiased=False)),
-                            "bit_acc_per_seed": accs, "share_passing_mean": sum(shares) / len(shares),
-                            "verdict_rate": sum(verdicts) / len(verdicts)})
+                pt = {"strength": float(s), "bit_acc_mean": float(a.mean()), "bit_acc_std": float(a.std(unbiased=False)),
+                      "bit_acc_per_seed": accs, "share_passing_mean": sum(shares) / len(shares),
+                      "verdict_rate": sum(verdicts) / len(verdicts)}
+                if image_per_seed:
+                    pt["image_decoder"] = over_seeds(image_per_seed)
+                pts.append(pt)
             below = next((p["strength"] for p in pts if p["bit_acc_mean"] < 0.9), None)
             fails = next((p["strength"] for p in pts if p["verdict_rate"] < 0.5), None)
             curves[name] = {"points": pts, "bit_acc_below_90_at": below, "verdict_fails_at": fails,
                             "randomized": name in ("noise", "crop"), "definition": describe_spec(f"{name}={strengths[-1]}")}
-        return {"base": self.primary, "seeds": list(self.p.seeds), "curves": curves,
+            if self.reads_images:
+                curves[name]["image_decoder"] = {
+                    "bit_acc_below_90_at": next((p["strength"] for p in pts if p["image_decoder"]["bit_acc"] < 0.9), None),
+                    "verdict_fails_at": next((p["strength"] for p in pts if p["image_decoder"]["verdict_rate"] < 0.5), None)}
+        return {"base": self.primary, "seeds": list(self.p.seeds), "curves": curves, "image_decoder": self.reads_images,
                 "note": "seeds change the distortions' randomness only (noise samples, cropout rectangle); rotation, "
                         "blur, JPEG, resize and a fixed hue shift are deterministic, so their spread over seeds is 0. "
                         "The models are trained once."}
@@ -637,7 +700,7 @@ class Runner:
         rows = []
         jitter = self.p.recolor.image_hue_jitter
         if jitter is not None:
-            per_seed, null_seed, quality = [], [], []
+            per_seed, null_seed, quality, image_seed, image_null = [], [], [], [], []
             for seed in self.p.seeds:
                 g = torch.Generator().manual_seed(seed)
                 shifts = (torch.rand(v["watermarked"].shape[0], generator=g) * 2 - 1) * abs(float(jitter))
@@ -650,9 +713,15 @@ class Runner:
                 per_seed.append(self.decode(key, a))
                 null_seed.append(self.decode(key, b))
                 quality.append(self.image_metrics(a, b))
-            rows.append(self._recolor_row({"name": "image-hue-jitter", "kind": "image_hue",
-                                           "label": f"image-level hue jitter U(-{abs(jitter):g}, {abs(jitter):g})"},
-                                          per_seed, null_seed, quality, paper=99.33))
+                if self.reads_images:
+                    image_seed.append({"seed": seed, **self.image_decode(a)})
+                    image_null.append({"seed": seed, **self.image_decode(b)})
+            row = self._recolor_row({"name": "image-hue-jitter", "kind": "image_hue",
+                                     "label": f"image-level hue jitter U(-{abs(jitter):g}, {abs(jitter):g})"},
+                                    per_seed, null_seed, quality, paper=99.33)
+            if image_seed:
+                row["image_decoder"], row["image_decoder_null"] = over_seeds(image_seed), over_seeds(image_null)
+            rows.append(row)
         with_color = self.p.geometry is not None and self.p.geometry.color_baseline and self.color_run() is not None
         source = self.palette_source() if self.p.recolor.colors else None
         for var in _tqdm(self.recolor_variants(), "recolor", self.progress):
@@ -740,11 +809,17 @@ class Runner:
         sources: List[Dict[str, Any]] = []
 
         def add(name: str, kind: str, images: Tensor, note: str = "") -> None:
+            """The blind extractor on ``images``, and the image decoder too when they have the test views' size."""
             d = self.decode(key, images)
-            sources.append({"name": name, "kind": kind, "note": note, "views": d["views"],
-                            "passing": d["views_passing"], "fpr": d["views_passing"] / d["views"],
-                            "max_matches": max(d["matches"]), "bit_acc": d["bit_acc"], "verdict": d["verdict"],
-                            "matches": d["matches"]})
+            src = {"name": name, "kind": kind, "note": note, "views": d["views"],
+                   "passing": d["views_passing"], "fpr": d["views_passing"] / d["views"],
+                   "max_matches": max(d["matches"]), "bit_acc": d["bit_acc"], "verdict": d["verdict"],
+                   "matches": d["matches"]}
+            if self.reads_images and tuple(images.shape[1:3]) == self.test_hw:
+                e = self.image_decode(images)
+                src["image_decoder"] = {"views": e["views"], "passing": e["views_passing"], "max_matches": max(e["matches"]),
+                                        "bit_acc": e["bit_acc"], "verdict": e["verdict"], "matches": e["matches"]}
+            sources.append(src)
 
         for b in self.p.bases:
             v = self.views(b.name)
@@ -854,6 +929,15 @@ class Runner:
         if "report" in stages:
             report.write_all(results, self.out)
         return results
+
+
+def over_seeds(per_seed: List[Dict[str, Any]]) -> Dict[str, Any]:
+    """A decoder's per-seed summaries -> mean bit accuracy, its spread over seeds, views passing and verdict rate.
+    A deterministic attack gives the same images for every seed: identical entries, spread 0."""
+    accs = torch.tensor([s["bit_acc"] for s in per_seed])
+    return {"bit_acc": float(accs.mean()), "bit_acc_seed_std": float(accs.std(unbiased=False)),
+            "share_passing": float(sum(s["share_passing"] for s in per_seed) / len(per_seed)),
+            "verdict_rate": float(sum(s["verdict"] for s in per_seed) / len(per_seed)), "per_seed": per_seed}
 
 
 def palette_distance(source_rgb: Sequence[float], color: str) -> float:

@@ -1,0 +1,259 @@
+"""The informed *image* decoder: read the owner's message from images of the scene taken at known cameras.
+
+The geometric decoder (:mod:`gsticker_plugin.geometry`) reads a suspect *model's* accumulation and depth. An
+image shows only colour, but the colour a NeRF renders is the composite of its sample colours with the density the
+sticker changed: ``pixel = clamp(sum_i w_i(sigma~) c_i + (1 - acc(sigma~)) bg)``. Given the owner's base (the key
+records it, as for the geometric decoder) and the camera of each image, the change the sticker of a continuous
+message ``s`` makes to the base render at that camera is predicted exactly on the base's own samples, with the
+base's own colours, and ``s`` is fitted to ``image - base render`` by the same Levenberg-Marquardt fit
+(:func:`gsticker_plugin.geometry.fit_message`, Jacobian in closed form); bit ``i`` = ``s_i > 0``, undetermined
+bits are coin flips from a generator independent of the owner's message.
+
+What it reads: images at *known* cameras (renders of the scene at the base's cameras, e.g. the evaluation
+protocol's test views), as they are or after image distortions (noise, blur, JPEG, resize, cropout, rotation,
+hue shifts: :mod:`gsticker_plugin.attacks`). It models no distortion: whatever an attack does to the image is
+residual the fit has to live with, so its robustness curves measure the mark, not a trained invariance. A
+recoloured *model* changes the sample colours, which this decoder takes from the base: recolouring is read by the
+geometric decoder, which does not look at colour at all.
+
+Why the binomial null holds: as for the geometric decoder, the fit uses the image, the base and the sticker, never
+the owner's message, and the sticker was trained on uniformly random messages; for an image that does not carry
+``M`` the decoded bits are independent of ``M``.
+
+Limits: informed (needs the base run) and posed (needs each image's camera); a screenshot of unknown pose cannot
+be read. :func:`gsticker_plugin.verify` keeps the blind extractor for those.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import torch
+from jaxtyping import Float, Int
+from torch import Tensor
+
+from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.sticker import Sticker, render_weights
+
+
+@dataclass
+class ImageReferenceView:
+    """One camera of the owner's base in the image decoder's terms."""
+
+    view: Any  # gsticker_plugin.geometry.ReferenceView (rays, samples, gate, sticker features, sample colours)
+    background: Float[Tensor, "3"]
+    base_rgb: Float[Tensor, "R 3"]  # the base render at the rays (what the suspect image is compared with)
+
+
+def image_reference(ref_view, background: Float[Tensor, "3"]) -> ImageReferenceView:
+    if ref_view.rgb is None:
+        raise GStickerError("the reference view holds no sample colours (made by an older gsticker); rebuild it")
+    h, w = ref_view.hw
+    base = ref_view.image.permute(1, 2, 0).reshape(h * w, 3)[ref_view.rays].float()
+    return ImageReferenceView(view=ref_view, background=background.float().cpu().reshape(3), base_rgb=base)
+
+
+def rgb_of_sticker(ref: ImageReferenceView, m: Float[Tensor, "N 1"]) -> Float[Tensor, "R 3"]:
+    """The rendered colour at the rays with sticker values ``m`` at the gate-open samples: the same wrap
+    (``relu(sigma + psi * scale * m)``), quadrature, background and clamp as the renderer."""
+    v = ref.view
+    r, s = v.density.shape[:2]
+    delta = torch.zeros(r * s, 1, dtype=m.dtype, device=m.device).index_add(0, v.open_index, v.psi_scale * m)
+    w = render_weights(torch.relu(v.density + delta.reshape(r, s, 1)), v.deltas)
+    rgb = (w * v.rgb).sum(dim=-2) + ref.background * (1.0 - w.sum(dim=-2))
+    return rgb.clamp(0.0, 1.0)
+
+
+def predict_image_change(ref: ImageReferenceView, sticker: Sticker, signs: Float[Tensor, "K"]) -> Float[Tensor, "R 3"]:
+    """The base render's colour at the rays with the sticker of continuous message ``signs`` (the fit subtracts
+    its value at ``s = 0``); differentiable in ``signs``."""
+    return rgb_of_sticker(ref, sticker.mix(ref.view.features, signs))
+
+
+def image_change_jacobian(ref: ImageReferenceView, sticker: Sticker,
+                          signs: Float[Tensor, "K"]) -> Optional[Float[Tensor, "M K"]]:
+    """d predict_image_change / d signs, rows ``r * 3 + c`` like ``predict_image_change(...).reshape(-1)``
+    (None: no closed form for this sticker; the fit then uses forward-mode AD)."""
+    from gsticker_plugin import geometry as G
+
+    v = ref.view
+    r, s = v.density.shape[:2]
+    j = G.per_ray_jacobian(lambda x: rgb_of_sticker(ref, x).T, sticker, v.features, signs, v.open_index // s, r)
+    return None if j is None else j.permute(1, 0, 2).reshape(-1, j.shape[-1])
+
+
+def decode_image_view(ref: ImageReferenceView, sticker: Sticker, image_rgb: Float[Tensor, "R 3"],
+                      generator: torch.Generator, iterations: int = 10) -> Dict[str, Any]:
+    """Fit the continuous message to one image's colour change (image minus base render) and decide the bits."""
+    from gsticker_plugin import geometry as G
+
+    k = sticker.num_bits
+    target = (image_rgb.float() - ref.base_rgb).reshape(-1)
+    if ref.view.rays.numel() == 0:  # the gate opens nowhere in this view: nothing to read
+        fit = G.Fit(signs=torch.zeros(k), explained=0.0, residual_rms=0.0, iterations=0)
+    else:
+        fit = G.fit_message(lambda x: predict_image_change(ref, sticker, x), target, k, iterations=iterations,
+                            jac=lambda x: image_change_jacobian(ref, sticker, x))
+    bits, undetermined = G.decide_bits(fit.signs, generator)
+    return {"bits": bits, "signs_abs_mean": float(fit.signs.abs().mean()), "undetermined": undetermined,
+            "explained": fit.explained, "residual_rms": fit.residual_rms, "iterations": fit.iterations,
+            "rays": int(ref.view.rays.numel()), "signals": ["rgb"]}
+
+
+# ================================================================================================================
+# degradations the decoder can match: estimated from the base render alone, never from the message
+# ================================================================================================================
+
+DEGRADATION_GRID: Dict[str, Tuple[float, ...]] = {
+    "blur": tuple(round(0.25 * i, 2) for i in range(1, 17)),  # Gaussian sigma 0.25 .. 4 px
+    "resize": tuple(round(0.2 + 0.05 * i, 2) for i in range(16)),  # scale 0.2 .. 0.95
+    "rotate": tuple(float(d) for d in range(-45, 46) if d != 0),  # degrees, 1 degree apart
+}
+"""The image decoder's search grid (``degradations="match"``): each image's degradation is the entry whose
+transform of the *base render* is closest to the image (least squares over all pixels), the identity included.
+It contains every strength the protocol's curves test: the curves then measure the mark given a correctly
+identified degradation, an upper bound for decoding an image of unknown processing."""
+
+
+@dataclass(frozen=True)
+class Degradation:
+    """An image transform of :mod:`gsticker_plugin.attacks` (``blur``, ``resize``, ``rotate``; ``none``)."""
+
+    name: str = "none"
+    strength: float = 0.0
+
+    def apply(self, x: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B 3 H W"]:
+        """The attack itself (clamped, rotation's white fill): what it does to the base render."""
+        from gsticker_plugin.attacks import ATTACKS
+
+        return x if self.name == "none" else ATTACKS[self.name](x, self.strength)
+
+    def linear(self, x: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B 3 H W"]:
+        """The attack's linear part, unclamped: what it does to a small change of the image."""
+        import kornia
+        import torch.nn.functional as F
+
+        from gsticker_plugin.attacks import blur_kernel_size
+
+        if self.name == "none":
+            return x
+        h, w = x.shape[-2:]
+        if self.name == "blur":
+            k = blur_kernel_size(self.strength)
+            kmax = 2 * min(h, w) - 1
+            k = max(1, min(k, kmax if kmax % 2 == 1 else kmax - 1))
+            sig = torch.full((x.shape[0], 2), float(self.strength), dtype=x.dtype)
+            return kornia.filters.gaussian_blur2d(x, (k, k), sig, border_type="reflect")
+        if self.name == "resize":
+            sh, sw = max(1, int(round(h * self.strength))), max(1, int(round(w * self.strength)))
+            if (sh, sw) == (h, w):
+                return x
+            small = F.interpolate(x, size=(sh, sw), mode="bilinear", align_corners=False, antialias=True)
+            return F.interpolate(small, size=(h, w), mode="bilinear", align_corners=False)
+        if self.name == "rotate":
+            angle = torch.full((x.shape[0],), float(self.strength), dtype=x.dtype)
+            return kornia.geometry.transform.rotate(x, angle, mode="bilinear", padding_mode="zeros", align_corners=True)
+        raise GStickerError(f"unknown degradation {self.name!r}")
+
+    def label(self) -> str:
+        return "none" if self.name == "none" else f"{self.name}={self.strength:g}"
+
+
+def match_degradation(image: Float[Tensor, "H W 3"], base: Float[Tensor, "3 H W"],
+                      grid: Optional[Dict[str, Sequence[float]]] = None) -> Tuple[Degradation, float]:
+    """The degradation of ``grid`` (and the identity) whose transform of the base render is closest to ``image``;
+    returns it and its mean squared error. Uses the image and the base only (not the message or the sticker)."""
+    grid = DEGRADATION_GRID if grid is None else grid
+    x = image.permute(2, 0, 1)[None].float()
+    b = base[None].float()
+    cands = [Degradation()] + [Degradation(n, float(v)) for n, vals in grid.items() for v in vals]
+    best, best_err = cands[0], float(((x - b) ** 2).mean())
+    for c in cands[1:]:
+        err = float(((x - c.apply(b)) ** 2).mean())
+        if err < best_err:
+            best, best_err = c, err
+    return best, best_err
+
+
+def decode_degraded_view(ref: ImageReferenceView, sticker: Sticker, image: Float[Tensor, "H W 3"],
+                         degradation: Degradation, generator: torch.Generator,
+                         iterations: int = 10) -> Dict[str, Any]:
+    """:func:`decode_image_view` for an image the degradation ``D`` was applied to: the image is compared with
+    ``D(base render)`` over every pixel, and the change is predicted as ``D_lin(change on the base's rays)``."""
+    from gsticker_plugin import geometry as G
+
+    if degradation.name == "none":
+        d = decode_image_view(ref, sticker, image_at_rays(image, ref.view.rays, ref.view.hw), generator, iterations)
+        d["degradation"] = "none"
+        return d
+    k = sticker.num_bits
+    h, w = ref.view.hw
+    rays = ref.view.rays
+    base = ref.view.image.float()  # [3 H W]
+    target = (image.float().permute(2, 0, 1) - degradation.apply(base[None])[0]).permute(1, 2, 0).reshape(-1)
+
+    def spread(per_ray: Tensor) -> Tensor:  # [R 3 ...] at the rays -> D_lin of the whole image, rows p * 3 + c
+        cols = per_ray.reshape(rays.numel(), 3, -1)
+        full = torch.zeros(h * w, 3, cols.shape[-1], dtype=cols.dtype).index_copy(0, rays, cols)
+        img = full.permute(2, 1, 0).reshape(-1, 3, h, w)  # [K 3 H W]
+        return degradation.linear(img).reshape(-1, 3, h * w).permute(2, 1, 0).reshape(h * w * 3, -1)
+
+    def predict(sg: Tensor) -> Tensor:
+        return spread(predict_image_change(ref, sticker, sg) - ref.base_rgb)[:, 0]
+
+    def jac(sg: Tensor) -> Optional[Tensor]:
+        j = image_change_jacobian(ref, sticker, sg)
+        return None if j is None else spread(j)
+
+    if rays.numel() == 0:
+        fit = G.Fit(signs=torch.zeros(k), explained=0.0, residual_rms=0.0, iterations=0)
+    else:
+        fit = G.fit_message(predict, target, k, iterations=iterations, jac=jac)
+    bits, undetermined = G.decide_bits(fit.signs, generator)
+    return {"bits": bits, "signs_abs_mean": float(fit.signs.abs().mean()), "undetermined": undetermined,
+            "explained": fit.explained, "residual_rms": fit.residual_rms, "iterations": fit.iterations,
+            "rays": int(rays.numel()), "signals": ["rgb"], "degradation": degradation.label()}
+
+
+def image_at_rays(image: Float[Tensor, "H W 3"], rays: Int[Tensor, "R"], hw: Tuple[int, int]) -> Float[Tensor, "R 3"]:
+    if tuple(image.shape[:2]) != tuple(hw) or image.shape[-1] != 3:
+        raise GStickerError(f"an image of {tuple(image.shape)} for a {hw[0]}x{hw[1]} camera; the image decoder needs "
+                            "RGB images of the cameras' size (resize them to it)")
+    return image.float().reshape(-1, 3)[rays]
+
+
+def decode_posed_images(key, reference, images: Float[Tensor, "V H W 3"], cameras: Sequence[Tuple[str, Any]],
+                        seed: int, iterations: int = 10, ref_cache: Optional[Dict[Any, Any]] = None,
+                        progress: bool = False, degradations: Optional[str] = "match") -> Dict[str, Any]:
+    """Decode ``images[i]``, taken at ``cameras[i] = (name, camera)`` of the owner's scene, with the informed image
+    decoder.
+
+    ``reference``: the owner's base with the key's sticker and gates
+    (:func:`gsticker_plugin.geometry.load_base_reference`). ``ref_cache``: a dict the caller keeps to reuse the
+    base's reference views of these cameras (the same keys as the geometric decoder's, so one cache serves both).
+    ``degradations="match"``: first estimate each image's blur, resize or rotation from the base render alone
+    (:func:`match_degradation` over :data:`DEGRADATION_GRID`) and fit through it (:func:`decode_degraded_view`);
+    ``None``: compare the image with the base render as it is.
+    Returns per image ``bits``, ``matches``, ``bit_acc``, ``pvalues``, ``scores`` (None) and ``image`` (the fits).
+    """
+    from gsticker_plugin import geometry as G
+    from gsticker_plugin.verify import _tqdm
+
+    if images.ndim != 4 or images.shape[0] != len(cameras):
+        raise GStickerError(f"{tuple(images.shape)} images for {len(cameras)} cameras: pass one [H W 3] image per camera")
+    st = G.cpu_sticker(reference.model)
+    background = reference.model.background_color()
+    gen = G.tie_generator(seed)
+    ref_cache = {} if ref_cache is None else ref_cache
+    bits: List[Tensor] = []
+    details: List[Dict[str, Any]] = []
+    for (name, cam), image in _tqdm(list(zip(cameras, images)), "image decoding", progress):
+        ref_view = G.any_reference_view(reference, name, cam, ref_cache)
+        ref = image_reference(ref_view, background)
+        image_at_rays(image, ref_view.rays, ref_view.hw)  # checks the size
+        deg = match_degradation(image, ref_view.image)[0] if degradations == "match" else Degradation()
+        d = decode_degraded_view(ref, st, image, deg, gen, iterations)
+        bits.append(d.pop("bits"))
+        details.append(d)
+    return G.decoded(key, bits, "image", details)

@@ -1,0 +1,102 @@
+"""The informed image decoder (gsticker_plugin/image_decoder.py) on small tensors: the predicted colour change,
+its closed-form Jacobian, the fit on 8-bit images, and the null (an image that is the base render decodes to coin
+flips). The same decoder on real tiny runs is tested in tests/test_geometry.py."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from gsticker_plugin import geometry as G
+from gsticker_plugin import image_decoder as I
+from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.key import parse_message
+from gsticker_plugin.sticker import Sticker, composite, message_to_signs
+
+MESSAGE = "101100111000111100001111100000111111000000111111"
+
+
+def _view(st: Sticker, r: int = 600, s: int = 24, seed: int = 0) -> I.ImageReferenceView:
+    g = torch.Generator().manual_seed(seed)
+    dens = torch.rand(r, s, 1, generator=g) * 5 * (torch.rand(r, s, 1, generator=g) > 0.6)
+    psi = torch.sigmoid((dens - 2.5) * 4).reshape(-1, 1)
+    open_index = (psi[:, 0] > 1e-3).nonzero().squeeze(-1)
+    pos = torch.rand(r * s, 3, generator=g)
+    rgb = torch.rand(r, s, 3, generator=g)
+    deltas = torch.full((r, s, 1), 0.1)
+    bg = torch.ones(3)
+    with torch.no_grad():
+        feats = st.features(pos[open_index])
+    image = composite(dens, rgb, deltas, bg)[0].clamp(0, 1)  # [R 3]: the base render at the rays
+    view = G.ReferenceView(name="v", hw=(1, r), rays=torch.arange(r), density=dens, deltas=deltas,
+                           steps=torch.linspace(2, 6, s).expand(r, s)[..., None].clone(), open_index=open_index,
+                           psi_scale=psi[open_index] * 2.0, features=feats, base_signal=torch.zeros(1, r),
+                           depth_scale=4.0, signals=("accumulation",), image=image.T.reshape(3, 1, r), rgb=rgb)
+    return I.image_reference(view, bg)
+
+
+def test_prediction_at_zero_is_the_base_render_and_the_jacobian_is_ad():
+    torch.manual_seed(0)
+    st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
+    ref = _view(st, r=80, s=12)
+    with torch.no_grad():
+        assert torch.allclose(I.predict_image_change(ref, st, torch.zeros(48)), ref.base_rgb, atol=1e-6)
+        # a message changes the colour (through the density only)
+        assert float((I.predict_image_change(ref, st, message_to_signs(parse_message(MESSAGE))) - ref.base_rgb).abs().max()) > 1e-3
+    s0 = torch.rand(48) * 1.6 - 0.8
+    ad = G.jacobian(lambda s: I.predict_image_change(ref, st, s).reshape(-1), s0)
+    closed = I.image_change_jacobian(ref, st, s0)
+    assert closed.shape == ad.shape == (80 * 3, 48)
+    assert torch.allclose(closed, ad, atol=1e-6, rtol=1e-4) and float(closed.abs().max()) > 1e-3
+    assert I.image_change_jacobian(ref, Sticker(48, 5, 16, 2, 0.5, "concat"), s0) is None
+
+
+def test_fit_reads_the_message_from_an_8_bit_image_and_the_base_render_gives_coin_flips():
+    torch.manual_seed(0)
+    st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
+    ref = _view(st)
+    msg = parse_message(MESSAGE)
+    with torch.no_grad():
+        marked = I.predict_image_change(ref, st, message_to_signs(msg))
+    d = I.decode_image_view(ref, st, torch.round(marked * 255) / 255, torch.Generator().manual_seed(1))
+    assert torch.equal(d["bits"], msg) and d["undetermined"] == 0 and d["explained"] > 0.9
+    gen = torch.Generator().manual_seed(2)
+    matches = []
+    for _ in range(200):
+        d0 = I.decode_image_view(ref, st, ref.base_rgb.clone(), gen)
+        assert d0["undetermined"] == 48 and d0["iterations"] == 0
+        matches.append(int((d0["bits"] == msg).sum()))
+    assert 23.0 < sum(matches) / len(matches) < 25.0 and max(matches) < 41  # Binomial(48, 1/2)
+
+
+def test_an_image_of_another_size_is_one_line_naming_the_fix():
+    with pytest.raises(GStickerError, match="resize them"):
+        I.image_at_rays(torch.zeros(4, 5, 3), torch.arange(3), (4, 4))
+
+
+def test_a_blurred_rotated_or_resized_image_is_matched_from_the_base_alone_and_decoded():
+    """The degradation is estimated from the base render (never the message); the fit through it reads the bits
+    that comparing with the unblurred base loses; the linear part is the attack's own on small changes."""
+    torch.manual_seed(0)
+    st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
+    g = torch.Generator().manual_seed(3)
+    h = w = 24
+    ref = _view(st, r=h * w, s=16, seed=1)
+    base = (torch.rand(3, h // 4, w // 4, generator=g)).repeat_interleave(4, 1).repeat_interleave(4, 2)  # edges
+    ref.view.image = base
+    ref.view.hw = (h, w)
+    ref.base_rgb = base.permute(1, 2, 0).reshape(-1, 3)
+    msg = parse_message(MESSAGE)
+    with torch.no_grad():
+        change = (I.predict_image_change(ref, st, message_to_signs(msg)) - I.predict_image_change(ref, st, torch.zeros(48)))
+    marked = (base.permute(1, 2, 0).reshape(-1, 3) + change).reshape(h, w, 3).permute(2, 0, 1)[None]
+    for deg in (I.Degradation("blur", 1.0), I.Degradation("rotate", 10.0), I.Degradation("resize", 0.5)):
+        x = deg.apply(marked)[0].permute(1, 2, 0)
+        found, _ = I.match_degradation(x, base)
+        assert found == deg
+        d = I.decode_degraded_view(ref, st, x, found, torch.Generator().manual_seed(0))
+        assert int((d["bits"] == msg).sum()) >= 46 and d["degradation"] == deg.label(), (deg, d)
+        small = 0.01 * torch.randn(1, 3, h, w, generator=g)
+        lin = deg.apply(0.5 + small) - deg.apply(torch.full_like(small, 0.5))
+        assert torch.allclose(lin, deg.linear(small), atol=1e-5), deg
+    assert I.match_degradation(marked[0].permute(1, 2, 0), base)[0] in (I.Degradation(), I.Degradation("blur", 0.25))
