@@ -111,7 +111,8 @@ DEGRADATION_GRID: Dict[str, Tuple[float, ...]] = {
     "rotate": tuple(float(d) for d in range(-45, 46) if d != 0),  # degrees, 1 degree apart
 }
 """The image decoder's search grid (``degradations="match"``): each image's degradation is the entry whose
-transform of the *base render* is closest to the image (least squares over all pixels), the identity included.
+transform of the *base render* is closest to the image (least squares over all pixels; the identity unless one
+is clearly closer, :data:`MATCH_MARGIN`).
 It contains every strength the protocol's curves test: the curves then measure the mark given a correctly
 identified degradation, an upper bound for decoding an image of unknown processing."""
 
@@ -160,20 +161,31 @@ class Degradation:
         return "none" if self.name == "none" else f"{self.name}={self.strength:g}"
 
 
+MATCH_MARGIN = 0.5
+"""A degradation is chosen over the identity only when its transform of the base render leaves at most this share
+of the identity's squared error: the mark itself is a (small) difference between image and base that a mild blur
+can happen to reduce (seen on a 32 px scene with a strong mark), while a real blur, resize or rotation of a scene
+with edges leaves a few percent of it."""
+
+
 def match_degradation(image: Float[Tensor, "H W 3"], base: Float[Tensor, "3 H W"],
-                      grid: Optional[Dict[str, Sequence[float]]] = None) -> Tuple[Degradation, float]:
-    """The degradation of ``grid`` (and the identity) whose transform of the base render is closest to ``image``;
-    returns it and its mean squared error. Uses the image and the base only (not the message or the sticker)."""
+                      grid: Optional[Dict[str, Sequence[float]]] = None,
+                      margin: float = MATCH_MARGIN) -> Tuple[Degradation, float]:
+    """The degradation of ``grid`` whose transform of the base render is closest to ``image``, or the identity when
+    none leaves less than ``margin`` of the identity's squared error; returns it and its mean squared error. Uses
+    the image and the base only (not the message or the sticker)."""
     grid = DEGRADATION_GRID if grid is None else grid
     x = image.permute(2, 0, 1)[None].float()
     b = base[None].float()
-    cands = [Degradation()] + [Degradation(n, float(v)) for n, vals in grid.items() for v in vals]
-    best, best_err = cands[0], float(((x - b) ** 2).mean())
-    for c in cands[1:]:
+    identity_err = float(((x - b) ** 2).mean())
+    best, best_err = Degradation(), float("inf")
+    for c in (Degradation(n, float(v)) for n, vals in grid.items() for v in vals):
         err = float(((x - c.apply(b)) ** 2).mean())
         if err < best_err:
             best, best_err = c, err
-    return best, best_err
+    if best_err < margin * identity_err:
+        return best, best_err
+    return Degradation(), identity_err
 
 
 def decode_degraded_view(ref: ImageReferenceView, sticker: Sticker, image: Float[Tensor, "H W 3"],

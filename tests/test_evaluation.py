@@ -116,6 +116,10 @@ def test_numbers_in_range(smoke):
         assert 0.0 <= x["share_passing"] <= 1.0 and 0.0 <= x["verdict_rate"] <= 1.0
         assert len(x["per_seed"]) == len(p.seeds)
         _psnr(x["attack_psnr"])
+        e = x["image_decoder"]  # the informed image decoder reads every row too
+        _acc(e["bit_acc"])
+        assert len(e["per_seed"]) == len(p.seeds) and 0.0 <= e["verdict_rate"] <= 1.0
+        assert len(e["per_seed"][0]["degradation"]) == p.num_views
     assert rows[0]["attack_psnr"] == "inf"  # the no-attack row
     curves = r["curves"]["curves"]
     assert set(curves) == set(p.curves)
@@ -124,6 +128,8 @@ def test_numbers_in_range(smoke):
         for pt in c["points"]:
             _acc(pt["bit_acc_mean"])
             assert pt["bit_acc_std"] >= 0 and 0.0 <= pt["verdict_rate"] <= 1.0
+            _acc(pt["image_decoder"]["bit_acc"])
+        assert set(c["image_decoder"]) == {"bit_acc_below_90_at", "verdict_fails_at"}
     rec = r["recolor"]["rows"]
     names = [x["name"] for x in rec]
     assert names[0] == "image-hue-jitter"
@@ -165,6 +171,12 @@ def test_numbers_in_range(smoke):
     assert any(s["kind"] == "random images" and s["views"] == p.false_positives.random_images for s in fp["sources"])
     for s in fp["sources"]:
         assert 0.0 <= s["fpr"] <= 1.0 and 0 <= s["max_matches"] <= 48
+    # the image decoder reads every null source of the test views' size: renders, ground truth, random images
+    read = [s for s in fp["sources"] if "image_decoder" in s]
+    assert {s["kind"] for s in read} >= {"unwatermarked model", "images", "random images"}
+    for s in read:
+        assert 0 <= s["image_decoder"]["max_matches"] <= 48 and s["image_decoder"]["views"] == s["views"]
+    assert "image_decoder" in rec[0] and "image_decoder_null" in rec[0]  # the image hue jitter row
     sp = r["speed"]["nerfacto"]
     assert sp["steps"] == p.sticker.steps
     for m in sp["monitor"]:  # parsed from the ns-train log; the smoke run monitors every 5 steps
@@ -184,7 +196,8 @@ def test_tables_have_every_row(smoke):
     for c in p.recolor.colors:
         assert f"palette {p.recolor.palette_entry} -> {c} (Delta E " in md, c
     for name in p.curves:
-        assert f"| {name} |" in md, name
+        assert f"| {name} | image decoder |" in md and f"| {name} | blind extractor |" in md, name
+    assert "Image decoder, all null views:" in md
     assert "99.25" in md and "32.39" in md  # the paper's numbers beside ours
     assert "Machine:" in md and "Command: `ns-gsticker-eval --config" in md
 

@@ -99,4 +99,4 @@ def test_a_blurred_rotated_or_resized_image_is_matched_from_the_base_alone_and_d
         small = 0.01 * torch.randn(1, 3, h, w, generator=g)
         lin = deg.apply(0.5 + small) - deg.apply(torch.full_like(small, 0.5))
         assert torch.allclose(lin, deg.linear(small), atol=1e-5), deg
-    assert I.match_degradation(marked[0].permute(1, 2, 0), base)[0] in (I.Degradation(), I.Degradation("blur", 0.25))
+    assert I.match_degradation(marked[0].permute(1, 2, 0), base)[0] == I.Degradation()  # the mark alone: identity
