@@ -325,17 +325,11 @@ def decode_color_view(ref: ColorReferenceView, sticker: Sticker, suspect_rgb: Fl
     """Fit the continuous message to one view's RGB change (suspect minus base) and decide the bits."""
     from gsticker_plugin import geometry as G
 
-    k = sticker.num_bits
     target = (suspect_rgb.float() - ref.base_rgb).reshape(-1)
-    if ref.view.rays.numel() == 0:  # the gate opens nowhere in this view: nothing to read
-        fit = G.Fit(signs=torch.zeros(k), explained=0.0, residual_rms=0.0, iterations=0)
-    else:
-        fit = G.fit_message(lambda x: predict_color_change(ref, sticker, x, amplitude), target, k,
-                            iterations=iterations, jac=lambda x: color_change_jacobian(ref, sticker, x, amplitude))
-    bits, undetermined = G.decide_bits(fit.signs, generator)
-    return {"bits": bits, "signs_abs_mean": float(fit.signs.abs().mean()), "undetermined": undetermined,
-            "explained": fit.explained, "residual_rms": fit.residual_rms, "iterations": fit.iterations,
-            "rays": int(ref.view.rays.numel()), "signals": ["rgb"]}
+    fit, bits, undetermined = G.fit_and_decide(lambda x: predict_color_change(ref, sticker, x, amplitude),
+                                               lambda x: color_change_jacobian(ref, sticker, x, amplitude), target,
+                                               sticker.num_bits, ref.view.rays.numel() > 0, generator, iterations)
+    return {"bits": bits, **G.fit_summary(fit, undetermined, int(ref.view.rays.numel())), "signals": ["rgb"]}
 
 
 def suspect_rgb_at(outputs: Dict[str, Tensor], rays: Int[Tensor, "R"], hw: Tuple[int, int]) -> Float[Tensor, "R 3"]:

@@ -241,6 +241,25 @@ def fit_message(predict: Callable[[Tensor], Tensor], target: Float[Tensor, "M"],
     return Fit(signs=s.detach(), explained=1.0 - cost / cost0, residual_rms=rms, iterations=it)
 
 
+def fit_and_decide(predict: Callable[[Tensor], Tensor], jac: Callable[[Tensor], Optional[Tensor]],
+                   target: Float[Tensor, "M"], num_bits: int, has_rays: bool, generator: torch.Generator,
+                   iterations: int = 10) -> Tuple[Fit, Int[Tensor, "K"], int]:
+    """:func:`fit_message` then :func:`decide_bits`, shared by every informed decoder; a view with no ray the gate
+    opens on (``has_rays`` false) has nothing to read: ``s = 0``, every bit a coin flip."""
+    if not has_rays:
+        fit = Fit(signs=torch.zeros(num_bits), explained=0.0, residual_rms=0.0, iterations=0)
+    else:
+        fit = fit_message(predict, target, num_bits, iterations=iterations, jac=jac)
+    bits, undetermined = decide_bits(fit.signs, generator)
+    return fit, bits, undetermined
+
+
+def fit_summary(fit: Fit, undetermined: int, rays: int) -> Dict[str, Any]:
+    """The per-view fit details the colour and image decoders report."""
+    return {"signs_abs_mean": float(fit.signs.abs().mean()), "undetermined": undetermined, "explained": fit.explained,
+            "residual_rms": fit.residual_rms, "iterations": fit.iterations, "rays": rays}
+
+
 def decide_bits(signs: Float[Tensor, "K"], generator: torch.Generator, tol: float = 1e-6) -> Tuple[Int[Tensor, "K"], int]:
     """Bit ``i`` = ``signs_i > 0``; bits with ``|signs_i| <= tol`` (not determined by the suspect) are coin flips
     from ``generator`` (seeded independently of the owner's message). Returns the bits and how many were flipped."""
@@ -466,14 +485,10 @@ def suspect_signal(outputs: Dict[str, Tensor], ref: ReferenceView) -> Float[Tens
 def decode_view(ref_view: ReferenceView, sticker: Sticker, suspect: Float[Tensor, "C R"],
                 generator: torch.Generator, iterations: int = 10) -> Dict[str, Any]:
     """Fit the continuous message to one view's suspect geometry and decide the bits."""
-    k = sticker.num_bits
     target = (suspect - ref_view.base_signal).float()
-    if ref_view.rays.numel() == 0:  # the gate opens nowhere in this view: nothing to read
-        fit = Fit(signs=torch.zeros(k), explained=0.0, residual_rms=0.0, iterations=0)
-    else:
-        fit = fit_message(lambda s: predict_change(ref_view, sticker, s), target, k, iterations=iterations,
-                          jac=lambda s: change_jacobian(ref_view, sticker, s))
-    bits, undetermined = decide_bits(fit.signs, generator)
+    fit, bits, undetermined = fit_and_decide(lambda s: predict_change(ref_view, sticker, s),
+                                             lambda s: change_jacobian(ref_view, sticker, s), target, sticker.num_bits,
+                                             ref_view.rays.numel() > 0, generator, iterations)
     return {"bits": bits, "signs": fit.signs, "undetermined": undetermined, "explained": fit.explained,
             "residual_rms": fit.residual_rms, "iterations": fit.iterations, "rays": int(ref_view.rays.numel())}
 

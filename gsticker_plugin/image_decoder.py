@@ -88,17 +88,11 @@ def decode_image_view(ref: ImageReferenceView, sticker: Sticker, image_rgb: Floa
     """Fit the continuous message to one image's colour change (image minus base render) and decide the bits."""
     from gsticker_plugin import geometry as G
 
-    k = sticker.num_bits
     target = (image_rgb.float() - ref.base_rgb).reshape(-1)
-    if ref.view.rays.numel() == 0:  # the gate opens nowhere in this view: nothing to read
-        fit = G.Fit(signs=torch.zeros(k), explained=0.0, residual_rms=0.0, iterations=0)
-    else:
-        fit = G.fit_message(lambda x: predict_image_change(ref, sticker, x), target, k, iterations=iterations,
-                            jac=lambda x: image_change_jacobian(ref, sticker, x))
-    bits, undetermined = G.decide_bits(fit.signs, generator)
-    return {"bits": bits, "signs_abs_mean": float(fit.signs.abs().mean()), "undetermined": undetermined,
-            "explained": fit.explained, "residual_rms": fit.residual_rms, "iterations": fit.iterations,
-            "rays": int(ref.view.rays.numel()), "signals": ["rgb"]}
+    fit, bits, undetermined = G.fit_and_decide(lambda x: predict_image_change(ref, sticker, x),
+                                               lambda x: image_change_jacobian(ref, sticker, x), target,
+                                               sticker.num_bits, ref.view.rays.numel() > 0, generator, iterations)
+    return {"bits": bits, **G.fit_summary(fit, undetermined, int(ref.view.rays.numel())), "signals": ["rgb"]}
 
 
 # ================================================================================================================
@@ -109,6 +103,7 @@ DEGRADATION_GRID: Dict[str, Tuple[float, ...]] = {
     "blur": tuple(round(0.25 * i, 2) for i in range(1, 17)),  # Gaussian sigma 0.25 .. 4 px
     "resize": tuple(round(0.2 + 0.05 * i, 2) for i in range(16)),  # scale 0.2 .. 0.95
     "rotate": tuple(float(d) for d in range(-45, 46) if d != 0),  # degrees, 1 degree apart
+    "jpeg": (100.0, 95.0, 90.0, 80.0, 70.0, 60.0, 50.0, 40.0, 30.0, 20.0, 10.0),  # quality
 }
 """The image decoder's search grid (``degradations="match"``): each image's degradation is the entry whose
 transform of the *base render* is closest to the image (least squares over all pixels; the identity unless one
@@ -119,7 +114,7 @@ identified degradation, an upper bound for decoding an image of unknown processi
 
 @dataclass(frozen=True)
 class Degradation:
-    """An image transform of :mod:`gsticker_plugin.attacks` (``blur``, ``resize``, ``rotate``; ``none``)."""
+    """An image transform of :mod:`gsticker_plugin.attacks` (``blur``, ``resize``, ``rotate``, ``jpeg``; ``none``)."""
 
     name: str = "none"
     strength: float = 0.0
@@ -155,6 +150,8 @@ class Degradation:
         if self.name == "rotate":
             angle = torch.full((x.shape[0],), float(self.strength), dtype=x.dtype)
             return kornia.geometry.transform.rotate(x, angle, mode="bilinear", padding_mode="zeros", align_corners=True)
+        if self.name == "jpeg":  # the codec's linear part (kornia's): YCbCr, chroma halved and doubled; the DCT
+            return _jpeg_affine(x) - _jpeg_affine(torch.zeros_like(x[:1]))  # quantization is not linear: left out
         raise GStickerError(f"unknown degradation {self.name!r}")
 
     def label(self) -> str:
@@ -166,6 +163,20 @@ MATCH_MARGIN = 0.5
 of the identity's squared error: the mark itself is a (small) difference between image and base that a mild blur
 can happen to reduce (seen on a 32 px scene with a strong mark), while a real blur, resize or rotation of a scene
 with edges leaves a few percent of it."""
+
+
+def _jpeg_affine(x: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B 3 H W"]:
+    """``kornia.enhance.jpeg_codec_differentiable`` without its DCT quantization: pad to multiples of 16
+    (replicate), RGB -> YCbCr, chroma down- and upsampled by 2 as kornia does, back to RGB, crop (affine in x)."""
+    import torch.nn.functional as F
+    from kornia.color import rgb_to_ycbcr, ycbcr_to_rgb
+    from kornia.geometry.transform import rescale
+
+    h, w = x.shape[-2:]
+    y = rgb_to_ycbcr(F.pad(x, (0, (-w) % 16, 0, (-h) % 16), "replicate"))
+    c = rescale(y[:, 1:], 0.5, interpolation="bilinear", align_corners=False, antialias=True)
+    c = rescale(c, 2.0, interpolation="bilinear", align_corners=False, antialias=False)
+    return ycbcr_to_rgb(torch.cat([y[:, :1], c], dim=1))[..., :h, :w]
 
 
 def match_degradation(image: Float[Tensor, "H W 3"], base: Float[Tensor, "3 H W"],
@@ -199,7 +210,6 @@ def decode_degraded_view(ref: ImageReferenceView, sticker: Sticker, image: Float
         d = decode_image_view(ref, sticker, image_at_rays(image, ref.view.rays, ref.view.hw), generator, iterations)
         d["degradation"] = "none"
         return d
-    k = sticker.num_bits
     h, w = ref.view.hw
     rays = ref.view.rays
     base = ref.view.image.float()  # [3 H W]
@@ -218,14 +228,10 @@ def decode_degraded_view(ref: ImageReferenceView, sticker: Sticker, image: Float
         j = image_change_jacobian(ref, sticker, sg)
         return None if j is None else spread(j)
 
-    if rays.numel() == 0:
-        fit = G.Fit(signs=torch.zeros(k), explained=0.0, residual_rms=0.0, iterations=0)
-    else:
-        fit = G.fit_message(predict, target, k, iterations=iterations, jac=jac)
-    bits, undetermined = G.decide_bits(fit.signs, generator)
-    return {"bits": bits, "signs_abs_mean": float(fit.signs.abs().mean()), "undetermined": undetermined,
-            "explained": fit.explained, "residual_rms": fit.residual_rms, "iterations": fit.iterations,
-            "rays": int(rays.numel()), "signals": ["rgb"], "degradation": degradation.label()}
+    fit, bits, undetermined = G.fit_and_decide(predict, jac, target, sticker.num_bits, rays.numel() > 0, generator,
+                                               iterations)
+    return {"bits": bits, **G.fit_summary(fit, undetermined, int(rays.numel())), "signals": ["rgb"],
+            "degradation": degradation.label()}
 
 
 def image_at_rays(image: Float[Tensor, "H W 3"], rays: Int[Tensor, "R"], hw: Tuple[int, int]) -> Float[Tensor, "R 3"]:

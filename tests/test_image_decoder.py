@@ -100,3 +100,10 @@ def test_a_blurred_rotated_or_resized_image_is_matched_from_the_base_alone_and_d
         lin = deg.apply(0.5 + small) - deg.apply(torch.full_like(small, 0.5))
         assert torch.allclose(lin, deg.linear(small), atol=1e-5), deg
     assert I.match_degradation(marked[0].permute(1, 2, 0), base)[0] == I.Degradation()  # the mark alone: identity
+    # JPEG is matched too; its model is the codec without its quantization (colour conversion, chroma resampling)
+    jp = I.Degradation("jpeg", 50.0)
+    assert I.match_degradation(jp.apply(marked)[0].permute(1, 2, 0), base)[0] == jp
+    small = 0.01 * torch.randn(1, 3, h, w, generator=g)
+    near = I.Degradation("jpeg", 100.0)
+    err_model = float((near.apply(0.5 + small) - near.apply(torch.full_like(small, 0.5)) - near.linear(small)).abs().mean())
+    assert err_model < 0.5 * float(small.abs().mean())  # the linear part carries most of a small change
