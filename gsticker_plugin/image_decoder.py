@@ -234,6 +234,40 @@ def decode_degraded_view(ref: ImageReferenceView, sticker: Sticker, image: Float
             "degradation": degradation.label()}
 
 
+def residual_cost(ref: ImageReferenceView, image: Float[Tensor, "H W 3"], d: Dict[str, Any]) -> float:
+    """The squared residual a fit leaves over the whole image: an identity fit reads the rays only, the pixels
+    outside them count with the image's whole difference from the base render."""
+    h, w = ref.view.hw
+    m = 3 * (h * w if d["degradation"] != "none" else int(ref.view.rays.numel()))
+    cost = (1.0 - d["explained"]) * d["residual_rms"] ** 2 * m
+    if d["degradation"] == "none":
+        outside = torch.ones(h * w, dtype=torch.bool)
+        outside[ref.view.rays] = False
+        diff = image.float().reshape(-1, 3) - ref.view.image.float().permute(1, 2, 0).reshape(-1, 3)
+        cost += float((diff[outside].double() ** 2).sum())
+    return cost
+
+
+def decode_selected(ref: ImageReferenceView, sticker: Sticker, image: Float[Tensor, "H W 3"],
+                    degradation: Degradation, generator: torch.Generator, iterations: int = 10) -> Dict[str, Any]:
+    """Decode through ``degradation`` and, when it is not the identity, also without it; keep the fit that leaves
+    the smaller residual over the whole image (a strong mark on a plain scene can make a transform of the base look
+    closer than the base itself). Both fits use the image, the base and the sticker only, never the message; the
+    coin flips of the kept fit are drawn as if it had been the only one."""
+    if degradation.name == "none":
+        return decode_degraded_view(ref, sticker, image, degradation, generator, iterations)
+    state = generator.get_state()
+    fits = []
+    for deg in (Degradation(), degradation):
+        g = torch.Generator().set_state(state)
+        d = decode_degraded_view(ref, sticker, image, deg, g, iterations)
+        fits.append((residual_cost(ref, image, d), d, g))
+    cost, d, g = min(fits, key=lambda f: f[0])
+    generator.set_state(g.get_state())
+    d["residual_cost_none"], d["residual_cost_matched"] = fits[0][0], fits[1][0]
+    return d
+
+
 def image_at_rays(image: Float[Tensor, "H W 3"], rays: Int[Tensor, "R"], hw: Tuple[int, int]) -> Float[Tensor, "R 3"]:
     if tuple(image.shape[:2]) != tuple(hw) or image.shape[-1] != 3:
         raise GStickerError(f"an image of {tuple(image.shape)} for a {hw[0]}x{hw[1]} camera; the image decoder needs "
@@ -250,8 +284,9 @@ def decode_posed_images(key, reference, images: Float[Tensor, "V H W 3"], camera
     ``reference``: the owner's base with the key's sticker and gates
     (:func:`gsticker_plugin.geometry.load_base_reference`). ``ref_cache``: a dict the caller keeps to reuse the
     base's reference views of these cameras (the same keys as the geometric decoder's, so one cache serves both).
-    ``degradations="match"``: first estimate each image's blur, resize or rotation from the base render alone
-    (:func:`match_degradation` over :data:`DEGRADATION_GRID`) and fit through it (:func:`decode_degraded_view`);
+    ``degradations="match"``: first estimate each image's blur, resize, rotation or JPEG quality from the base
+    render alone (:func:`match_degradation` over :data:`DEGRADATION_GRID`), fit through it and without it, and keep
+    the fit with the smaller residual (:func:`decode_selected`);
     ``None``: compare the image with the base render as it is.
     Returns per image ``bits``, ``matches``, ``bit_acc``, ``pvalues``, ``scores`` (None) and ``image`` (the fits).
     """
@@ -271,7 +306,7 @@ def decode_posed_images(key, reference, images: Float[Tensor, "V H W 3"], camera
         ref = image_reference(ref_view, background)
         image_at_rays(image, ref_view.rays, ref_view.hw)  # checks the size
         deg = match_degradation(image, ref_view.image)[0] if degradations == "match" else Degradation()
-        d = decode_degraded_view(ref, st, image, deg, gen, iterations)
+        d = decode_selected(ref, st, image, deg, gen, iterations)
         bits.append(d.pop("bits"))
         details.append(d)
     return G.decoded(key, bits, "image", details)
