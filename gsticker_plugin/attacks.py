@@ -1,7 +1,8 @@
 """Image distortions ("attacks") for robustness training and evaluation of the message extractor.
 
 All functions take float RGB images ``Float[Tensor, "B 3 H W"]`` in [0, 1] and return a new image of the same
-shape, dtype and device, clamped to [0, 1]. They are differentiable wherever the operation allows (they sit
+shape, dtype and device, clamped to [0, 1] (``gaussian_blur``, ``resize`` and ``rotate`` take ``clamp=False``
+for their unclamped, linear-in-the-image form, which the image decoder applies to small changes). They are differentiable wherever the operation allows (they sit
 between the renderer and the extractor during training), and every random one takes an optional
 ``generator: torch.Generator | None`` (random numbers are drawn on the generator's device and moved to the
 image's device, so a CPU generator gives the same draws for CPU and CUDA images).
@@ -48,8 +49,8 @@ def _work(img: Tensor) -> Tensor:
     return img.float() if img.dtype in (torch.float16, torch.bfloat16) else img
 
 
-def _finish(out: Tensor, like: Tensor) -> Tensor:
-    return out.clamp(0.0, 1.0).to(like.dtype)
+def _finish(out: Tensor, like: Tensor, clamp: bool = True) -> Tensor:
+    return (out.clamp(0.0, 1.0) if clamp else out).to(like.dtype)
 
 
 def _per_image(value: Strength, img: Tensor) -> Tensor:
@@ -102,7 +103,8 @@ def gaussian_noise(
     return _finish(x + s * noise, img)
 
 
-def rotate(img: Float[Tensor, "B 3 H W"], degrees: Strength, fill: float = 1.0) -> Float[Tensor, "B 3 H W"]:
+def rotate(img: Float[Tensor, "B 3 H W"], degrees: Strength, fill: float = 1.0,
+           clamp: bool = True) -> Float[Tensor, "B 3 H W"]:
     """Rotate about the image centre by ``degrees`` (counter-clockwise, like ``torch.rot90``), keeping the size.
 
     The area that leaves the frame is lost; the area that enters it is ``fill`` (white by default: Blender
@@ -119,7 +121,7 @@ def rotate(img: Float[Tensor, "B 3 H W"], degrees: Strength, fill: float = 1.0) 
     both = torch.cat([x, ones], dim=1)
     rot = kornia.geometry.transform.rotate(both, angle, mode="bilinear", padding_mode="zeros", align_corners=True)
     out = rot[:, :3] + (1.0 - rot[:, 3:]) * fill
-    return _finish(out, img)
+    return _finish(out, img, clamp)
 
 
 def _rect_size(share: float, h: int, w: int, u: float) -> Tuple[int, int]:
@@ -176,7 +178,7 @@ def blur_kernel_size(sigma: float) -> int:
     return max(3, 2 * math.ceil(3.0 * sigma) + 1)
 
 
-def gaussian_blur(img: Float[Tensor, "B 3 H W"], sigma: Strength) -> Float[Tensor, "B 3 H W"]:
+def gaussian_blur(img: Float[Tensor, "B 3 H W"], sigma: Strength, clamp: bool = True) -> Float[Tensor, "B 3 H W"]:
     """Gaussian blur with std ``sigma`` pixels, kernel size ``2*ceil(3*sigma)+1`` (at least 3), reflect borders.
 
     ``sigma <= 0`` is the identity. Note that a "blur sigma 0.1" setting, as some benchmarks use with a 3x3
@@ -202,7 +204,7 @@ def gaussian_blur(img: Float[Tensor, "B 3 H W"], sigma: Strength) -> Float[Tenso
     s_safe = s.clamp_min(1e-3)
     out = kornia.filters.gaussian_blur2d(x, (k, k), torch.stack([s_safe, s_safe], dim=-1), border_type="reflect")
     out = torch.where((s > 0).view(-1, 1, 1, 1), out, x)
-    return _finish(out, img)
+    return _finish(out, img, clamp)
 
 
 def hue_shift(img: Float[Tensor, "B 3 H W"], shift: Strength) -> Float[Tensor, "B 3 H W"]:
@@ -238,7 +240,7 @@ def jpeg(img: Float[Tensor, "B 3 H W"], quality: Strength) -> Float[Tensor, "B 3
     return _finish(out, img)
 
 
-def resize(img: Float[Tensor, "B 3 H W"], scale: Strength) -> Float[Tensor, "B 3 H W"]:
+def resize(img: Float[Tensor, "B 3 H W"], scale: Strength, clamp: bool = True) -> Float[Tensor, "B 3 H W"]:
     """Downscale by ``scale`` in (0, 1] (bilinear, antialiased) and upscale back to the original size.
 
     The reduced size is ``max(1, round(H * scale)) x max(1, round(W * scale))``; a scale that rounds to the
@@ -251,14 +253,14 @@ def resize(img: Float[Tensor, "B 3 H W"], scale: Strength) -> Float[Tensor, "B 3
     b, _, h, w = x.shape
     if isinstance(scale, Tensor) and _per_image(scale, x).unique().numel() > 1:
         scales = _per_image(scale, x).detach().tolist()
-        return torch.cat([resize(img[i : i + 1], float(scales[i])) for i in range(b)], dim=0)
+        return torch.cat([resize(img[i : i + 1], float(scales[i]), clamp) for i in range(b)], dim=0)
     sc = float(_per_image(scale, x)[0]) if isinstance(scale, Tensor) else float(scale)
     sh, sw = max(1, int(round(h * sc))), max(1, int(round(w * sc)))
     if (sh, sw) == (h, w):
         return img.clone()
     small = F.interpolate(x, size=(sh, sw), mode="bilinear", align_corners=False, antialias=True)
     out = F.interpolate(small, size=(h, w), mode="bilinear", align_corners=False)
-    return _finish(out, img)
+    return _finish(out, img, clamp)
 
 
 # ----------------------------------------------------------------------------------------------------------------

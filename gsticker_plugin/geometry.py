@@ -129,12 +129,16 @@ def predict_change(ref: ReferenceView, sticker: Sticker, signs: Float[Tensor, "K
     return signal_of_sticker(ref, sticker.mix(ref.features, signs))
 
 
-def signal_of_sticker(ref: ReferenceView, m: Float[Tensor, "N 1"]) -> Float[Tensor, "C R"]:
-    """The geometry signal of the base's samples with sticker values ``m`` at the gate-open samples."""
+def marked_density(ref: ReferenceView, m: Float[Tensor, "N 1"]) -> Float[Tensor, "R S 1"]:
+    """The base's sample densities wrapped with sticker values ``m`` at the gate-open samples (as ``DensityWrap``)."""
     r, s = ref.density.shape[:2]
     delta = torch.zeros(r * s, 1, dtype=m.dtype, device=m.device).index_add(0, ref.open_index, ref.psi_scale * m)
-    density = torch.relu(ref.density + delta.reshape(r, s, 1))
-    w = render_weights(density, ref.deltas)
+    return torch.relu(ref.density + delta.reshape(r, s, 1))
+
+
+def signal_of_sticker(ref: ReferenceView, m: Float[Tensor, "N 1"]) -> Float[Tensor, "C R"]:
+    """The geometry signal of the base's samples with sticker values ``m`` at the gate-open samples."""
+    w = render_weights(marked_density(ref, m), ref.deltas)
     acc = w.sum(dim=-2)[:, 0]
     if len(ref.signals) == 1:
         return acc[None]

@@ -11,7 +11,8 @@ bits are coin flips from a generator independent of the owner's message.
 
 What it reads: images at *known* cameras (renders of the scene at the base's cameras, e.g. the evaluation
 protocol's test views), as they are or after image distortions (noise, blur, JPEG, resize, cropout, rotation,
-hue shifts: :mod:`gsticker_plugin.attacks`). It models no distortion: whatever an attack does to the image is
+hue shifts: :mod:`gsticker_plugin.attacks`). Blur, resize, rotation and JPEG are estimated from the base render
+alone and fitted through (:func:`match_degradation`, :func:`decode_selected`); whatever else an attack does is
 residual the fit has to live with, so its robustness curves measure the mark, not a trained invariance. A
 recoloured *model* changes the sample colours, which this decoder takes from the base: recolouring is read by the
 geometric decoder, which does not look at colour at all.
@@ -57,10 +58,10 @@ def image_reference(ref_view, background: Float[Tensor, "3"]) -> ImageReferenceV
 def rgb_of_sticker(ref: ImageReferenceView, m: Float[Tensor, "N 1"]) -> Float[Tensor, "R 3"]:
     """The rendered colour at the rays with sticker values ``m`` at the gate-open samples: the same wrap
     (``relu(sigma + psi * scale * m)``), quadrature, background and clamp as the renderer."""
+    from gsticker_plugin.geometry import marked_density
+
     v = ref.view
-    r, s = v.density.shape[:2]
-    delta = torch.zeros(r * s, 1, dtype=m.dtype, device=m.device).index_add(0, v.open_index, v.psi_scale * m)
-    w = render_weights(torch.relu(v.density + delta.reshape(r, s, 1)), v.deltas)
+    w = render_weights(marked_density(v, m), v.deltas)
     rgb = (w * v.rgb).sum(dim=-2) + ref.background * (1.0 - w.sum(dim=-2))
     return rgb.clamp(0.0, 1.0)
 
@@ -126,32 +127,20 @@ class Degradation:
         return x if self.name == "none" else ATTACKS[self.name](x, self.strength)
 
     def linear(self, x: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B 3 H W"]:
-        """The attack's linear part, unclamped: what it does to a small change of the image."""
-        import kornia
-        import torch.nn.functional as F
-
-        from gsticker_plugin.attacks import blur_kernel_size
+        """The attack's linear part, unclamped: what it does to a small change of the image (rotation's fill is
+        0; for JPEG the codec without its DCT quantization, which is not linear)."""
+        from gsticker_plugin.attacks import gaussian_blur, resize, rotate
 
         if self.name == "none":
             return x
-        h, w = x.shape[-2:]
         if self.name == "blur":
-            k = blur_kernel_size(self.strength)
-            kmax = 2 * min(h, w) - 1
-            k = max(1, min(k, kmax if kmax % 2 == 1 else kmax - 1))
-            sig = torch.full((x.shape[0], 2), float(self.strength), dtype=x.dtype)
-            return kornia.filters.gaussian_blur2d(x, (k, k), sig, border_type="reflect")
+            return gaussian_blur(x, self.strength, clamp=False)
         if self.name == "resize":
-            sh, sw = max(1, int(round(h * self.strength))), max(1, int(round(w * self.strength)))
-            if (sh, sw) == (h, w):
-                return x
-            small = F.interpolate(x, size=(sh, sw), mode="bilinear", align_corners=False, antialias=True)
-            return F.interpolate(small, size=(h, w), mode="bilinear", align_corners=False)
+            return resize(x, self.strength, clamp=False)
         if self.name == "rotate":
-            angle = torch.full((x.shape[0],), float(self.strength), dtype=x.dtype)
-            return kornia.geometry.transform.rotate(x, angle, mode="bilinear", padding_mode="zeros", align_corners=True)
-        if self.name == "jpeg":  # the codec's linear part (kornia's): YCbCr, chroma halved and doubled; the DCT
-            return _jpeg_affine(x) - _jpeg_affine(torch.zeros_like(x[:1]))  # quantization is not linear: left out
+            return rotate(x, self.strength, fill=0.0, clamp=False)
+        if self.name == "jpeg":
+            return _jpeg_affine(x) - _jpeg_affine(torch.zeros_like(x[:1]))
         raise GStickerError(f"unknown degradation {self.name!r}")
 
     def label(self) -> str:

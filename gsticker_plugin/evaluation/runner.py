@@ -560,12 +560,8 @@ class Runner:
                 per_seed.append({"seed": seed, **d})
                 if self.reads_images:
                     image_per_seed.append({"seed": seed, **self.image_decode(x)})
-            accs = torch.tensor([s["bit_acc"] for s in per_seed])
             row = {"label": r.label, "spec": r.spec, "paper": r.paper, "definition": describe_spec(r.spec),
-                   "bit_acc": float(accs.mean()), "bit_acc_seed_std": float(accs.std(unbiased=False)),
-                   "share_passing": float(sum(s["share_passing"] for s in per_seed) / len(per_seed)),
-                   "verdict_rate": float(sum(s["verdict"] for s in per_seed) / len(per_seed)),
-                   "attack_psnr": per_seed[0]["attack_psnr"], "per_seed": per_seed}
+                   **over_seeds(per_seed), "attack_psnr": per_seed[0]["attack_psnr"]}
             if image_per_seed:
                 row["image_decoder"] = over_seeds(image_per_seed)
             rows.append(row)
