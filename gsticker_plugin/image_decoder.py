@@ -264,11 +264,11 @@ def image_at_rays(image: Float[Tensor, "H W 3"], rays: Int[Tensor, "R"], hw: Tup
     return image.float().reshape(-1, 3)[rays]
 
 
-def decode_posed_images(key, reference, images: Float[Tensor, "V H W 3"], cameras: Sequence[Tuple[str, Any]],
+def decode_posed_images(key, reference, images: Sequence[Float[Tensor, "H W 3"]], cameras: Sequence[Tuple[str, Any]],
                         seed: int, iterations: int = 10, ref_cache: Optional[Dict[Any, Any]] = None,
                         progress: bool = False, degradations: Optional[str] = "match") -> Dict[str, Any]:
     """Decode ``images[i]``, taken at ``cameras[i] = (name, camera)`` of the owner's scene, with the informed image
-    decoder.
+    decoder. ``images``: a ``[V H W 3]`` tensor or a list of ``[H W 3]`` images (sizes may differ, each its camera's).
 
     ``reference``: the owner's base with the key's sticker and gates
     (:func:`gsticker_plugin.geometry.load_base_reference`). ``ref_cache``: a dict the caller keeps to reuse the
@@ -282,8 +282,8 @@ def decode_posed_images(key, reference, images: Float[Tensor, "V H W 3"], camera
     from gsticker_plugin import geometry as G
     from gsticker_plugin.verify import _tqdm
 
-    if images.ndim != 4 or images.shape[0] != len(cameras):
-        raise GStickerError(f"{tuple(images.shape)} images for {len(cameras)} cameras: pass one [H W 3] image per camera")
+    if len(images) != len(cameras) or any(im.ndim != 3 for im in images):
+        raise GStickerError(f"{len(images)} images for {len(cameras)} cameras: pass one [H W 3] image per camera")
     st = G.cpu_sticker(reference.model)
     background = reference.model.background_color()
     gen = G.tie_generator(seed)
@@ -299,3 +299,120 @@ def decode_posed_images(key, reference, images: Float[Tensor, "V H W 3"], camera
         bits.append(d.pop("bits"))
         details.append(d)
     return G.decoded(key, bits, "image", details)
+
+
+# ================================================================================================================
+# cameras of suspect images (ns-verify-owner --images DIR --cameras transforms.json)
+# ================================================================================================================
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp", ".webp", ".hdr", ".tga", ".ppm"}
+INTRINSIC_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
+
+
+def frame_name(path: str) -> str:
+    """A frame's or an image's name for matching: posix path without a leading ``./`` and without an image suffix."""
+    p = str(path).replace("\\", "/")
+    while p.startswith("./"):
+        p = p[2:]
+    for s in IMAGE_SUFFIXES:
+        if p.lower().endswith(s):
+            return p[: -len(s)]
+    return p
+
+
+def read_cameras_file(path) -> Dict[str, Dict[str, Any]]:
+    """The frames of a Blender-style transforms JSON (``transforms_test.json``: ``camera_angle_x`` and per frame
+    ``file_path`` and a 4x4 OpenGL camera-to-world ``transform_matrix``; nerfstudio's intrinsics ``fl_x, fl_y, cx,
+    cy, w, h`` are read too, at the top level or per frame). Returns ``{frame name: {"c2w": [4 4], "intrinsics":
+    {...}}}``, named by :func:`frame_name` of ``file_path``. One-line errors for what cannot be used."""
+    import json
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.is_file():
+        raise GStickerError(f"--cameras {path} does not exist; pass the transforms JSON of the suspect images' cameras")
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise GStickerError(f"--cameras {path} is not readable JSON ({type(e).__name__}: {str(e)[:80]}); pass a "
+                            "transforms JSON (Blender format)") from None
+    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if not isinstance(frames, list) or not frames:
+        raise GStickerError(f"--cameras {path} has no 'frames' list; pass a transforms JSON (Blender format: "
+                            "camera_angle_x and frames with file_path and transform_matrix)")
+    top = {k: meta[k] for k in INTRINSIC_KEYS if k in meta}
+    out: Dict[str, Dict[str, Any]] = {}
+    for i, fr in enumerate(frames):
+        try:
+            name = frame_name(fr["file_path"])
+            c2w = torch.tensor(fr["transform_matrix"], dtype=torch.float32)
+        except (KeyError, TypeError, ValueError) as e:
+            raise GStickerError(f"--cameras {path}: frame {i} lacks a usable file_path/transform_matrix "
+                                f"({type(e).__name__}: {e})") from None
+        if tuple(c2w.shape) == (3, 4):
+            c2w = torch.cat([c2w, torch.tensor([[0.0, 0.0, 0.0, 1.0]])])
+        if tuple(c2w.shape) != (4, 4) or not bool(torch.isfinite(c2w).all()):
+            raise GStickerError(f"--cameras {path}: frame {i} ({name}) has a transform_matrix of shape "
+                                f"{tuple(c2w.shape)} or non-finite values; it must be a 4x4 camera-to-world matrix")
+        intr = {**top, **{k: fr[k] for k in INTRINSIC_KEYS if k in fr}}
+        if "camera_angle_x" not in intr and "fl_x" not in intr:
+            raise GStickerError(f"--cameras {path}: frame {i} ({name}) has no intrinsics (camera_angle_x or fl_x)")
+        if "fl_x" in intr and not ("w" in intr and "h" in intr):
+            raise GStickerError(f"--cameras {path}: frame {i} ({name}) gives fl_x without the image size w, h it "
+                                "refers to")
+        out[name] = {"c2w": c2w, "intrinsics": intr}
+    return out
+
+
+def match_frame(image_name: str, frames: Dict[str, Dict[str, Any]]) -> Optional[str]:
+    """The frame of an image (its path relative to the images folder): the same name, else the same last
+    component when exactly one frame has it (``r_0.png`` <-> ``./test/r_0``)."""
+    name = frame_name(image_name)
+    if name in frames:
+        return name
+    last = name.rsplit("/", 1)[-1]
+    hits = [f for f in frames if f.rsplit("/", 1)[-1] == last]
+    return hits[0] if len(hits) == 1 else None
+
+
+def camera_for_image(frame: Dict[str, Any], height: int, width: int, scale_factor: float = 1.0):
+    """A nerfstudio camera for an image of ``height x width`` px taken at ``frame`` (:func:`read_cameras_file`):
+    the intrinsics scaled to the image's size, the pose put in the base run's coordinates the way nerfstudio's
+    Blender dataparser does (translation times its ``scale_factor``)."""
+    import math
+
+    from nerfstudio.cameras.cameras import Cameras, CameraType
+
+    intr = frame["intrinsics"]
+    if "fl_x" in intr:
+        w0, h0 = float(intr["w"]), float(intr["h"])
+        if abs(w0 / h0 - width / height) > 0.01 * (w0 / h0):
+            raise GStickerError(f"a {width}x{height} image for a camera of {int(w0)}x{int(h0)} px (another aspect "
+                                "ratio): crop or pad it back to the camera's frame")
+        sx, sy = width / w0, height / h0
+        fx = float(intr["fl_x"]) * sx
+        fy = float(intr.get("fl_y", intr["fl_x"])) * sy
+        cx, cy = float(intr.get("cx", w0 / 2)) * sx, float(intr.get("cy", h0 / 2)) * sy
+    else:
+        fx = 0.5 * width / math.tan(0.5 * float(intr["camera_angle_x"]))
+        fy = 0.5 * height / math.tan(0.5 * float(intr["camera_angle_y"])) if "camera_angle_y" in intr else fx
+        cx, cy = width / 2.0, height / 2.0
+    c2w = frame["c2w"][:3].clone()
+    c2w[:, 3] *= float(scale_factor)
+    return Cameras(camera_to_worlds=c2w[None], fx=fx, fy=fy, cx=cx, cy=cy, width=int(width), height=int(height),
+                   camera_type=CameraType.PERSPECTIVE)
+
+
+def base_pose_scale(reference) -> float:
+    """How the owner's base run maps a transforms file's poses to its own coordinates: only Blender-format data
+    (nerfstudio's ``blender-data`` dataparser: the translation times ``scale_factor``) is supported; other
+    dataparsers re-orient and re-center poses with transforms a transforms file of other images does not record."""
+    from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
+
+    dm = reference.pipeline.datamanager
+    parser_cfg = getattr(getattr(dm, "config", None), "dataparser", None)
+    if not isinstance(parser_cfg, BlenderDataParserConfig):
+        raise GStickerError(f"--cameras needs a base trained on Blender-format data (blender-data dataparser); this "
+                            f"base used {type(parser_cfg).__name__}, whose pose normalization a transforms file "
+                            "does not carry; decode these images with --decode extractor")
+    return float(parser_cfg.scale_factor)

@@ -16,9 +16,10 @@ first, writes ``report.json`` and ``report.png``, and exits 0 ("owned"), 1 ("not
 rewritten atomically; the previous file is kept as ``KEY.gskey.bak``). ``verify`` then uses the stricter of the
 theoretical and the empirical per-view threshold and reports both. See docs/verify.md.
 
-Two decoders (``--decode``): the blind *extractor* (the key's CNN reads RGB renders or images) and the informed
+Three decoders (``--decode``): the blind *extractor* (the key's CNN reads RGB renders or images), the informed
 *geometric* decoder (gsticker_plugin.geometry: fits the key's sticker to a suspect model's accumulation/depth against
-the owner's unwatermarked base run; models only). ``export-key`` adds the geometric decoder's reference (sticker,
+the owner's unwatermarked base run; models only) and the informed *image* decoder (gsticker_plugin.image_decoder:
+the same fit on the colour of images taken at known cameras, ``--images DIR --cameras transforms.json``). ``export-key`` adds the geometric decoder's reference (sticker,
 gates) to a version-1 key from the watermarked run it belongs to.
 """
 
@@ -43,6 +44,7 @@ from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import KEY_SUFFIX, OwnerKey, bits_to_str
 
 EXIT_OWNED, EXIT_NOT_SHOWN, EXIT_ERROR = 0, 1, 2
+DECODER_NAMES = {"extractor": "extractor", "geometry": "geometric decoder", "image": "image decoder"}
 NULL_FORMAT_VERSION = 1
 THUMB_SIDE = 128  # side of the view thumbnails kept for the figure
 
@@ -75,11 +77,16 @@ class VerifyConfig:
     data: Optional[Path] = None
     """Dataset folder of the run, when the path recorded in its config.yml does not exist from here (also used for
     the owner's base run under --decode geometry when its recorded dataset does not exist and --base-data is unset)."""
-    decode: Literal["auto", "geometry", "extractor"] = "auto"
+    decode: Literal["auto", "geometry", "image", "extractor"] = "auto"
     """geometry: informed decoding from the suspect model's accumulation/depth, given the owner's unwatermarked base
-    run (needs a version-2 key and --load-config; model-level only); extractor: the key's CNN reads the message
-    from RGB renders or images (blind); auto: geometry when a model and keys with a reachable base are given,
-    else extractor."""
+    run (needs a version-2 key and --load-config; model-level only); image: informed decoding of --images taken at
+    the known cameras of --cameras, given the owner's base run (the same fit on colour); extractor: the key's CNN
+    reads the message from RGB renders or images (blind); auto: geometry for a model and image for images with
+    --cameras when the keys' base runs are reachable, else extractor."""
+    cameras: Optional[Path] = None
+    """--images only: a transforms JSON (Blender format, e.g. the base dataset's transforms_test.json) giving each
+    image's camera, matched by file name without extension (r_0.png <-> ./test/r_0); enables --decode image.
+    Images without a camera are skipped and listed."""
     base_config: Optional[Path] = None
     """The owner's base run (config.yml) for --decode geometry, when the path recorded in the key moved."""
     base_data: Optional[Path] = None
@@ -126,9 +133,13 @@ class CalibrateConfig:
     """Folders of unmarked images."""
     base: bool = True
     """Also render the base run the key was made on (the config path recorded in the key), when it exists here."""
-    decode: Literal["extractor", "geometry"] = "extractor"
-    """Which decoder's null to measure: the extractor's (stored in the key's null) or the geometric decoder's
-    (stored in the key's geometry reference; decodes the base itself and the --load-config runs, not images)."""
+    decode: Literal["extractor", "geometry", "image"] = "extractor"
+    """Which decoder's null to measure: the extractor's (stored in the key's null), the geometric decoder's
+    (stored in the key's geometry reference; decodes the base itself and the --load-config runs, not images) or the
+    image decoder's (stored beside it; decodes the --images at the cameras of --cameras, e.g. the base dataset's
+    own photos: unmarked images at known cameras)."""
+    cameras: Optional[Path] = None
+    """--decode image: the transforms JSON giving the cameras of the --images (Blender format)."""
     base_config: Optional[Path] = None
     """--decode geometry: the owner's base run (config.yml), when the path recorded in the key moved."""
     data: Optional[Path] = None
@@ -502,9 +513,12 @@ def decode_views(key: OwnerKey, views: Views, device: torch.device) -> Dict[str,
 
 def decoder_null(key: OwnerKey, decoder: str) -> Optional[Dict[str, Any]]:
     """The empirical null stored for ``decoder``: the extractor's in ``key.null``, the geometric decoder's in
-    ``key.geometry["null"]`` (each decoder is only ever compared with its own null)."""
+    ``key.geometry["null"]``, the image decoder's in ``key.geometry["image_null"]`` (each decoder is only ever
+    compared with its own null)."""
     if decoder == "geometry":
         return (key.geometry or {}).get("null")
+    if decoder == "image":
+        return (key.geometry or {}).get("image_null")
     return key.null
 
 
@@ -553,6 +567,7 @@ def key_result(key: OwnerKey, key_path: Path, dec: Dict[str, Any], views: Views,
         emp["exceed_upper95_at_used_threshold"] = metrics.clopper_pearson_upper(exceed, emp["n"])
     scores = dec.get("scores")
     geo = dec.get("geometry")
+    img_fit = dec.get("image")
     per_view = []
     for i, v in enumerate(views.views):
         per_view.append({
@@ -560,6 +575,7 @@ def key_result(key: OwnerKey, key_path: Path, dec: Dict[str, Any], views: Views,
             "pvalue": float(dec["pvalues"][i]), "score": float(scores[i]) if scores is not None else None,
             "passed": bool(passed[i]), "decoded": bits_to_str(dec["bits"][i]), **({"note": v.note} if v.note else {}),
             **({"geometry": geo[i]} if geo is not None else {}),
+            **({"image_fit": img_fit[i]} if img_fit is not None else {}),
         })
     mlist = sorted(int(x) for x in matches.tolist())
     return {
@@ -576,9 +592,10 @@ def key_result(key: OwnerKey, key_path: Path, dec: Dict[str, Any], views: Views,
         "mean_score": float(scores.float().mean()) if scores is not None else None,
         "decoder": decoder,
         "empirical_null": emp,
-        **({"null_note": ("the key's empirical null was measured with the extractor and does not apply to the "
-                          "geometric decoder; run `ns-verify-owner calibrate --decode geometry` to measure its own")}
-           if decoder == "geometry" and emp is None and key.null else {}),
+        **({"null_note": (f"the key's empirical null was measured with the extractor and does not apply to the "
+                          f"{'geometric' if decoder == 'geometry' else 'image'} decoder; run `ns-verify-owner "
+                          f"calibrate --decode {decoder}` to measure its own")}
+           if decoder in ("geometry", "image") and emp is None and key.null else {}),
         "per_view": per_view,
     }
 
@@ -631,7 +648,8 @@ def summary_text(report: Dict[str, Any]) -> str:
         lines.append(f"  attack before decoding: {report['settings']['attack']}")
     for r in report["keys"]:
         t = r["thresholds"]
-        calib = "ns-verify-owner calibrate" + (" --decode geometry" if r.get("decoder") == "geometry" else "")
+        calib = "ns-verify-owner calibrate" + (f" --decode {r['decoder']}" if r.get("decoder", "extractor") != "extractor"
+                                               else "")
         emp = (f"empirical {t['empirical']} from {r['empirical_null']['n']} null views"
                if r["empirical_null"] else f"no empirical null for this decoder (run {calib})")
         lines.append(f"  key {r['owner_id']} ({r['key']}): {r['verdict'].upper()}")
@@ -643,7 +661,7 @@ def summary_text(report: Dict[str, Any]) -> str:
                      f"{r['num_bits']} (best view {best['name']}: p = {_fmt_p(best['pvalue'])}); mean bit accuracy "
                      f"{r['mean_bit_accuracy']:.3f}; " + (f"classifier score {r['mean_score']:.2f}"
                                                           if r["mean_score"] is not None else
-                                                          "classifier not used (geometric decoder)"))
+                                                          f"classifier not used ({DECODER_NAMES[r.get('decoder', 'geometry')]})"))
         line = (f"    model-level p-value {_fmt_p(r['model_pvalue'])}; FPR of this verdict <= "
                 f"{r['model_fpr_bound']:.2g} under any dependence between views")
         if "adjusted_pvalue" in r:
@@ -701,7 +719,7 @@ def write_figure(path: Path, report: Dict[str, Any], views: Views, key: Optional
             img = torch.nn.functional.interpolate(img[None], scale_factor=s, mode="area")[0]
         a.imshow(img.permute(1, 2, 0).clamp(0, 1).numpy())
         v = r["per_view"][i]
-        score = f"score={v['score']:.2f}" if v["score"] is not None else "geometry"
+        score = f"score={v['score']:.2f}" if v["score"] is not None else r.get("decoder", "geometry")
         a.set_title(f"{v['name'][-24:]}\n{v['matches']}/{k}  p={_fmt_p(v['pvalue'])}  {score}\n"
                     f"{'PASS' if v['passed'] else 'fail'}", fontsize=8)
         a.axis("off")
@@ -751,18 +769,31 @@ def choose_decoder(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]]) -> T
     """``--decode``: geometry or extractor, and why (auto); one-line errors for impossible choices."""
     from gsticker_plugin import geometry
 
+    if config.cameras is not None and config.images is None:
+        raise GStickerError("--cameras gives the cameras of --images; a model (--load-config) is rendered at its own "
+                            "cameras: drop --cameras")
     if config.decode == "geometry":
         if config.load_config is None:
             raise GStickerError("--decode geometry reads a model's geometry, not images: pass --load-config "
-                                "SUSPECT/config.yml, or use --decode extractor with --images")
+                                "SUSPECT/config.yml, or use --decode image --cameras CAMERAS.json with --images")
         for path, key in keys:
             if not key.geometry:
                 raise GStickerError(geometry.missing_geometry_message(path))
         return "geometry", []
+    if config.decode == "image":
+        if config.images is None or config.cameras is None:
+            raise GStickerError("--decode image reads images at known cameras: pass --images DIR and --cameras "
+                                "transforms.json (for a model use --decode geometry)")
+        for path, key in keys:
+            if not key.geometry:
+                raise GStickerError(geometry.missing_geometry_message(path))
+        return "image", []
     if config.decode == "extractor":
         return "extractor", []
-    if config.load_config is None:
-        return "extractor", ["auto: images can only be decoded by the extractor (the geometric decoder needs a model)"]
+    if config.load_config is None and config.cameras is None:
+        return "extractor", ["auto: images without cameras can only be decoded by the extractor (pass --cameras "
+                             "transforms.json for the informed image decoder)"]
+    kind, what = ("geometry", "geometric") if config.load_config is not None else ("image", "image")
     for path, key in keys:
         if not key.geometry:
             return "extractor", [f"auto: {path} has no geometry reference (version-1 key), so the extractor decodes; "
@@ -770,8 +801,8 @@ def choose_decoder(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]]) -> T
         cfg = Path(config.base_config) if config.base_config is not None else geometry.recorded_base_config(key)
         if cfg is None or not cfg.exists():
             return "extractor", [f"auto: the owner's base run {cfg} is not reachable from here, so the extractor "
-                                 "decodes; pass --base-config BASE_RUN/config.yml for geometric decoding"]
-    return "geometry", []
+                                 f"decodes; pass --base-config BASE_RUN/config.yml for {what} decoding"]
+    return kind, []
 
 
 def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device):
@@ -807,6 +838,64 @@ def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], de
     return results, views, {"bases": bases, "signals": [list(s) for s in signals], "notes": notes}
 
 
+def posed_views(views: Views, frames: Dict[str, Dict[str, Any]], scale_factor: float) -> Tuple[Views, List[Tuple[str, Any]]]:
+    """The images that have a camera in ``frames`` (:func:`gsticker_plugin.image_decoder.read_cameras_file`), each
+    with a camera of its own size; the others are added to ``skipped``."""
+    from gsticker_plugin.image_decoder import camera_for_image, match_frame
+
+    out = Views(kind=views.kind, source=views.source, skipped=list(views.skipped), details=dict(views.details))
+    cams: List[Tuple[str, Any]] = []
+    for v in views.views:
+        f = match_frame(v.name, frames)
+        if f is None:
+            out.skipped.append({"name": v.name, "reason": "no camera for it in --cameras (frames are matched by file "
+                                                          "name without extension)"})
+            continue
+        h, w = v.image.shape[-2:]
+        try:
+            cam = camera_for_image(frames[f], int(h), int(w), scale_factor)
+        except GStickerError as e:
+            out.skipped.append({"name": v.name, "reason": str(e)})
+            continue
+        note = f"camera {f}" + (f"; {v.note}" if v.note else "")
+        out.views.append(View(name=v.name, image=v.image, note=note))
+        cams.append((f"image/{f}/{int(h)}x{int(w)}", cam))
+    if not out.views:
+        raise GStickerError(f"none of the {len(views.views)} images has a camera in --cameras (frames are matched by "
+                            "file name without extension, e.g. r_0.png <-> ./test/r_0); pass the transforms JSON "
+                            "of these images")
+    out.details["cameras"] = len(cams)
+    return out, cams
+
+
+def _verify_images_informed(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], views: Views,
+                            device: torch.device):
+    """The informed image decoder on the images that have a camera in --cameras, for every key (each against its own
+    base run)."""
+    import contextlib
+
+    from gsticker_plugin import geometry
+    from gsticker_plugin.image_decoder import base_pose_scale, decode_posed_images, read_cameras_file
+
+    frames = read_cameras_file(config.cameras)
+    results, used, bases, notes = [], None, [], []
+    for path, key in keys:
+        ref = geometry.load_base_reference(key, path, config.base_config, config.base_data or config.data, device)
+        posed, cams = posed_views(views, frames, base_pose_scale(ref))
+        with contextlib.redirect_stdout(sys.stderr):
+            dec = decode_posed_images(key, ref, [v.image.permute(1, 2, 0) for v in posed.views], cams, config.seed,
+                                      progress=config.progress)
+        posed.details["cameras_of"] = str(config.cameras)
+        r = key_result(key, path, dec, posed, config.fpr, config.min_share, decoder="image")
+        r["base"] = {"config": str(ref.config_path), "checkpoint": str(ref.checkpoint), "method": ref.method}
+        notes += ref.notes
+        bases.append(str(ref.config_path))
+        results.append(r)
+        used = used or posed
+        del ref
+    return results, used, {"bases": bases, "cameras": str(config.cameras), "notes": notes}
+
+
 def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
     """Run ``verify``; returns (exit status, report). Raises GStickerError for bad input."""
     _check_stats(config.fpr, config.min_share)
@@ -834,6 +923,14 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
                         "description": "informed: fits the key's sticker to the suspect's geometry ("
                                        + " + ".join(sorted({n.replace("_", " ") for sig in info["signals"] for n in sig}))
                                        + ") against the owner's unwatermarked base run; model-level only"}
+    elif decoder == "image":
+        views = images_views(config.images, config.max_side, config.min_side, config.max_pixels, config.progress)
+        apply_attack(views, config.attack, config.seed)
+        results, views, info = _verify_images_informed(config, keys, views, device)
+        notes += info.pop("notes")
+        decoder_info = {"kind": "image", "informed": True, **info,
+                        "description": "informed: fits the key's sticker to each image's colour change from the "
+                                       "owner's unwatermarked base rendered at the image's camera (--cameras)"}
     else:
         if config.load_config is not None:
             views = model_views(config.load_config, config.num_views, config.sampled_share, config.seed, config.data,
@@ -890,6 +987,8 @@ def calibrate(config: CalibrateConfig) -> Dict[str, Any]:
     device = _device(config.device)
     if config.decode == "geometry":
         return _calibrate_geometry(config, key_path, key, device)
+    if config.decode == "image":
+        return _calibrate_image(config, key_path, key, device)
     sources: List[Views] = []
     notes: List[str] = []
     if config.base:
@@ -934,6 +1033,8 @@ def _store_null(config: CalibrateConfig, key_path: Path, key: OwnerKey, decoder:
             "created": time.time(), "decoder": decoder}
     if decoder == "geometry":
         key.geometry = {**key.geometry, "null": null}
+    elif decoder == "image":
+        key.geometry = {**key.geometry, "image_null": null}
     else:
         key.null = null
     backup = None
@@ -983,6 +1084,44 @@ def _calibrate_geometry(config: CalibrateConfig, key_path: Path, key: OwnerKey, 
     return _store_null(config, key_path, key, "geometry", matches, src_info, notes)
 
 
+def _calibrate_image(config: CalibrateConfig, key_path: Path, key: OwnerKey, device: torch.device) -> Dict[str, Any]:
+    """The image decoder's null: decode unmarked images at their known cameras (--images with --cameras, e.g. the
+    base dataset's own photos and its transforms_test.json)."""
+    import contextlib
+
+    from gsticker_plugin import geometry
+    from gsticker_plugin.image_decoder import base_pose_scale, decode_posed_images, read_cameras_file
+
+    if not key.geometry:
+        raise GStickerError(geometry.missing_geometry_message(key_path))
+    if not config.images or config.cameras is None:
+        raise GStickerError("--decode image calibrates on unmarked images at known cameras: pass --images DIR "
+                            "(e.g. the base dataset's test photos) and --cameras transforms.json")
+    notes = []
+    if config.random_images:
+        notes.append("random images skipped: the image decoder reads images at known cameras")
+    if config.load_config:
+        notes.append("--load-config runs skipped: the image decoder reads images (render them, e.g. with ns-render "
+                     "dataset, and pass them with --images)")
+    frames = read_cameras_file(config.cameras)
+    ref = geometry.load_base_reference(key, key_path, config.base_config, config.data, device)
+    scale = base_pose_scale(ref)
+    matches: List[int] = []
+    src_info = []
+    for d in config.images:
+        views = images_views(Path(d), config.max_side, config.min_side, config.max_pixels, config.progress)
+        posed, cams = posed_views(views, frames, scale)
+        with contextlib.redirect_stdout(sys.stderr):
+            dec = decode_posed_images(key, ref, [v.image.permute(1, 2, 0) for v in posed.views], cams,
+                                      config.seed + len(src_info), progress=config.progress)
+        m = [int(x) for x in dec["matches"].tolist()]
+        matches += m
+        src_info.append({"kind": "images", "source": str(d), "n": len(m), "mean_matches": sum(m) / len(m),
+                         "max_matches": max(m), "skipped": len(posed.skipped),
+                         "details": {"cameras": str(config.cameras)}})
+    return _store_null(config, key_path, key, "image", matches, src_info, notes)
+
+
 @dataclass
 class ExportKeyConfig:
     """Add the geometry reference (the sticker, the gates) of a watermarked run to its owner key: a version-1 key
@@ -1022,8 +1161,9 @@ def export_key(config: ExportKeyConfig) -> Dict[str, Any]:
     if run_sha != key_sha:
         raise GStickerError(f"the run {config.load_config} was made on another base than the key {key_path} "
                             "(base checkpoint sha256 differs); pass the watermarked run this key was written for")
-    old_null = (key.geometry or {}).get("null")
-    key.geometry = {**geometry_reference(model), "null": old_null}
+    old = key.geometry or {}
+    key.geometry = {**geometry_reference(model), "null": old.get("null"),
+                    **({"image_null": old["image_null"]} if old.get("image_null") else {})}
     out = Path(config.output) if config.output is not None else key_path
     backup = None
     if out.resolve() == key_path.resolve() and config.backup:

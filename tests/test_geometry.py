@@ -449,3 +449,61 @@ def test_image_decoder_reads_8_bit_renders_of_the_watermarked_run_at_their_camer
     assert all(d["undetermined"] == 48 for d in exact["image"])  # nothing to fit: coin flips
     with pytest.raises(Exception, match="one \\[H W 3\\] image per camera"):
         decode_posed_images(key, ref, q(on)[:3], cams, seed=0)
+
+
+def test_verify_images_at_known_cameras_with_the_image_decoder(runs, ws, capsys, tiny_scene):
+    """``ns-verify-owner --images DIR --cameras transforms_test.json``: the image decoder reads 8-bit PNGs of the
+    watermarked run saved under the test frames' names (OWNED); the cameras built from the transforms file equal the
+    base's own test cameras; the dataset's ground-truth photos are a null that ``calibrate --decode image`` stores
+    in the key and ``verify`` then uses; bad input is one line."""
+    import imageio.v2 as imageio
+
+    from gsticker_plugin.image_decoder import camera_for_image, match_frame, read_cameras_file
+
+    frames = read_cameras_file(tiny_scene / "transforms_test.json")
+    assert sorted(frames) == ["test/r_0", "test/r_1"] and match_frame("r_1.png", frames) == "test/r_1"
+    key = OwnerKey.load(runs["key"])
+    ref = G.load_base_reference(key, runs["key"], None, tiny_scene, torch.device("cpu"))
+    own = ref.pipeline.datamanager.eval_dataset.cameras
+    _, pipe, _ = V.load_run(runs["run"], data=tiny_scene, device=torch.device("cpu"))
+    images = ws / "suspect-images"
+    images.mkdir()
+    for i in range(2):
+        cam = camera_for_image(frames[f"test/r_{i}"], 32, 32)
+        assert torch.allclose(cam.camera_to_worlds, own.camera_to_worlds[i: i + 1]) and torch.allclose(cam.fx.double(), own.fx[i: i + 1].double())
+        with torch.no_grad():
+            rgb = pipe.model.get_outputs_for_camera(cam)["rgb"].clamp(0, 1)
+        imageio.imwrite(images / f"r_{i}.png", (rgb * 255).round().to(torch.uint8).numpy())
+    (images / "notes.txt").write_text("not an image")
+    imageio.imwrite(images / "stray.png", torch.zeros(32, 32, 3, dtype=torch.uint8).numpy())  # no camera for it
+    cams = ["--cameras", str(tiny_scene / "transforms_test.json")]
+    out = ws / "rep-images-posed"
+    status, stdout, err = run_cli(["--images", str(images), *cams, "--key", str(runs["key"]), "--output", str(out)],
+                                  capsys)
+    rep = report_of(out)
+    (r,) = rep["keys"]
+    assert status == 0 and rep["decoder"]["kind"] == "image" and r["decoder"] == "image", (stdout, err[-1500:])
+    assert [v["name"] for v in r["per_view"]] == ["r_0.png", "r_1.png"] and min(v["matches"] for v in r["per_view"]) >= 41
+    assert all(v["image_fit"]["signals"] == ["rgb"] for v in r["per_view"]) and "decoder: image (informed" in stdout
+    assert {s["name"] for s in rep["input"]["skipped"]} == {"notes.txt", "stray.png"}
+    # the ground-truth photos at the same cameras: unmarked, a null the key stores for this decoder
+    gt = ws / "gt-images"
+    shutil.copytree(tiny_scene / "test", gt)
+    k2 = ws / "image-null.gskey"
+    shutil.copy2(runs["key"], k2)
+    assert V.main(["calibrate", "--key", str(k2), "--decode", "image", "--images", str(gt), *cams, "--no-progress"]) == 0
+    cal = capsys.readouterr().out
+    null = OwnerKey.load(k2).geometry["image_null"]
+    assert len(null["matches"]) == 2 and max(null["matches"]) < 41 and "image decoder" in cal, cal
+    status, stdout, err = run_cli(["--images", str(gt), *cams, "--key", str(k2), "--output", str(ws / "rep-gt")], capsys)
+    (r,) = report_of(ws / "rep-gt")["keys"]
+    assert status == 1 and r["empirical_null"]["n"] == 2 and r["thresholds"]["empirical"] is not None, stdout
+    # without cameras auto falls back to the extractor and says why; bad input: one line, exit 2
+    status, stdout, _ = run_cli(["--images", str(images), "--key", str(runs["key"]), "--output", str(ws / "rep-ex")], capsys)
+    assert report_of(ws / "rep-ex")["decoder"]["kind"] == "extractor" and "--cameras" in stdout
+    for argv, msg in ((["--images", str(images), "--decode", "image"], "--cameras"),
+                      (["--load-config", str(runs["run"]), *cams], "drop --cameras"),
+                      (["--images", str(images), "--cameras", str(ws / "missing.json")], "does not exist"),
+                      (["--images", str(ws / "rep-ex"), *cams], "none of the")):
+        status, _, err = run_cli([*argv, "--key", str(runs["key"]), "--output", str(ws / "rep-bad")], capsys)
+        assert status == 2 and msg in one_error_line(err), err[-800:]
