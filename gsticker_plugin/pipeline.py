@@ -241,7 +241,6 @@ class GeometryStickerPipeline(VanillaPipeline):
                 ref = self.model.base.forward(patch)
             marked.append(final_rgb(out).reshape(ph, pw, 3).permute(2, 0, 1))  # vanilla-nerf: rgb_fine
             clean.append(final_rgb(ref).reshape(ph, pw, 3).permute(2, 0, 1))
-            wrap = self.model.final_wrap
             psis.append(torch.zeros(1, device=self.device))
         return torch.stack(marked), torch.stack(clean), torch.cat(psis)
 
