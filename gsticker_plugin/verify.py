@@ -772,22 +772,17 @@ def choose_decoder(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]]) -> T
     if config.cameras is not None and config.images is None:
         raise GStickerError("--cameras gives the cameras of --images; a model (--load-config) is rendered at its own "
                             "cameras: drop --cameras")
-    if config.decode == "geometry":
-        if config.load_config is None:
+    if config.decode in ("geometry", "image"):
+        if config.decode == "geometry" and config.load_config is None:
             raise GStickerError("--decode geometry reads a model's geometry, not images: pass --load-config "
                                 "SUSPECT/config.yml, or use --decode image --cameras CAMERAS.json with --images")
-        for path, key in keys:
-            if not key.geometry:
-                raise GStickerError(geometry.missing_geometry_message(path))
-        return "geometry", []
-    if config.decode == "image":
-        if config.images is None or config.cameras is None:
+        if config.decode == "image" and (config.images is None or config.cameras is None):
             raise GStickerError("--decode image reads images at known cameras: pass --images DIR and --cameras "
                                 "transforms.json (for a model use --decode geometry)")
         for path, key in keys:
             if not key.geometry:
                 raise GStickerError(geometry.missing_geometry_message(path))
-        return "image", []
+        return config.decode, []
     if config.decode == "extractor":
         return "extractor", []
     if config.load_config is None and config.cameras is None:
@@ -803,6 +798,17 @@ def choose_decoder(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]]) -> T
             return "extractor", [f"auto: the owner's base run {cfg} is not reachable from here, so the extractor "
                                  f"decodes; pass --base-config BASE_RUN/config.yml for {what} decoding"]
     return kind, []
+
+
+def _informed_result(key: OwnerKey, path: Path, dec: Dict[str, Any], views: Views, config: VerifyConfig,
+                     decoder: str, ref, notes: List[str], bases: List[str]) -> Dict[str, Any]:
+    """:func:`key_result` of an informed decoder, with the owner's base run it read against (its notes and path
+    are added to ``notes`` and ``bases``)."""
+    r = key_result(key, path, dec, views, config.fpr, config.min_share, decoder=decoder)
+    r["base"] = {"config": str(ref.config_path), "checkpoint": str(ref.checkpoint), "method": ref.method}
+    notes += ref.notes
+    bases.append(str(ref.config_path))
+    return r
 
 
 def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device):
@@ -827,11 +833,7 @@ def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], de
                             "own_cameras": sum(1 for v in vlist if not v.name.startswith("sampled/")),
                             "sampled_poses": sum(1 for v in vlist if v.name.startswith("sampled/")),
                             "cameras_of": f"the owner's base run {ref.config_path}"})
-        r = key_result(key, path, dec, kv, config.fpr, config.min_share, decoder="geometry")
-        r["base"] = {"config": str(ref.config_path), "checkpoint": str(ref.checkpoint), "method": ref.method}
-        notes += ref.notes
-        bases.append(str(ref.config_path))
-        results.append(r)
+        results.append(_informed_result(key, path, dec, kv, config, "geometry", ref, notes, bases))
         views = views or kv
         del ref
     signals = sorted({tuple(g["signals"]) for r in results for g in (v["geometry"] for v in r["per_view"])})
@@ -886,11 +888,7 @@ def _verify_images_informed(config: VerifyConfig, keys: List[Tuple[Path, OwnerKe
             dec = decode_posed_images(key, ref, [v.image.permute(1, 2, 0) for v in posed.views], cams, config.seed,
                                       progress=config.progress)
         posed.details["cameras_of"] = str(config.cameras)
-        r = key_result(key, path, dec, posed, config.fpr, config.min_share, decoder="image")
-        r["base"] = {"config": str(ref.config_path), "checkpoint": str(ref.checkpoint), "method": ref.method}
-        notes += ref.notes
-        bases.append(str(ref.config_path))
-        results.append(r)
+        results.append(_informed_result(key, path, dec, posed, config, "image", ref, notes, bases))
         used = used or posed
         del ref
     return results, used, {"bases": bases, "cameras": str(config.cameras), "notes": notes}
