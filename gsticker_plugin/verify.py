@@ -137,7 +137,7 @@ class CalibrateConfig:
     """Which decoder's null to measure: the extractor's (stored in the key's null), the geometric decoder's
     (stored in the key's geometry reference; decodes the base itself and the --load-config runs, not images) or the
     image decoder's (stored beside it; decodes the --images at the cameras of --cameras, e.g. the base dataset's
-    own photos: unmarked images at known cameras)."""
+    own photos: unmarked images at known cameras; random images are not used)."""
     cameras: Optional[Path] = None
     """--decode image: the transforms JSON giving the cameras of the --images (Blender format)."""
     base_config: Optional[Path] = None
@@ -870,23 +870,33 @@ def posed_views(views: Views, frames: Dict[str, Dict[str, Any]], scale_factor: f
     return out, cams
 
 
+def decode_images_at_cameras(key: OwnerKey, ref, views: Views, frames: Dict[str, Dict[str, Any]], seed: int,
+                             progress: bool) -> Tuple[Views, Dict[str, Any]]:
+    """The informed image decoder on the images of ``views`` that have a camera in ``frames``, against the owner's
+    base ``ref`` (:func:`gsticker_plugin.geometry.load_base_reference`): the posed views and the decoded bits."""
+    import contextlib
+
+    from gsticker_plugin.image_decoder import base_pose_scale, decode_posed_images
+
+    posed, cams = posed_views(views, frames, base_pose_scale(ref))
+    with contextlib.redirect_stdout(sys.stderr):
+        dec = decode_posed_images(key, ref, [v.image.permute(1, 2, 0) for v in posed.views], cams, seed,
+                                  progress=progress)
+    return posed, dec
+
+
 def _verify_images_informed(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], views: Views,
                             device: torch.device):
     """The informed image decoder on the images that have a camera in --cameras, for every key (each against its own
     base run)."""
-    import contextlib
-
     from gsticker_plugin import geometry
-    from gsticker_plugin.image_decoder import base_pose_scale, decode_posed_images, read_cameras_file
+    from gsticker_plugin.image_decoder import read_cameras_file
 
     frames = read_cameras_file(config.cameras)
     results, used, bases, notes = [], None, [], []
     for path, key in keys:
         ref = geometry.load_base_reference(key, path, config.base_config, config.base_data or config.data, device)
-        posed, cams = posed_views(views, frames, base_pose_scale(ref))
-        with contextlib.redirect_stdout(sys.stderr):
-            dec = decode_posed_images(key, ref, [v.image.permute(1, 2, 0) for v in posed.views], cams, config.seed,
-                                      progress=config.progress)
+        posed, dec = decode_images_at_cameras(key, ref, views, frames, config.seed, config.progress)
         posed.details["cameras_of"] = str(config.cameras)
         results.append(_informed_result(key, path, dec, posed, config, "image", ref, notes, bases))
         used = used or posed
@@ -1085,10 +1095,8 @@ def _calibrate_geometry(config: CalibrateConfig, key_path: Path, key: OwnerKey, 
 def _calibrate_image(config: CalibrateConfig, key_path: Path, key: OwnerKey, device: torch.device) -> Dict[str, Any]:
     """The image decoder's null: decode unmarked images at their known cameras (--images with --cameras, e.g. the
     base dataset's own photos and its transforms_test.json)."""
-    import contextlib
-
     from gsticker_plugin import geometry
-    from gsticker_plugin.image_decoder import base_pose_scale, decode_posed_images, read_cameras_file
+    from gsticker_plugin.image_decoder import read_cameras_file
 
     if not key.geometry:
         raise GStickerError(geometry.missing_geometry_message(key_path))
@@ -1096,22 +1104,16 @@ def _calibrate_image(config: CalibrateConfig, key_path: Path, key: OwnerKey, dev
         raise GStickerError("--decode image calibrates on unmarked images at known cameras: pass --images DIR "
                             "(e.g. the base dataset's test photos) and --cameras transforms.json")
     notes = []
-    if config.random_images:
-        notes.append("random images skipped: the image decoder reads images at known cameras")
     if config.load_config:
         notes.append("--load-config runs skipped: the image decoder reads images (render them, e.g. with ns-render "
                      "dataset, and pass them with --images)")
     frames = read_cameras_file(config.cameras)
     ref = geometry.load_base_reference(key, key_path, config.base_config, config.data, device)
-    scale = base_pose_scale(ref)
     matches: List[int] = []
     src_info = []
     for d in config.images:
         views = images_views(Path(d), config.max_side, config.min_side, config.max_pixels, config.progress)
-        posed, cams = posed_views(views, frames, scale)
-        with contextlib.redirect_stdout(sys.stderr):
-            dec = decode_posed_images(key, ref, [v.image.permute(1, 2, 0) for v in posed.views], cams,
-                                      config.seed + len(src_info), progress=config.progress)
+        posed, dec = decode_images_at_cameras(key, ref, views, frames, config.seed + len(src_info), config.progress)
         m = [int(x) for x in dec["matches"].tolist()]
         matches += m
         src_info.append({"kind": "images", "source": str(d), "n": len(m), "mean_matches": sum(m) / len(m),
