@@ -241,7 +241,11 @@ def test_protocols_load_and_an_empty_purification_prints_no_table():
     vanilla = load_protocol(SMOKE.parent / "lego100-vanilla-nerf.yaml") if (REPO_ROOT.parent / "shared").is_dir() else None
     if vanilla is not None:
         assert vanilla.bases[0].preset == "gsticker-vanilla-nerf-small" and len(vanilla.recolor.colors) == 10
-        assert vanilla.recolor.finetune is not None and vanilla.geometry.color_baseline and not vanilla.distortions
+        assert vanilla.recolor.finetune is not None and vanilla.geometry.color_baseline
+        assert vanilla.distortions and vanilla.curves and vanilla.recolor.image_hue_jitter  # read by the image decoder
+    lego200 = load_protocol(SMOKE.parent / "lego200.yaml") if (REPO_ROOT.parent / "shared").is_dir() else None
+    if lego200 is not None:  # 200 px: a base trained on the 200 px images, the shorter recolor
+        assert lego200.bases[0].preset == "gsticker-nerfacto-small" and "lego200" in str(lego200.scene.data)
     default = load_protocol(SMOKE.parent / "lego100.yaml") if (REPO_ROOT.parent / "shared").is_dir() else None
     if default is not None:  # purification points fine where the mark goes
         assert default.geometry.purify_steps[:2] == [0, 10]
