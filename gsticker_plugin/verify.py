@@ -354,6 +354,13 @@ def random_views(n: int, size: int, seed: int) -> Views:
 
 
 # ---------------------------------------------------------------------------------------------------- models
+def _spawns_workers(target) -> bool:
+    from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManager
+
+    cls = getattr(target, "__origin__", target)
+    return isinstance(cls, type) and issubclass(cls, ParallelDataManager)
+
+
 def load_run(config_path: Path, data: Optional[Path] = None, device: Optional[torch.device] = None):
     """A run rebuilt like nerfstudio's ``eval_setup`` (test mode), with one-line errors instead of exits."""
     from gsticker_plugin import base_run
@@ -397,6 +404,12 @@ def load_run(config_path: Path, data: Optional[Path] = None, device: Optional[to
     elif recorded is None or not Path(recorded).exists():
         raise GStickerError(f"the run's dataset {recorded} does not exist from here (its cameras are needed); "
                             "pass --data with the run's dataset folder")
+    if _spawns_workers(config.pipeline.datamanager._target):
+        # nerfacto's ParallelDataManager spawns a worker process that samples training rays nobody reads here, and
+        # its __del__ printed a traceback at exit: the same dataparser in nerfstudio's in-process data manager
+        from gsticker_plugin.trainer import copy_datamanager
+
+        config.pipeline.datamanager = copy_datamanager(config, None)
     device = device or torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
         pipeline = config.pipeline.setup(device=device, test_mode="test")

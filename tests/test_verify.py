@@ -619,3 +619,23 @@ def test_real_recolored_runs(real_runs, ws, capsys, edit):
     r = _check_model_report(report_of(out), 8)
     if r["verdict"] != "owned":
         pytest.xfail(f"a 10-step run's extractor has not learned the message (median {r['matches_median']}/48)")
+
+
+def test_load_run_keeps_stock_nerfacto_in_process(shared_dir):
+    """A stock nerfacto run (ParallelDataManager) is loaded with nerfstudio's in-process data manager: no worker
+    process samples training rays for verification, and its cameras and ground truth are the run's own."""
+    import multiprocessing
+
+    from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager
+    from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManager
+
+    from gsticker_plugin import verify as V
+
+    assert V._spawns_workers(ParallelDataManager) and not V._spawns_workers(VanillaDataManager)
+    config = shared_dir / "checkpoints" / "lego100-nerfacto-small" / "nerfacto" / "base" / "config.yml"
+    _, pipe, ckpt = V.load_run(config, data=shared_dir / "data" / "lego100", device=torch.device("cpu"))
+    dm = pipe.datamanager
+    assert type(dm) is VanillaDataManager and ckpt.name.startswith("step-")
+    assert not multiprocessing.active_children()
+    assert len(dm.train_dataset) == 100 and len(dm.eval_dataset) == 200  # test mode: the test split
+    assert dm.eval_dataset[0]["image"].shape[:2] == (100, 100)
