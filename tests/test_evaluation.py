@@ -129,7 +129,10 @@ def test_numbers_in_range(smoke):
             _acc(pt["bit_acc_mean"])
             assert pt["bit_acc_std"] >= 0 and 0.0 <= pt["verdict_rate"] <= 1.0
             _acc(pt["image_decoder"]["bit_acc"])
+            if name == "leaked_key":  # within its budget (8-bit rounding can cost a little at high budgets)
+                assert pt["attack_psnr"] is None or pt["attack_psnr"] >= min(pt["strength"], 45.0) - 0.5  # None: unchanged
         assert set(c["image_decoder"]) == {"bit_acc_below_90_at", "verdict_fails_at"}
+    assert "leaked_key" in curves and curves["leaked_key"]["definition"].startswith("leaked_key (strength: PSNR budget")
     rec = r["recolor"]["rows"]
     names = [x["name"] for x in rec]
     assert names[0] == "image-hue-jitter"
@@ -223,6 +226,9 @@ def test_bad_protocol_is_one_error_line(tmp_path, capsys):
     assert "sticker.seeds" in capsys.readouterr().err
     assert cli.run(["--config", str(SMOKE), "--output-dir", str(tmp_path / "out"), "--sticker-seeds", "42"]) == 2
     assert "sticker.seeds" in capsys.readouterr().err  # the command-line override is checked like the file
+    bad.write_text(SMOKE.read_text().replace("leaked_key: [60.0, 20.0]", "leaked_key: [0.0]"))
+    assert cli.run(["--config", str(bad), "--output-dir", str(tmp_path / "out")]) == 2
+    assert "PSNR budgets in dB" in capsys.readouterr().err
     bad.write_text(SMOKE.read_text().replace('spec: "blur=1"', 'spec: "crop=2"'))
     assert cli.run(["--config", str(bad), "--output-dir", str(tmp_path / "out")]) == 2
     assert "crop" in capsys.readouterr().err

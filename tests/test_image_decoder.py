@@ -69,6 +69,30 @@ def test_fit_reads_the_message_from_an_8_bit_image_and_the_base_render_gives_coi
     assert 23.0 < sum(matches) / len(matches) < 25.0 and max(matches) < 41  # Binomial(48, 1/2)
 
 
+def test_leaked_key_attack_keeps_its_psnr_budget_and_flips_the_bits_once_the_budget_allows():
+    """PGD with the owner key: within its L2 (PSNR) budget; a budget far below the mark's own change leaves the
+    message readable, one well above it drives most of the decoder's bits to their complement."""
+    torch.manual_seed(0)
+    st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
+    ref = _view(st, r=400)
+    msg = parse_message(MESSAGE)
+    with torch.no_grad():
+        marked = I.predict_image_change(ref, st, message_to_signs(msg))
+    image = marked.reshape(1, 400, 3)  # the view is one row of 400 rays (hw = (1, 400))
+    mark_psnr = float(-10 * torch.log10(((marked - ref.base_rgb) ** 2).mean()))
+    bits = {}
+    for budget in (mark_psnr + 30.0, mark_psnr - 12.0):
+        x = I.leaked_key_attack(ref, st, image, budget)
+        assert x.shape == image.shape and float(x.min()) >= 0 and float(x.max()) <= 1
+        psnr = float(-10 * torch.log10(((x - image) ** 2).mean()))
+        assert psnr >= budget - 1e-3
+        bits[budget] = I.decode_image_view(ref, st, x.reshape(-1, 3), torch.Generator().manual_seed(1))["bits"]
+    weak, strong = bits[mark_psnr + 30.0], bits[mark_psnr - 12.0]
+    assert int((weak == msg).sum()) >= 47 and int((strong == msg).sum()) <= 8
+    with pytest.raises(GStickerError, match="PSNR budget"):
+        I.leaked_key_attack(ref, st, image, 0.0)
+
+
 def test_an_image_of_another_size_is_one_line_naming_the_fix():
     with pytest.raises(GStickerError, match="resize them"):
         I.image_at_rays(torch.zeros(4, 5, 3), torch.arange(3), (4, 4))

@@ -31,6 +31,9 @@ PAPER = {
     "psnr_vs_gt": {"vanilla-nerf": 27.44, "instant-ngp": 28.59, "tensorf": 29.18},
 }
 REFERENCE_COLORS = ("green", "yellow", "orange", "red", "pink", "magenta", "purple", "blue", "dodger blue", "cyan")
+LEAKED_KEY = "leaked_key"
+"""The curve of the white-box attack with a leaked owner key (strengths: PSNR budgets in dB)."""
+
 ALL_STAGES = ("scene", "bases", "sticker", "renders", "quality", "geometry", "seeds", "distortions", "curves", "recolor",
               "purify", "false_positives", "speed", "report")
 
@@ -162,7 +165,8 @@ class Protocol:
     """Share of views that must pass for a model-level verdict (as ns-verify-owner)."""
     distortions: List[DistortionRow] = field(default_factory=list)
     curves: Dict[str, List[float]] = field(default_factory=dict)
-    """Where-it-breaks curves: attack name -> strengths."""
+    """Where-it-breaks curves: attack name -> strengths; ``leaked_key`` -> PSNR budgets in dB (PGD on the image
+    decoder by someone holding the owner key and the base: ``gsticker_plugin.image_decoder.leaked_key_attack``)."""
     recolor: Optional[RecolorSpec] = field(default_factory=RecolorSpec)
     false_positives: FalsePositiveSpec = field(default_factory=FalsePositiveSpec)
     geometry: Optional[GeometrySpec] = field(default_factory=GeometrySpec)
@@ -235,8 +239,16 @@ def validate(p: Protocol) -> None:
         for r in p.distortions:
             attacks.parse_attack_spec(r.spec)
         for name, strengths in p.curves.items():
+            if name == LEAKED_KEY:
+                if p.geometry is None or not p.geometry.image_decoder:
+                    raise ValueError(f"curves.{LEAKED_KEY} attacks the informed image decoder: it needs geometry with "
+                                     "image_decoder: true")
+                if not strengths or any(float(s) <= 0 for s in strengths):
+                    raise ValueError(f"curves.{LEAKED_KEY}: give PSNR budgets in dB > 0, weakest (highest) first")
+                continue
             if name not in attacks.ATTACKS:
-                raise ValueError(f"curves: unknown attack {name!r}; use one of {', '.join(attacks.ATTACK_NAMES)}")
+                raise ValueError(f"curves: unknown attack {name!r}; use one of {', '.join(attacks.ATTACK_NAMES)} "
+                                 f"or {LEAKED_KEY}")
             if not strengths:
                 raise ValueError(f"curves.{name}: give at least one strength")
             for s in strengths:

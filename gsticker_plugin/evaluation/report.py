@@ -327,7 +327,9 @@ def chart_curves(r, path: Path) -> Optional[Path]:
         if below is not None:
             ax.axvline(below, color="tab:green" if img else "orange", lw=0.8)
         ax.set_title(name)
-        ax.set_xlabel("strength")
+        if name == "leaked_key":  # PSNR budgets: the attack grows as the budget falls
+            ax.invert_xaxis()
+        ax.set_xlabel("PSNR budget (dB)" if name == "leaked_key" else "strength")
         ax.set_ylim(-2, 102)
     axes[0][0].set_ylabel("%")
     axes[0][0].legend(fontsize=7, loc="lower left")

@@ -30,7 +30,7 @@ from torch import Tensor
 
 from gsticker_plugin.base_run import final_rgb
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.evaluation.config import Protocol, to_plain
+from gsticker_plugin.evaluation.config import LEAKED_KEY, Protocol, to_plain
 
 
 def _bin(name: str) -> str:
@@ -245,7 +245,7 @@ class Runner:
 
         import hashlib
 
-        images = torch.round(images_nhw3.float().clamp(0, 1) * 255.0) / 255.0
+        images = _as_8_bit(images_nhw3)
         digest = hashlib.sha1((images * 255.0).to(torch.uint8).numpy().tobytes()).hexdigest()
         if not hasattr(self, "_image_decoded"):
             self._image_decoded: Dict[str, Dict[str, Any]] = {}
@@ -547,6 +547,22 @@ class Runner:
         x = apply_attacks(wm.permute(0, 3, 1, 2).float(), spec, generator=g, cover=clean.permute(0, 3, 1, 2).float())
         return x.permute(0, 2, 3, 1).clamp(0, 1)
 
+    def leaked_key_attacked(self, wm: Tensor, psnr_budget: float) -> Tensor:
+        """The primary base's watermarked test views (as 8-bit files) attacked by someone holding its owner key and
+        the base: PGD on the informed image decoder at each view's camera, within ``psnr_budget`` dB."""
+        from gsticker_plugin import geometry as G
+        from gsticker_plugin.image_decoder import image_reference, leaked_key_attack
+
+        ref, cache = self.geo_reference(self.primary)
+        st = G.cpu_sticker(ref.model)
+        bg = ref.model.background_color()
+        out = []
+        for (name, cam), image in zip(self.test_cameras(self.primary), _as_8_bit(wm)):
+            with contextlib.redirect_stdout(sys.stderr):
+                view = G.any_reference_view(ref, name, cam, cache)
+            out.append(leaked_key_attack(image_reference(view, bg), st, image, psnr_budget))
+        return torch.stack(out)
+
     def stage_distortions(self) -> Dict[str, Any]:
         v = self.views(self.primary)
         key = self.key(self.primary)
@@ -578,8 +594,9 @@ class Runner:
             pts = []
             for s in _tqdm(strengths, f"curve {name}", self.progress):
                 accs, shares, verdicts, image_per_seed = [], [], [], []
+                leaked = self.leaked_key_attacked(v["watermarked"], float(s)) if name == LEAKED_KEY else None
                 for seed in self.p.seeds:
-                    x = self.attacked(v["watermarked"], v["sticker_off"], [(name, float(s))], seed)
+                    x = leaked if leaked is not None else self.attacked(v["watermarked"], v["sticker_off"], [(name, float(s))], seed)
                     d = self.decode(key, x)
                     accs.append(d["bit_acc"])
                     shares.append(d["share_passing"])
@@ -592,11 +609,14 @@ class Runner:
                       "verdict_rate": sum(verdicts) / len(verdicts)}
                 if image_per_seed:
                     pt["image_decoder"] = over_seeds(image_per_seed)
+                if leaked is not None:  # the PSNR the attack reached (8-bit image vs the 8-bit watermarked one)
+                    pt["attack_psnr"] = self.image_metrics(_as_8_bit(leaked), _as_8_bit(v["watermarked"]))["psnr"]
                 pts.append(pt)
             below = next((p["strength"] for p in pts if p["bit_acc_mean"] < 0.9), None)
             fails = next((p["strength"] for p in pts if p["verdict_rate"] < 0.5), None)
             curves[name] = {"points": pts, "bit_acc_below_90_at": below, "verdict_fails_at": fails,
-                            "randomized": name in ("noise", "crop"), "definition": describe_spec(f"{name}={strengths[-1]}")}
+                            "randomized": name in ("noise", "crop"),
+                            "definition": describe_spec(f"{name}={strengths[-1]}") if leaked is None else describe_leaked_key()}
             if self.reads_images:
                 curves[name]["image_decoder"] = {
                     "bit_acc_below_90_at": next((p["strength"] for p in pts if p["image_decoder"]["bit_acc"] < 0.9), None),
@@ -971,6 +991,19 @@ def parse_monitor_log(log: Path) -> List[Dict[str, float]]:
         out.append({"step": int(m.group(1)), "heldout_bit_acc": float(m.group(2)), "clean_bit_acc": float(m.group(3)),
                     "psnr": float(m.group(4)), "seconds": float(m.group(5))})
     return out
+
+
+def _as_8_bit(images: Tensor) -> Tensor:
+    return torch.round(images.float().clamp(0, 1) * 255.0) / 255.0
+
+
+def describe_leaked_key() -> str:
+    import inspect
+
+    from gsticker_plugin.image_decoder import leaked_key_attack
+
+    doc = inspect.getdoc(leaked_key_attack) or ""
+    return "leaked_key (strength: PSNR budget in dB): " + " ".join(doc.split("\n\n")[0].split())
 
 
 def describe_spec(spec: str) -> str:
