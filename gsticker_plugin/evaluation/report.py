@@ -261,6 +261,8 @@ def _curves(r) -> List[str]:
             e = c["image_decoder"]
             pts = "; ".join(f"{p['strength']:g}: {pct(p['image_decoder']['bit_acc'], p['image_decoder']['bit_acc_seed_std'])}"
                             f" / {pct(p['image_decoder']['verdict_rate'])}" for p in c["points"])
+            if name == "leaked_key":  # the PSNR each budget's attack reached on the 8-bit images
+                pts += " (reached: " + ", ".join(num(p.get("attack_psnr")) for p in c["points"]) + " dB)"
             rows.append([name, "image decoder", pts, paper(e["bit_acc_below_90_at"]), paper(e["verdict_fails_at"])])
         pts = "; ".join(f"{p['strength']:g}: {pct(p['bit_acc_mean'], p['bit_acc_std'])} / {pct(p['verdict_rate'])}" for p in c["points"])
         rows.append([name] + (["blind extractor"] if img else []) + [pts, paper(c["bit_acc_below_90_at"]), paper(c["verdict_fails_at"])])

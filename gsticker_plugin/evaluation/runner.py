@@ -616,7 +616,7 @@ class Runner:
             fails = next((p["strength"] for p in pts if p["verdict_rate"] < 0.5), None)
             curves[name] = {"points": pts, "bit_acc_below_90_at": below, "verdict_fails_at": fails,
                             "randomized": name in ("noise", "crop"),
-                            "definition": describe_spec(f"{name}={strengths[-1]}") if leaked is None else describe_leaked_key()}
+                            "definition": describe_leaked_key() if name == LEAKED_KEY else describe_spec(f"{name}={strengths[-1]}")}
             if self.reads_images:
                 curves[name]["image_decoder"] = {
                     "bit_acc_below_90_at": next((p["strength"] for p in pts if p["image_decoder"]["bit_acc"] < 0.9), None),
