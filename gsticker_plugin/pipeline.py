@@ -253,6 +253,11 @@ class GeometryStickerPipeline(VanillaPipeline):
         content = mse / budget + 10.0 * F.relu(mse / budget - 1.0)
         # Warm-up: no content loss and no distortions for warmup_steps, then both ramp in over as many steps.
         ramp = min(1.0, max(0.0, (step + 1 - cfg.warmup_steps) / max(1, cfg.warmup_steps)))
+        losses = {"content_loss": cfg.content_weight * ramp * content,
+                  "sparsity_loss": cfg.sparse_weight * sparsity_loss(psi)}
+        if not self.trains_heads:  # the informed decoders need no heads: skip their forward passes altogether
+            self._last = {"logits": None, "messages": messages, "mse": mse.detach()}
+            return losses
         if ramp > 0 and float(torch.rand(1, generator=self.generator)) < ramp:
             marked_d = self.distort(marked, cover=clean, generator=self.generator)
             clean_d = self.distort(clean, generator=self.generator)
@@ -264,13 +269,19 @@ class GeometryStickerPipeline(VanillaPipeline):
         labels = torch.cat([torch.ones(marked.shape[0]), torch.zeros(clean.shape[0])]).to(cls)
         self._last = {"logits": logits.detach(), "messages": messages, "mse": mse.detach()}
         return {
-            "content_loss": cfg.content_weight * ramp * content,
+            **losses,
             "message_loss": cfg.msg_weight * F.binary_cross_entropy_with_logits(logits, messages.float()),
             "negative_loss": cfg.negative_weight * F.binary_cross_entropy_with_logits(
                 neg_logits, torch.full_like(neg_logits, 0.5)),
             "classifier_loss": cfg.cls_weight * F.binary_cross_entropy_with_logits(cls, labels),
-            "sparsity_loss": cfg.sparse_weight * sparsity_loss(psi),
         }
+
+    @property
+    def trains_heads(self) -> bool:
+        """False when the message, honesty and classifier losses all weigh 0: the extractor and classifier then stay
+        at their initialization (the owner key still holds them) and no step runs them."""
+        c = self.config
+        return bool(c.msg_weight or c.negative_weight or c.cls_weight)
 
     def get_train_loss_dict(self, step: int):
         if self.config.fast_path and not self.pool:
@@ -287,13 +298,13 @@ class GeometryStickerPipeline(VanillaPipeline):
         else:
             marked, clean, psi = self.render_batch_naive(messages)
         loss_dict = self.losses(marked, clean, psi, messages, step)
-        bits = metrics.decode_bits(self._last["logits"])
         metrics_dict = {
-            "bit_acc": metrics.bit_accuracy(bits, messages).mean(),
             "psnr_marked_vs_clean": -10.0 * torch.log10(self._last["mse"].clamp_min(1e-12)),
             "gate_open_share": (psi > 0.5).float().mean() if psi.numel() else torch.tensor(0.0),
             "gate_beta_over_mu": (self.model.final_wrap.gate.beta / self.model.final_wrap.gate.mu).detach(),
         }
+        if self._last["logits"] is not None:
+            metrics_dict["bit_acc"] = metrics.bit_accuracy(metrics.decode_bits(self._last["logits"]), messages).mean()
         if self.config.fast_path and self.monitor and (step + 1) % self.config.steps_per_monitor == 0:
             metrics_dict.update(self.monitor_metrics())
             self.history.append({"step": step + 1, "seconds": time.time() - self._t0,

@@ -350,6 +350,31 @@ def test_gradients_reach_only_sticker_gates_and_heads(gs_runs, val_pipeline, bas
         _zero_grads(pipeline)
 
 
+def test_with_the_head_losses_off_no_step_runs_the_heads(gs_runs, val_pipeline):
+    """msg, negative and classifier weights 0 (the sweep's heads-none): content and sparsity losses only, the
+    sticker still learns, the heads get no gradient (and are not run)."""
+    pipeline = val_pipeline("nerfacto")
+    cfg = pipeline.config
+    old = (cfg.msg_weight, cfg.negative_weight, cfg.cls_weight)
+    cfg.msg_weight = cfg.negative_weight = cfg.cls_weight = 0.0
+    _zero_grads(pipeline)
+    calls = []
+    hooks = [m.register_forward_hook(lambda *a: calls.append(1)) for m in (pipeline.heads.extractor, pipeline.heads.classifier)]
+    try:
+        assert not pipeline.trains_heads
+        _, loss_dict, metrics_dict = pipeline.get_train_loss_dict(10**6)
+        assert set(loss_dict) == {"content_loss", "sparsity_loss"} and "bit_acc" not in metrics_dict
+        sum(loss_dict.values()).backward()
+        assert any(p.grad is not None for p in pipeline.model.sticker.parameters())
+        assert all(p.grad is None for p in pipeline.heads.parameters()) and not calls
+    finally:
+        for h in hooks:
+            h.remove()
+        cfg.msg_weight, cfg.negative_weight, cfg.cls_weight = old
+        _zero_grads(pipeline)
+    assert pipeline.trains_heads
+
+
 @pytest.mark.parametrize("base", BASES)
 def test_fast_path_matches_the_real_render(gs_runs, val_pipeline, base):
     """What the sticker is trained on (cached samples, re-composited) is what the model renders: the sticker marks

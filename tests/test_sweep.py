@@ -28,6 +28,11 @@ def test_smallest_meeting_needs_both_targets_and_48_bits_at_the_base_resolution(
     rows.append(_row("width-24", 4000, 0.995, 36.0))
     assert smallest_meeting(rows, 0.99, 35.0)["name"] == "width-24"
     assert smallest_meeting(rows[1:2], 0.99, 35.0) is None
+    # trained heads count toward the size: the same sticker without heads in the loop is smaller
+    heads = [dict(_row("default", 9000, 1.0, 40.0), heads_params=280000), dict(_row("heads-none", 9000, 1.0, 40.0), heads_params=0)]
+    assert smallest_meeting(heads, 0.99, 35.0)["name"] == "heads-none"
+    assert {"heads-none", "heads-8", "heads-vgg16"} <= set(VARIANTS)
+    assert "--pipeline.msg-weight" in VARIANTS["heads-none"][0]
 
 
 def test_markdown_has_a_row_per_point_and_names_the_command():

@@ -13,8 +13,9 @@ pool build plus the step time the trainer logs (``[gsticker] step N: ... S s``, 
 
 Writes ``--output`` (Markdown table), the same name with ``.json`` and ``.png`` (bit accuracy and PSNR against
 training time per variant), and names the smallest variant (sticker parameters) that reaches the targets.
-The blind extractor is not swept here: it stays at chance for every configuration this CPU can train
-(docs/bench-sticker.md), so its width and patch size do not move these numbers.
+The heads variants change the extractor and classifier that train beside the sticker (none, 8 wide, the paper's
+VGG16 shape): what they cost per step and whether the informed decoders' numbers depend on them. The blind
+extractor's own accuracy stays at chance for every configuration this CPU can train (docs/bench-sticker.md).
 """
 
 from __future__ import annotations
@@ -45,6 +46,11 @@ VARIANTS: Dict[str, Tuple[List[str], Optional[str]]] = {
     "bits-64": (["--pipeline.model.num-bits", "64", "--pipeline.model.sticker-hidden-dim", "64"], None),
     "gate-0.25": (["--pipeline.model.gate-quantile", "0.25"], None),
     "gate-0.75": (["--pipeline.model.gate-quantile", "0.75"], None),
+    # the extractor and classifier in the training loop (the informed decoders do not read them): none, 8 wide,
+    # the default 32 wide, the paper's VGG16 shape
+    "heads-none": (["--pipeline.msg-weight", "0", "--pipeline.negative-weight", "0", "--pipeline.cls-weight", "0"], None),
+    "heads-8": (["--pipeline.heads.width", "8"], None),
+    "heads-vgg16": (["--pipeline.heads.backbone", "vgg16"], None),
     "res-200": ([], "200"),
     "res-400": ([], "400"),
 }
@@ -62,8 +68,8 @@ class SweepConfig:
     with the base's scene seed)."""
     variants: Tuple[str, ...] = ("default", "width-16", "width-32", "bits-16", "bits-64", "gate-0.25", "gate-0.75",
                                  "res-200")
-    """Which of: default, width-16, width-32, width-128, bits-16, bits-32, bits-64, gate-0.25, gate-0.75, res-200,
-    res-400."""
+    """Which of: default, width-16, width-32, width-128, bits-16, bits-32, bits-64, gate-0.25, gate-0.75, heads-none,
+    heads-8, heads-vgg16, res-200, res-400."""
     steps: int = 150
     """Sticker training steps per variant."""
     save_every: int = 50
@@ -162,6 +168,9 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
     with contextlib.redirect_stdout(sys.stderr):
         _, pipeline, _ = load_run(run / "config.yml", data=data)
     params = sum(p.numel() for p in pipeline.model.sticker.parameters())
+    pc = pipeline.config  # heads trained beside the sticker (none when their three loss weights are 0)
+    trained = bool(pc.msg_weight or pc.negative_weight or pc.cls_weight)
+    heads_params = sum(t.numel() for t in key.heads_state.values() if t.is_floating_point()) if trained else 0
     points = []
     for ckpt in sorted((run / "nerfstudio_models").glob("step-*.ckpt")):
         n = int(ckpt.stem.split("-")[1])
@@ -177,14 +186,15 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
         points.append(pt)
     h, w = int(pipeline.datamanager.train_dataset.cameras.height[0]), int(pipeline.datamanager.train_dataset.cameras.width[0])
     return {"name": name, "overrides": overrides, "data": str(data) if data is not None else None, "size": [h, w],
-            "num_bits": key.num_bits, "threshold": threshold, "sticker_params": params, "pool_seconds": pool_s,
+            "num_bits": key.num_bits, "threshold": threshold, "sticker_params": params, "heads_params": heads_params,
+            "pool_seconds": pool_s,
             "wall_seconds": wall, "points": points}
 
 
 def smallest_meeting(rows: List[Dict[str, Any]], bit_acc: float, psnr: float) -> Optional[Dict[str, Any]]:
     ok = [r for r in rows if r["points"] and r["points"][-1]["bit_acc"] >= bit_acc and r["points"][-1]["psnr_vs_unwm"] >= psnr
           and r["num_bits"] == 48 and r["size"][0] == min(x["size"][0] for x in rows)]
-    return min(ok, key=lambda r: (r["sticker_params"], r["points"][-1]["train_seconds"] or 0)) if ok else None
+    return min(ok, key=lambda r: (r["sticker_params"] + r.get("heads_params", 0), r["points"][-1]["train_seconds"] or 0)) if ok else None
 
 
 def first_meeting(row: Dict[str, Any], bit_acc: float, psnr: float) -> Optional[Dict[str, Any]]:
@@ -227,18 +237,20 @@ def markdown(cfg: SweepConfig, rows: List[Dict[str, Any]], when: str, machine: s
              f"{cfg.num_views} cameras (the checkpoint's own sticker as the reference) and PSNR of watermarked vs "
              f"unwatermarked renders on {cfg.psnr_views} test views. Time = pool build + training seconds logged at that "
              "step (setup and checkpoint writing excluded).", "",
-             "| variant | image | bits | sticker params | step | train s | geometric bit acc | views passing | "
-             "PSNR wm vs unwm | PSNR wm vs GT | decode s/view |", "|" + "---|" * 11]
+             "| variant | image | bits | sticker params | trained heads params | step | train s | geometric bit acc | "
+             "views passing | PSNR wm vs unwm | PSNR wm vs GT | decode s/view |", "|" + "---|" * 12]
     for r in rows:
+        heads = f"{r['heads_params']:,}" if "heads_params" in r else "-"
         for p in r["points"]:
-            lines.append(f"| {r['name']} | {r['size'][0]} px | {r['num_bits']} | {r['sticker_params']:,} | {p['step']} | "
+            lines.append(f"| {r['name']} | {r['size'][0]} px | {r['num_bits']} | {r['sticker_params']:,} | {heads} | {p['step']} | "
                          f"{p['train_seconds'] if p['train_seconds'] is not None else '-'} | {100 * p['bit_acc']:.1f} | "
                          f"{p['views_passing']}/{len(p['matches'])} | {p['psnr_vs_unwm']:.2f} | {p['psnr_vs_gt']:.2f} | "
                          f"{p['decode_seconds_per_view']} |")
     best = smallest_meeting(rows, cfg.target_bit_acc, cfg.target_psnr)
     lines += ["", f"Smallest 48-bit variant at the lowest resolution reaching >= {100 * cfg.target_bit_acc:g} % and >= "
               f"{cfg.target_psnr:g} dB at its last checkpoint: "
-              + (f"**{best['name']}** ({best['sticker_params']:,} sticker parameters, {best['points'][-1]['train_seconds']} s)."
+              + (f"**{best['name']}** ({best['sticker_params']:,} sticker parameters, {best.get('heads_params', 0):,} trained "
+                 f"heads parameters, {best['points'][-1]['train_seconds']} s)."
                  if best else "none of the variants."), "", *cost_lines(rows, cfg.target_bit_acc, cfg.target_psnr), "",
               f"Chart: `{cfg.output.with_suffix('.png').name}`.", ""]
     return "\n".join(lines)
