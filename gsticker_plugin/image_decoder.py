@@ -84,16 +84,36 @@ def image_change_jacobian(ref: ImageReferenceView, sticker: Sticker,
     return None if j is None else j.permute(1, 0, 2).reshape(-1, j.shape[-1])
 
 
+LUMA = (0.299, 0.587, 0.114)
+"""The luma row of JPEG's RGB -> YCbCr conversion (ITU-R BT.601): the channel JPEG keeps at full resolution."""
+
+
+def observe(rows: Tensor, luma: bool) -> Tensor:
+    """What a fit reads of colour rows ``[..., 3, K]`` (rows ``p * 3 + c`` flattened as ``[P * 3, K]`` or ``[P * 3]``):
+    all three channels, or their luma alone (``[P, K]`` / ``[P]``)."""
+    if not luma:
+        return rows
+    k = rows.shape[1:] if rows.ndim > 1 else ()
+    w = torch.tensor(LUMA, dtype=rows.dtype, device=rows.device)
+    return torch.einsum("pc...,c->p...", rows.reshape(-1, 3, *k), w)
+
+
 def decode_image_view(ref: ImageReferenceView, sticker: Sticker, image_rgb: Float[Tensor, "R 3"],
-                      generator: torch.Generator, iterations: int = 10) -> Dict[str, Any]:
-    """Fit the continuous message to one image's colour change (image minus base render) and decide the bits."""
+                      generator: torch.Generator, iterations: int = 10, luma: bool = False) -> Dict[str, Any]:
+    """Fit the continuous message to one image's colour change (image minus base render) and decide the bits;
+    ``luma``: read the change's luma only (what JPEG keeps at full resolution)."""
     from gsticker_plugin import geometry as G
 
-    target = (image_rgb.float() - ref.base_rgb).reshape(-1)
-    fit, bits, undetermined = G.fit_and_decide(lambda x: predict_image_change(ref, sticker, x),
-                                               lambda x: image_change_jacobian(ref, sticker, x), target,
-                                               sticker.num_bits, ref.view.rays.numel() > 0, generator, iterations)
-    return {"bits": bits, **G.fit_summary(fit, undetermined, int(ref.view.rays.numel())), "signals": ["rgb"]}
+    def jac(x: Tensor) -> Optional[Tensor]:
+        j = image_change_jacobian(ref, sticker, x)
+        return None if j is None else observe(j, luma)
+
+    target = observe((image_rgb.float() - ref.base_rgb).reshape(-1), luma)
+    fit, bits, undetermined = G.fit_and_decide(lambda x: observe(predict_image_change(ref, sticker, x).reshape(-1), luma),
+                                               jac, target, sticker.num_bits, ref.view.rays.numel() > 0, generator,
+                                               iterations)
+    return {"bits": bits, **G.fit_summary(fit, undetermined, int(ref.view.rays.numel())),
+            "signals": ["luma" if luma else "rgb"]}
 
 
 def leaked_key_attack(ref: ImageReferenceView, sticker: Sticker, image: Float[Tensor, "H W 3"], psnr_budget: float,
@@ -183,7 +203,7 @@ class Degradation:
 
     def linear(self, x: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B 3 H W"]:
         """The attack's linear part, unclamped: what it does to a small change of the image (rotation's fill is
-        0; for JPEG the codec without its DCT quantization, which is not linear)."""
+        0; for JPEG the identity: the fit reads its luma, which the codec keeps whole before quantizing)."""
         from gsticker_plugin.attacks import gaussian_blur, resize, rotate
 
         if self.name == "none":
@@ -194,9 +214,16 @@ class Degradation:
             return resize(x, self.strength, clamp=False)
         if self.name == "rotate":
             return rotate(x, self.strength, fill=0.0, clamp=False)
-        if self.name == "jpeg":
-            return _jpeg_affine(x) - _jpeg_affine(torch.zeros_like(x[:1]))
+        if self.name == "jpeg":  # read through its luma (:attr:`luma`), which the codec does not resample
+            return x
         raise GStickerError(f"unknown degradation {self.name!r}")
+
+    @property
+    def luma(self) -> bool:
+        """Whether an image of this degradation is read by its luma alone: JPEG halves the chroma resolution (4:2:0,
+        kornia's codec and most encoders' default) with filters that differ between encoders, and keeps luma whole;
+        its quantization is noise the fit lives with."""
+        return self.name == "jpeg"
 
     def label(self) -> str:
         return "none" if self.name == "none" else f"{self.name}={self.strength:g}"
@@ -207,20 +234,6 @@ MATCH_MARGIN = 0.5
 of the identity's squared error: the mark itself is a (small) difference between image and base that a mild blur
 can happen to reduce (seen on a 32 px scene with a strong mark), while a real blur, resize or rotation of a scene
 with edges leaves a few percent of it."""
-
-
-def _jpeg_affine(x: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B 3 H W"]:
-    """``kornia.enhance.jpeg_codec_differentiable`` without its DCT quantization: pad to multiples of 16
-    (replicate), RGB -> YCbCr, chroma down- and upsampled by 2 as kornia does, back to RGB, crop (affine in x)."""
-    import torch.nn.functional as F
-    from kornia.color import rgb_to_ycbcr, ycbcr_to_rgb
-    from kornia.geometry.transform import rescale
-
-    h, w = x.shape[-2:]
-    y = rgb_to_ycbcr(F.pad(x, (0, (-w) % 16, 0, (-h) % 16), "replicate"))
-    c = rescale(y[:, 1:], 0.5, interpolation="bilinear", align_corners=False, antialias=True)
-    c = rescale(c, 2.0, interpolation="bilinear", align_corners=False, antialias=False)
-    return ycbcr_to_rgb(torch.cat([y[:, :1], c], dim=1))[..., :h, :w]
 
 
 def match_degradation(image: Float[Tensor, "H W 3"], base: Float[Tensor, "3 H W"],
@@ -245,25 +258,29 @@ def match_degradation(image: Float[Tensor, "H W 3"], base: Float[Tensor, "3 H W"
 
 def decode_degraded_view(ref: ImageReferenceView, sticker: Sticker, image: Float[Tensor, "H W 3"],
                          degradation: Degradation, generator: torch.Generator,
-                         iterations: int = 10) -> Dict[str, Any]:
+                         iterations: int = 10, luma: Optional[bool] = None) -> Dict[str, Any]:
     """:func:`decode_image_view` for an image the degradation ``D`` was applied to: the image is compared with
-    ``D(base render)`` over every pixel, and the change is predicted as ``D_lin(change on the base's rays)``."""
+    ``D(base render)`` over every pixel, and the change is predicted as ``D_lin(change on the base's rays)``;
+    ``luma`` (default: the degradation's own :attr:`Degradation.luma`): compare luma only."""
     from gsticker_plugin import geometry as G
 
+    luma = degradation.luma if luma is None else luma
     if degradation.name == "none":
-        d = decode_image_view(ref, sticker, image_at_rays(image, ref.view.rays, ref.view.hw), generator, iterations)
+        d = decode_image_view(ref, sticker, image_at_rays(image, ref.view.rays, ref.view.hw), generator, iterations,
+                              luma=luma)
         d["degradation"] = "none"
         return d
     h, w = ref.view.hw
     rays = ref.view.rays
     base = ref.view.image.float()  # [3 H W]
-    target = (image.float().permute(2, 0, 1) - degradation.apply(base[None])[0]).permute(1, 2, 0).reshape(-1)
+    target = observe((image.float().permute(2, 0, 1) - degradation.apply(base[None])[0]).permute(1, 2, 0).reshape(-1),
+                     luma)
 
     def spread(per_ray: Tensor) -> Tensor:  # [R 3 ...] at the rays -> D_lin of the whole image, rows p * 3 + c
         cols = per_ray.reshape(rays.numel(), 3, -1)
         full = torch.zeros(h * w, 3, cols.shape[-1], dtype=cols.dtype).index_copy(0, rays, cols)
         img = full.permute(2, 1, 0).reshape(-1, 3, h, w)  # [K 3 H W]
-        return degradation.linear(img).reshape(-1, 3, h * w).permute(2, 1, 0).reshape(h * w * 3, -1)
+        return observe(degradation.linear(img).reshape(-1, 3, h * w).permute(2, 1, 0).reshape(h * w * 3, -1), luma)
 
     def predict(sg: Tensor) -> Tensor:
         return spread(predict_image_change(ref, sticker, sg) - ref.base_rgb)[:, 0]
@@ -274,7 +291,7 @@ def decode_degraded_view(ref: ImageReferenceView, sticker: Sticker, image: Float
 
     fit, bits, undetermined = G.fit_and_decide(predict, jac, target, sticker.num_bits, rays.numel() > 0, generator,
                                                iterations)
-    return {"bits": bits, **G.fit_summary(fit, undetermined, int(rays.numel())), "signals": ["rgb"],
+    return {"bits": bits, **G.fit_summary(fit, undetermined, int(rays.numel())), "signals": ["luma" if luma else "rgb"],
             "degradation": degradation.label()}
 
 
@@ -282,13 +299,14 @@ def residual_cost(ref: ImageReferenceView, image: Float[Tensor, "H W 3"], d: Dic
     """The squared residual a fit leaves over the whole image: an identity fit reads the rays only, the pixels
     outside them count with the image's whole difference from the base render."""
     h, w = ref.view.hw
-    m = 3 * (h * w if d["degradation"] != "none" else int(ref.view.rays.numel()))
+    luma = d["signals"] == ["luma"]
+    m = (1 if luma else 3) * (h * w if d["degradation"] != "none" else int(ref.view.rays.numel()))
     cost = (1.0 - d["explained"]) * d["residual_rms"] ** 2 * m
     if d["degradation"] == "none":
         outside = torch.ones(h * w, dtype=torch.bool)
         outside[ref.view.rays] = False
         diff = image.float().reshape(-1, 3) - ref.view.image.float().permute(1, 2, 0).reshape(-1, 3)
-        cost += float((diff[outside].double() ** 2).sum())
+        cost += float((observe(diff[outside].reshape(-1), luma).double() ** 2).sum())
     return cost
 
 
@@ -302,9 +320,9 @@ def decode_selected(ref: ImageReferenceView, sticker: Sticker, image: Float[Tens
         return decode_degraded_view(ref, sticker, image, degradation, generator, iterations)
     state = generator.get_state()
     fits = []
-    for deg in (Degradation(), degradation):
+    for deg in (Degradation(), degradation):  # both read what the matched degradation keeps (JPEG: luma)
         g = torch.Generator().set_state(state)
-        d = decode_degraded_view(ref, sticker, image, deg, g, iterations)
+        d = decode_degraded_view(ref, sticker, image, deg, g, iterations, luma=degradation.luma)
         fits.append((residual_cost(ref, image, d), d, g))
     cost, d, g = min(fits, key=lambda f: f[0])
     generator.set_state(g.get_state())

@@ -124,13 +124,23 @@ def test_a_blurred_rotated_or_resized_image_is_matched_from_the_base_alone_and_d
         lin = deg.apply(0.5 + small) - deg.apply(torch.full_like(small, 0.5))
         assert torch.allclose(lin, deg.linear(small), atol=1e-5), deg
     assert I.match_degradation(marked[0].permute(1, 2, 0), base)[0] == I.Degradation()  # the mark alone: identity
-    # JPEG is matched too; its model is the codec without its quantization (colour conversion, chroma resampling)
+    # JPEG is matched too and read by its luma, which the codec keeps whole (chroma is halved): a small change's
+    # luma passes through at high quality, its chroma does not
     jp = I.Degradation("jpeg", 50.0)
     assert I.match_degradation(jp.apply(marked)[0].permute(1, 2, 0), base)[0] == jp
     small = 0.01 * torch.randn(1, 3, h, w, generator=g)
     near = I.Degradation("jpeg", 100.0)
-    err_model = float((near.apply(0.5 + small) - near.apply(torch.full_like(small, 0.5)) - near.linear(small)).abs().mean())
-    assert err_model < 0.5 * float(small.abs().mean())  # the linear part carries most of a small change
+    assert near.luma and not I.Degradation("blur", 1.0).luma
+    out = near.apply(0.5 + small) - near.apply(torch.full_like(small, 0.5))
+
+    def y(t):
+        return I.observe(t[0].permute(1, 2, 0).reshape(-1), True)
+
+    assert float((y(out) - y(near.linear(small))).abs().mean()) < 0.3 * float(y(small).abs().mean())
+    assert float((out - small).abs().mean()) > 0.3 * float(small.abs().mean())  # RGB: chroma resampled away
+    x = I.Degradation("jpeg", 100.0).apply(marked)[0].permute(1, 2, 0)
+    d = I.decode_selected(ref, st, x, I.match_degradation(x, base)[0], torch.Generator().manual_seed(0))
+    assert d["signals"] == ["luma"] and int((d["bits"] == msg).sum()) >= 46, d
 
 
 def test_the_fit_with_the_smaller_residual_is_kept_when_a_degradation_was_matched():
