@@ -314,7 +314,8 @@ def decode_selected(ref: ImageReferenceView, sticker: Sticker, image: Float[Tens
                     degradation: Degradation, generator: torch.Generator, iterations: int = 10) -> Dict[str, Any]:
     """Decode through ``degradation`` and, when it is not the identity, also without it; keep the fit that leaves
     the smaller residual over the whole image (a strong mark on a plain scene can make a transform of the base look
-    closer than the base itself). Both fits use the image, the base and the sticker only, never the message; the
+    closer than the base itself); both are compared in the channels the matched degradation keeps (JPEG: luma), and
+    an identity that wins is then read in RGB, as an unmatched image is. Both fits use the image, the base and the sticker only, never the message; the
     coin flips of the kept fit are drawn as if it had been the only one."""
     if degradation.name == "none":
         return decode_degraded_view(ref, sticker, image, degradation, generator, iterations)
@@ -325,6 +326,9 @@ def decode_selected(ref: ImageReferenceView, sticker: Sticker, image: Float[Tens
         d = decode_degraded_view(ref, sticker, image, deg, g, iterations, luma=degradation.luma)
         fits.append((residual_cost(ref, image, d), d, g))
     cost, d, g = min(fits, key=lambda f: f[0])
+    if d["degradation"] == "none" and degradation.luma:  # the identity won: read all three channels, as unmatched
+        g = torch.Generator().set_state(state)
+        d = decode_degraded_view(ref, sticker, image, Degradation(), g, iterations)
     generator.set_state(g.get_state())
     d["residual_cost_none"], d["residual_cost_matched"] = fits[0][0], fits[1][0]
     return d
