@@ -64,8 +64,11 @@ def markdown(r: Dict[str, Any]) -> str:
               "- The paper's own color-branch baselines (CopyRNeRF, StegaNeRF, HiDDeN+NeRF; paper 50-54 after recolor): "
               "not reimplemented; the color-branch baseline above is ours (same sticker and decoder, in color).",
               "- PGD with a leaked extractor: the blind extractor is at chance on clean renders already, so an attack on it "
-              "measures nothing; the geometric decoder's white-box analogue (the attacker holds the owner key's sticker and "
-              "subtracts it) removes the mark by construction: the key must stay secret.",
+              "measures nothing; " + ("the `leaked_key` row of Where it breaks is PGD on the informed image decoder with "
+                                      "the owner key and the base, at a PSNR budget."
+                                      if "leaked_key" in (r.get("curves") or {}).get("curves", {}) else
+                                      "the informed decoders' white-box analogue is the `leaked_key` curve (not in this "
+                                      "run)."),
               "- LLFF scenes.", ""]
     return "\n".join(lines)
 
