@@ -168,9 +168,8 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
     with contextlib.redirect_stdout(sys.stderr):
         _, pipeline, _ = load_run(run / "config.yml", data=data)
     params = sum(p.numel() for p in pipeline.model.sticker.parameters())
-    pc = pipeline.config  # heads trained beside the sticker (none when their three loss weights are 0)
-    trained = bool(pc.msg_weight or pc.negative_weight or pc.cls_weight)
-    heads_params = sum(t.numel() for t in key.heads_state.values() if t.is_floating_point()) if trained else 0
+    # heads trained beside the sticker (none when their three loss weights are 0)
+    heads_params = sum(t.numel() for t in key.heads_state.values() if t.is_floating_point()) if pipeline.trains_heads else 0
     points = []
     for ckpt in sorted((run / "nerfstudio_models").glob("step-*.ckpt")):
         n = int(ckpt.stem.split("-")[1])

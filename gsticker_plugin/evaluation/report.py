@@ -6,7 +6,7 @@ import math
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
-from gsticker_plugin.evaluation.config import PAPER
+from gsticker_plugin.evaluation.config import LEAKED_KEY, PAPER
 
 
 def paper_numbers() -> Dict[str, Any]:
@@ -66,7 +66,7 @@ def markdown(r: Dict[str, Any]) -> str:
               "- PGD with a leaked extractor: the blind extractor is at chance on clean renders already, so an attack on it "
               "measures nothing; " + ("the `leaked_key` row of Where it breaks is PGD on the informed image decoder with "
                                       "the owner key and the base, at a PSNR budget."
-                                      if "leaked_key" in (r.get("curves") or {}).get("curves", {}) else
+                                      if LEAKED_KEY in (r.get("curves") or {}).get("curves", {}) else
                                       "the informed decoders' white-box analogue is the `leaked_key` curve (not in this "
                                       "run)."),
               "- LLFF scenes.", ""]
@@ -264,7 +264,7 @@ def _curves(r) -> List[str]:
             e = c["image_decoder"]
             pts = "; ".join(f"{p['strength']:g}: {pct(p['image_decoder']['bit_acc'], p['image_decoder']['bit_acc_seed_std'])}"
                             f" / {pct(p['image_decoder']['verdict_rate'])}" for p in c["points"])
-            if name == "leaked_key":  # the PSNR each budget's attack reached on the 8-bit images
+            if name == LEAKED_KEY:  # the PSNR each budget's attack reached on the 8-bit images
                 pts += " (reached: " + ", ".join(num(p.get("attack_psnr")) for p in c["points"]) + " dB)"
             rows.append([name, "image decoder", pts, paper(e["bit_acc_below_90_at"]), paper(e["verdict_fails_at"])])
         pts = "; ".join(f"{p['strength']:g}: {pct(p['bit_acc_mean'], p['bit_acc_std'])} / {pct(p['verdict_rate'])}" for p in c["points"])
@@ -332,9 +332,9 @@ def chart_curves(r, path: Path) -> Optional[Path]:
         if below is not None:
             ax.axvline(below, color="tab:green" if img else "orange", lw=0.8)
         ax.set_title(name)
-        if name == "leaked_key":  # PSNR budgets: the attack grows as the budget falls
+        if name == LEAKED_KEY:  # PSNR budgets: the attack grows as the budget falls
             ax.invert_xaxis()
-        ax.set_xlabel("PSNR budget (dB)" if name == "leaked_key" else "strength")
+        ax.set_xlabel("PSNR budget (dB)" if name == LEAKED_KEY else "strength")
         ax.set_ylim(-2, 102)
     axes[0][0].set_ylabel("%")
     axes[0][0].legend(fontsize=7, loc="lower left")
