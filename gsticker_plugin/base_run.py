@@ -7,6 +7,8 @@ failure is a one-line :class:`GStickerError` naming the fix.
 
 from __future__ import annotations
 
+import dataclasses
+import enum
 import importlib.util
 import re
 from pathlib import Path
@@ -47,17 +49,86 @@ def run_config_path(checkpoint: Path) -> Path:
     return cfg
 
 
+TRUSTED_PACKAGES = ("nerfstudio", "gsticker_plugin", "method_configs")
+PATH_CLASSES = ("pathlib.Path", "pathlib.PosixPath", "pathlib.WindowsPath", "pathlib.PurePath", "pathlib.PurePosixPath",
+                "pathlib.PureWindowsPath")
+
+
+def method_packages() -> Tuple[str, ...]:
+    """Top-level packages of Nerfstudio's own methods, gsticker and every installed ``nerfstudio.method_configs``
+    entry point: the code a run's config.yml may name."""
+    from importlib.metadata import entry_points
+
+    eps = entry_points(group="nerfstudio.method_configs")
+    return tuple(sorted(set(TRUSTED_PACKAGES) | {ep.value.split(":")[0].split(".")[0] for ep in eps}))
+
+
+class RunConfigLoader(yaml.Loader):
+    """Reads a Nerfstudio config.yml, building only config dataclasses and names of installed Nerfstudio methods,
+    torch optimizers and schedulers, enums and paths; anything else (a suspect's ``os.system``) is refused before
+    its module is imported."""
+
+    packages: Tuple[str, ...] = TRUSTED_PACKAGES
+
+    def _trusted(self, suffix: str, node, what: str):
+        top = suffix.split(".")[0]
+        if not (top in self.packages or suffix in PATH_CLASSES or suffix.startswith("torch.optim.")):
+            raise yaml.constructor.ConstructorError(None, None, f"{what} {suffix!r} is not a Nerfstudio config class",
+                                                    node.start_mark)
+        obj = self.find_python_name(suffix, node.start_mark)
+        if what == "object" and not (isinstance(obj, type) and dataclasses.is_dataclass(obj)):
+            raise yaml.constructor.ConstructorError(None, None, f"{suffix!r} is not a config dataclass", node.start_mark)
+        if what == "call" and not (suffix in PATH_CLASSES or (isinstance(obj, type) and issubclass(obj, enum.Enum))):
+            raise yaml.constructor.ConstructorError(None, None, f"{suffix!r} may not be called by a config",
+                                                    node.start_mark)
+        return obj
+
+    def construct_python_name(self, suffix, node):
+        self._trusted(suffix, node, "name")
+        return super().construct_python_name(suffix, node)
+
+    def construct_python_object(self, suffix, node):
+        self._trusted(suffix, node, "object")
+        return super().construct_python_object(suffix, node)
+
+    def construct_python_object_apply(self, suffix, node, newobj=False):
+        self._trusted(suffix, node, "call")
+        return super().construct_python_object_apply(suffix, node, newobj)
+
+    def construct_python_object_new(self, suffix, node):
+        self._trusted(suffix, node, "call")
+        return super().construct_python_object_new(suffix, node)
+
+    def construct_python_module(self, suffix, node):
+        raise yaml.constructor.ConstructorError(None, None, f"module {suffix!r} in a config", node.start_mark)
+
+
+for _tag, _method in (("name", RunConfigLoader.construct_python_name),
+                      ("object", RunConfigLoader.construct_python_object),
+                      ("object/apply", RunConfigLoader.construct_python_object_apply),
+                      ("object/new", RunConfigLoader.construct_python_object_new),
+                      ("module", RunConfigLoader.construct_python_module)):
+    RunConfigLoader.add_multi_constructor(f"tag:yaml.org,2002:python/{_tag}:", _method)
+
+
 def load_run_config(config_path: Path):
-    """Parse a run's config.yml; a method whose package is missing gives a one-line error."""
+    """Parse a run's config.yml with :class:`RunConfigLoader`; a method whose package is missing, or a file that asks
+    for anything but config classes, gives a one-line error."""
+    loader = type("Loader", (RunConfigLoader,), {"packages": method_packages()})
     try:
-        return yaml.load(Path(config_path).read_text(), Loader=yaml.Loader)
+        return yaml.load(Path(config_path).read_text(), Loader=loader)
     except (ModuleNotFoundError, ImportError, AttributeError) as e:
         name = getattr(e, "name", None) or str(e)
         raise GStickerError(f"{config_path} was written by a method that is not installed here ({name}); "
                             "install that method's package (pip install ...) and retry") from None
+    except yaml.constructor.ConstructorError as e:
+        raise GStickerError(f"{config_path} is refused: {e.problem} (line {e.problem_mark.line + 1 if e.problem_mark else '?'}); "
+                            "only config.yml files written by Nerfstudio are read") from None
     except yaml.YAMLError as e:
         raise GStickerError(f"{config_path} is not a readable Nerfstudio config ({type(e).__name__}); "
                             "restore the run's config.yml") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise GStickerError(f"{config_path} cannot be read ({type(e).__name__}); pass RUN/config.yml") from None
 
 
 def checkpoint_step(checkpoint: Path) -> int:
@@ -113,10 +184,29 @@ def strict_load(model: torch.nn.Module, model_state: Dict[str, Any], num_train_d
         raise GStickerError(f"base weight {k} has shape {b} but the rebuilt base expects {a} "
                             f"({len(mismatched)} mismatches); rebuild with the run's own config.yml, unmodified")
     if missing or unexpected:
+        try:  # a module's load hook may fill what its stored form leaves out (a shared run's folded sticker)
+            model.load_state_dict(model_state, strict=True)
+            return
+        except RuntimeError:
+            pass
         raise GStickerError(f"base checkpoint does not match its model: {len(missing)} missing keys "
                             f"(e.g. {missing[:2]}), {len(unexpected)} unexpected (e.g. {unexpected[:2]}); "
                             "use the checkpoint written by the same run as its config.yml")
     model.load_state_dict(model_state, strict=True)
+
+
+def load_pipeline_strictly(pipeline, state: Dict[str, Any], checkpoint: Path) -> None:
+    """Load a checkpoint's pipeline state with every key matching (Nerfstudio's own load silently retries non-strictly:
+    a half-loaded suspect would render at chance and read "not shown")."""
+    pstate = {(k[len("module."):] if k.startswith("module.") else k): v for k, v in state["pipeline"].items()}
+    pipeline.model.update_to_step(int(state.get("step", 0)))
+    try:
+        pipeline.load_state_dict(pstate, strict=True)
+    except RuntimeError as e:
+        lines = [" ".join(x.split()) for x in str(e).splitlines()[1:] if x.strip()]
+        detail = "; ".join(lines)[:400] or str(e).splitlines()[0][:200]
+        raise GStickerError(f"checkpoint {checkpoint} does not match its run's model ({detail}); use the checkpoint "
+                            "written by the same run as its config.yml") from None
 
 
 def resolve_data_path(recorded: Optional[Path], override: Optional[Path]) -> Path:

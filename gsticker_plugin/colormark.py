@@ -91,7 +91,8 @@ class ColorMarkWrap:
 
     @property
     def active(self) -> bool:
-        return self.state.enabled and self.state.message is not None and bool(self.wrap.gate.calibrated)
+        has_sticker = self.state.message is not None or self.state.folded is not None  # folded: a shared run
+        return self.state.enabled and has_sticker and bool(self.wrap.gate.calibrated)
 
     def get_density(self, ray_samples, *args, **kwargs):
         result = self.original_density(ray_samples, *args, **kwargs)

@@ -103,12 +103,12 @@ def main(cfg: DemoConfig) -> None:
 
     print("[3/6] Sticking the owner message onto the geometry", flush=True)
     wm_run = out / "demo" / "geometrysticker" / "watermarked"
-    key_path = wm_run.with_name("watermarked.gskey")
+    key_path = out / "owner-keys" / "demo.gskey"  # the secret half: outside the run's output folder
     if not key_path.exists() or not list((wm_run / "nerfstudio_models").glob("step-*.ckpt")):
         _run([_bin("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
               "--output-dir", str(out), "--experiment-name", "demo", "--timestamp", "watermarked",
               "--max-num-iterations", str(cfg.sticker_iterations), "--pipeline.owner-id", cfg.owner_id,
-              "--load-checkpoint", str(base_ckpt)], logs / "sticker.log")
+              "--pipeline.key-path", str(key_path), "--load-checkpoint", str(base_ckpt)], logs / "sticker.log")
     else:
         print("    (exists)")
 

@@ -13,8 +13,8 @@ key since version 2), the message can be read back by fitting:
    sticker of a *continuous* message ``s in [-1, 1]^K`` (:meth:`Sticker.mix` accepts any signs), and fit ``s`` to
    the suspect by damped Gauss-Newton (Levenberg-Marquardt, clamped to the box);
 4. decode bit ``i`` as ``s_i > 0``; bits the suspect does not determine (``|s_i| <= tol``, e.g. every bit when
-   the suspect *is* the base: zero residual) are coin flips from a generator seeded independently of the owner's
-   message, so the unmarked base decodes at chance, not at 0/48 or 48/48.
+   the suspect *is* the base: zero residual) are undetermined and count as mismatches, so the unmarked base
+   reads 0/48, never a match.
 
 Why the binomial null holds: the fit uses the suspect, the base and the sticker, never the owner's message; the
 sticker was trained on uniformly random messages (``--pipeline.owner-message-prob 0``), so for a model that was
@@ -264,13 +264,18 @@ def fit_summary(fit: Fit, undetermined: int, rays: int) -> Dict[str, Any]:
             "residual_rms": fit.residual_rms, "iterations": fit.iterations, "rays": rays}
 
 
-def decide_bits(signs: Float[Tensor, "K"], generator: torch.Generator, tol: float = 1e-6) -> Tuple[Int[Tensor, "K"], int]:
-    """Bit ``i`` = ``signs_i > 0``; bits with ``|signs_i| <= tol`` (not determined by the suspect) are coin flips
-    from ``generator`` (seeded independently of the owner's message). Returns the bits and how many were flipped."""
+UNDETERMINED = -1
+"""The value of a bit the suspect does not determine: it matches no message bit (counted as a mismatch)."""
+
+
+def decide_bits(signs: Float[Tensor, "K"], generator: Optional[torch.Generator] = None,
+                tol: float = 1e-6) -> Tuple[Int[Tensor, "K"], int]:
+    """Bit ``i`` = ``signs_i > 0``; bits with ``|signs_i| <= tol`` (not determined by the suspect) are
+    :data:`UNDETERMINED`, a mismatch whatever the message (deterministic and conservative: the matches of an unmarked
+    suspect are then at most Binomial). Returns the bits and how many are undetermined. ``generator`` is unused."""
     bits = (signs > 0).long().cpu()
     tie = (signs.abs() <= tol).cpu()
-    coins = torch.randint(0, 2, (signs.numel(),), generator=generator)
-    bits = torch.where(tie, coins, bits)
+    bits = torch.where(tie, torch.full_like(bits, UNDETERMINED), bits)
     return bits, int(tie.sum())
 
 
@@ -559,7 +564,7 @@ def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int,
 
 
 def tie_generator(seed: int) -> torch.Generator:
-    """Coin flips for undetermined bits: seeded by the verification seed, independent of the owner's message."""
+    """A generator seeded by the verification seed (the decoders' signature; undetermined bits are mismatches)."""
     return torch.Generator().manual_seed(104729 + 7919 * int(seed))
 
 

@@ -7,7 +7,7 @@ records it, as for the geometric decoder) and the camera of each image, the chan
 message ``s`` makes to the base render at that camera is predicted exactly on the base's own samples, with the
 base's own colours, and ``s`` is fitted to ``image - base render`` by the same Levenberg-Marquardt fit
 (:func:`gsticker_plugin.geometry.fit_message`, Jacobian in closed form); bit ``i`` = ``s_i > 0``, undetermined
-bits are coin flips from a generator independent of the owner's message.
+bits count as mismatches.
 
 What it reads: images at *known* cameras (renders of the scene at the base's cameras, e.g. the evaluation
 protocol's test views), as they are or after image distortions (noise, blur, JPEG, resize, cropout, rotation,
@@ -315,8 +315,7 @@ def decode_selected(ref: ImageReferenceView, sticker: Sticker, image: Float[Tens
     """Decode through ``degradation`` and, when it is not the identity, also without it; keep the fit that leaves
     the smaller residual over the whole image (a strong mark on a plain scene can make a transform of the base look
     closer than the base itself); both are compared in the channels the matched degradation keeps (JPEG: luma), and
-    an identity that wins is then read in RGB, as an unmatched image is. Both fits use the image, the base and the sticker only, never the message; the
-    coin flips of the kept fit are drawn as if it had been the only one."""
+    an identity that wins is then read in RGB, as an unmatched image is. Both fits use the image, the base and the sticker only, never the message."""
     if degradation.name == "none":
         return decode_degraded_view(ref, sticker, image, degradation, generator, iterations)
     state = generator.get_state()

@@ -1,18 +1,18 @@
 """The owner key: the secret half of a GeometrySticker watermark, stored apart from the shareable model.
 
-It holds the message bits, the extractor and classifier weights, a reference to the base run, (version 2) the
-*geometry reference* -- the sticker's configuration and weights, the gates' state, the wrapped fields and their
-position normalization -- for the informed geometric decoder (gsticker_plugin.geometry), and a sha256 fingerprint
-over all of it (tamper check). Written atomically (temporary file + rename). Version-1 keys (no geometry
-reference) still load; ``ns-verify-owner export-key`` adds the reference from the watermarked run.
+Holds the message, the extractor and classifier, the base run's reference, the geometry reference (sticker and
+gates) for the informed decoders, how the message was drawn, and (version 3) a secret, a commitment salt and an
+HMAC over the rest (an integrity check, not a signature). Written atomically. docs/verify.md has the threat model.
 """
 
 from __future__ import annotations
 
 import hashlib
+import hmac
 import io
 import json
 import os
+import secrets
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -25,9 +25,35 @@ from torch import Tensor
 from gsticker_plugin.errors import GStickerError
 
 KEY_FORMAT = "gsticker-owner-key"
-KEY_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+KEY_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 KEY_SUFFIX = ".gskey"
+KEYS_DIR_ENV = "GSTICKER_KEYS_DIR"
+MESSAGE_SOURCES = ("random", "owner-id", "given")
+"""How a key's message was drawn: ``random`` (``secrets``, the only source whose binomial null is exact), derived
+from the owner ID (anyone who knows the name knows the bits), or given on the command line."""
+
+
+def random_message(num_bits: int = 48) -> Tensor:
+    """Uniformly random, secret message bits from the operating system's CSPRNG."""
+    word = secrets.randbits(num_bits)
+    return torch.tensor([(word >> (num_bits - 1 - i)) & 1 for i in range(num_bits)], dtype=torch.long)
+
+
+def keys_dir() -> Path:
+    """The per-user folder where owner keys go by default: ``$GSTICKER_KEYS_DIR``, else
+    ``$XDG_DATA_HOME/gsticker/keys`` (``~/.local/share/gsticker/keys``); never inside a run's output folder."""
+    env = os.environ.get(KEYS_DIR_ENV)
+    if env:
+        return Path(env).expanduser()
+    data_home = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(data_home) / "gsticker" / "keys"
+
+
+def default_key_path(experiment_name: str, method_name: str, timestamp: str) -> Path:
+    """Where ``ns-train geometrysticker`` writes a run's key unless ``--pipeline.key-path`` is given."""
+    safe = "-".join(str(x).replace("/", "_").replace(os.sep, "_") for x in (experiment_name, method_name, timestamp))
+    return keys_dir() / (safe + KEY_SUFFIX)
 
 
 def message_from_owner_id(owner_id: str, num_bits: int = 48) -> Tensor:
@@ -51,7 +77,8 @@ def parse_message(text: str, num_bits: int = 48) -> Tensor:
 
 
 def bits_to_str(bits: Tensor) -> str:
-    return "".join(str(int(b)) for b in bits.reshape(-1).tolist())
+    """0/1 bits as a string; an undetermined bit (-1, see gsticker_plugin.geometry.decide_bits) reads ``?``."""
+    return "".join("?" if int(b) < 0 else str(int(b)) for b in bits.reshape(-1).tolist())
 
 
 def _canonical_hash(obj: Any, h: "hashlib._Hash") -> None:
@@ -91,8 +118,35 @@ def plain(obj: Any) -> Any:
 
 
 def fingerprint(payload: Dict[str, Any]) -> str:
+    """Unkeyed sha256 over a payload (versions 1 and 2): detects corruption, not edits (anyone can recompute it)."""
     h = hashlib.sha256()
-    _canonical_hash({k: v for k, v in payload.items() if k != "fingerprint"}, h)
+    _canonical_hash({k: v for k, v in payload.items() if k not in ("fingerprint", "hmac")}, h)
+    return h.hexdigest()
+
+
+def payload_hmac(payload: Dict[str, Any], secret: bytes) -> str:
+    """HMAC-SHA256 of a version-3 payload under the key's own secret (the ``hmac`` entry excluded)."""
+    h = hashlib.sha256()
+    _canonical_hash({k: v for k, v in payload.items() if k not in ("fingerprint", "hmac")}, h)
+    return hmac.new(secret, h.digest(), hashlib.sha256).hexdigest()
+
+
+COMMITTED_PARTS = ("message", "message_source", "heads_state", "geometry_sticker", "base_sha256", "created")
+
+
+def commitment(key: "OwnerKey") -> str:
+    """sha256 over the salt and the key's secret parts (message, heads, sticker, base checksum, creation time):
+    published or timestamped at release, it shows later that this key existed then. Stable across calibration."""
+    if not key.salt:
+        raise GStickerError("this owner key has no commitment salt (written before version 3); only keys written by "
+                            "this gsticker can be committed: retrain the sticker to get one")
+    parts = {"message": key.message.to(torch.long).cpu(), "message_source": key.message_source,
+             "heads_state": {k: v.detach().cpu() for k, v in key.heads_state.items()},
+             "geometry_sticker": plain((key.geometry or {}).get("sticker_state")),
+             "base_sha256": (key.base or {}).get("checkpoint_sha256"), "created": key.created}
+    h = hashlib.sha256()
+    h.update(b"gsticker-commitment-v1:" + bytes.fromhex(key.salt))
+    _canonical_hash(parts, h)
     return h.hexdigest()
 
 
@@ -123,6 +177,14 @@ class OwnerKey:
     geometry: Optional[Dict[str, Any]] = None
     """The geometry reference (sticker config and state, gates' state, fields, aabbs; see
     :func:`gsticker_plugin.geometry.geometry_reference`); None in a version-1 key."""
+    message_source: str = "random"
+    """How the message was drawn (:data:`MESSAGE_SOURCES`); ``unknown`` for keys written before version 3."""
+    owner_message_prob: float = 0.0
+    """Share of training renders that carried the owner's message (above 0 the heads and sticker saw it)."""
+    secret: str = field(default_factory=lambda: secrets.token_hex(32))
+    """HMAC secret of the key file (hex); empty in keys written before version 3."""
+    salt: str = field(default_factory=lambda: secrets.token_hex(16))
+    """Salt of the key's commitment (hex); empty in keys written before version 3."""
     version: int = KEY_VERSION
     """The version the key was read as (saving always writes the current version)."""
 
@@ -130,12 +192,32 @@ class OwnerKey:
     def num_bits(self) -> int:
         return int(self.message.numel())
 
+    def null_caveats(self) -> List[str]:
+        """Why the binomial null of this key is not exact (empty: exact): a message that is not uniformly random and
+        secret, or training that showed the owner's message to the sticker and heads."""
+        out = []
+        if self.message_source == "owner-id":
+            out.append("the message is derived from the owner ID: anyone who knows the ID knows the bits")
+        elif self.message_source == "given":
+            out.append("the message was given on the command line: it is uniformly random only if it was drawn so")
+        elif self.message_source != "random":
+            out.append("the key does not record how its message was drawn (written before version 3)")
+        if self.owner_message_prob > 0:
+            out.append(f"the sticker and heads were trained on the owner's message in {self.owner_message_prob:.0%} "
+                       "of renders: the decoders may lean toward its bits on unmarked input")
+        return out
+
     def payload(self) -> Dict[str, Any]:
+        if not self.secret or not self.salt:
+            self.secret = self.secret or secrets.token_hex(32)
+            self.salt = self.salt or secrets.token_hex(16)
         p = {
             "format": KEY_FORMAT,
             "version": KEY_VERSION,
             "owner_id": self.owner_id,
             "message": self.message.to(torch.long).cpu(),
+            "message_source": self.message_source,
+            "owner_message_prob": float(self.owner_message_prob),
             "heads_config": dict(self.heads_config),
             "heads_state": {k: v.detach().cpu() for k, v in self.heads_state.items()},
             "base": plain(dict(self.base)),
@@ -144,8 +226,10 @@ class OwnerKey:
             "training_state": plain(self.training_state),
             "created": self.created,
             "geometry": plain(self.geometry),
+            "secret": self.secret,
+            "salt": self.salt,
         }
-        p["fingerprint"] = fingerprint(p)
+        p["hmac"] = payload_hmac(p, bytes.fromhex(self.secret))
         return p
 
     def save(self, path: Path) -> Path:
@@ -183,13 +267,32 @@ class OwnerKey:
         if p.get("version") not in READABLE_VERSIONS:
             raise GStickerError(f"{path} is an owner key of version {p.get('version')}, this gsticker reads "
                                 f"versions {', '.join(map(str, READABLE_VERSIONS))}; use the gsticker release that wrote it")
-        if p.get("fingerprint") != fingerprint(p):
+        version = int(p["version"])
+        if version >= 3:
+            secret = p.get("secret")
+            try:
+                ok = isinstance(secret, str) and hmac.compare_digest(str(p.get("hmac")),
+                                                                      payload_hmac(p, bytes.fromhex(secret)))
+            except ValueError:
+                ok = False
+            if not ok:
+                raise GStickerError(f"{path} failed its integrity check (HMAC: edited or corrupted); use your "
+                                    "original copy of the owner key")
+        elif p.get("fingerprint") != fingerprint(p):
             raise GStickerError(f"{path} failed its fingerprint check (tampered or corrupted); use your "
                                 "original copy of the owner key")
-        return cls(owner_id=p["owner_id"], message=p["message"], heads_config=p["heads_config"],
+        message = p["message"]
+        if not isinstance(message, Tensor) or message.ndim != 1 or not bool(((message == 0) | (message == 1)).all()):
+            raise GStickerError(f"{path} holds a malformed message (not a vector of 0/1 bits); use your original "
+                                "copy of the owner key")
+        return cls(owner_id=p["owner_id"], message=message, heads_config=p["heads_config"],
                    heads_state=p["heads_state"], base=p["base"], model_run=p["model_run"], null=p["null"],
                    training_state=p.get("training_state") or {}, created=p["created"],
-                   geometry=p.get("geometry") if p["version"] >= 2 else None, version=int(p["version"]))
+                   geometry=p.get("geometry") if version >= 2 else None,
+                   message_source=p.get("message_source", "unknown") if version >= 3 else "unknown",
+                   owner_message_prob=float(p.get("owner_message_prob", 0.0)),
+                   secret=p.get("secret", "") if version >= 3 else "", salt=p.get("salt", "") if version >= 3 else "",
+                   version=version)
 
     def build_heads(self):
         from gsticker_plugin.heads import HeadConfig, Heads

@@ -238,8 +238,10 @@ def combine_view_decisions(per_view_pass: Sequence[bool], min_share: float = 0.5
     whatever the others do), and the model is flagged when at least a share ``s`` of the views pass. This
     is conservative under *any* dependence between views: if each view passes with probability at most
     ``alpha`` under the null, the expected number of passing views is at most ``n * alpha``, so by Markov's
-    inequality ``P(share >= s) <= alpha / s`` (see :func:`combined_fpr_bound`). With perfectly correlated
-    views the bound is ``alpha`` itself; with independent views the true rate is far smaller than the bound.
+    inequality ``P(share >= s) <= alpha / s`` (see :func:`combined_fpr_bound`). The bound is ``alpha / s``
+    whatever the dependence, and some dependence attains it (a set of exactly ``s * n`` views passing together
+    with probability ``alpha / s``, none otherwise); perfectly correlated views (all pass or none) give a rate of
+    ``alpha``, independent views a rate far below the bound.
     """
     if not 0.0 < min_share <= 1.0:
         raise ValueError(f"min_share must be in (0, 1], got {min_share!r}")
@@ -251,7 +253,8 @@ def combine_view_decisions(per_view_pass: Sequence[bool], min_share: float = 0.5
 
 
 def combined_fpr_bound(per_view_fpr: float, min_share: float = 0.5) -> float:
-    """Dependence-free bound ``min(1, per_view_fpr / min_share)`` on the FPR of :func:`combine_view_decisions`."""
+    """Dependence-free bound ``min(1, per_view_fpr / min_share)`` on the FPR of :func:`combine_view_decisions`
+    (Markov's inequality; attained by some dependence between views, so it cannot be lowered to ``per_view_fpr``)."""
     if not 0.0 < min_share <= 1.0:
         raise ValueError(f"min_share must be in (0, 1], got {min_share!r}")
     return min(1.0, per_view_fpr / min_share)

@@ -21,7 +21,7 @@ from nerfstudio.fields.base_field import Field
 from nerfstudio.models.base_model import Model, ModelConfig
 
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.sticker import DensityWrap, Gate, Sticker, WrapState
+from gsticker_plugin.sticker import DensityWrap, FoldedSticker, Gate, Sticker, WrapState
 
 
 @dataclass
@@ -87,6 +87,11 @@ class GeometryStickerModel(Model):
                                self.config.sticker_hidden_dim, self.config.sticker_num_layers,
                                self.config.sticker_init_scale, self.config.sticker_kind)
         self.register_buffer("message", torch.zeros(self.config.num_bits, dtype=torch.long))
+        # the shared form: the sticker of the owner's message, folded (no bits, no per-bit patterns)
+        self.folded_sticker = FoldedSticker(self.config.num_frequencies, self.config.sticker_hidden_dim,
+                                            self.config.sticker_num_layers)
+        self.register_buffer("folded", torch.tensor(False))
+        self.register_load_state_dict_pre_hook(GeometryStickerModel._fill_unshared)
         self.wrap_state = WrapState(enabled=True, final_only=not self.config.mark_sampling_passes)
         self.gates = nn.ModuleDict()
         self.wraps: List[DensityWrap] = []
@@ -152,6 +157,43 @@ class GeometryStickerModel(Model):
     def set_message(self, message: Tensor) -> None:
         self.message.copy_(message.to(self.message))
 
+    # ------------------------------------------------------------------------------------------ shared form
+    SECRET_PREFIXES = ("sticker.", "message")
+    """State entries that never leave the owner: the per-bit sticker and the message (they go into the owner key)."""
+
+    def shareable_state_dict(self, prefix: str = "") -> Dict[str, Tensor]:
+        """This model's state as a shared run holds it: the sticker folded with the owner's message, and no sticker
+        with a message input and no message bits."""
+        state = dict(self.state_dict(prefix=prefix))
+        if not bool(self.folded):
+            for k, v in self.sticker.fold(self.message).items():
+                state[prefix + "folded_sticker." + k] = v
+            state[prefix + "folded"] = torch.tensor(True)
+        return {k: v for k, v in state.items()
+                if not any(k[len(prefix):].startswith(s) for s in self.SECRET_PREFIXES)}
+
+    def unfold(self, sticker_state: Dict[str, Tensor], message: Tensor) -> None:
+        """Back from the shared form to the trainable sticker (resuming a run): the key's sticker and message."""
+        self.sticker.load_state_dict(sticker_state, strict=True)
+        self.set_message(message)
+        self.folded.fill_(False)
+
+    @staticmethod
+    def _fill_unshared(module, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                       error_msgs) -> None:
+        """Load hook: a shared state has no per-bit sticker and message (filled with this model's own, unused in the
+        folded form); a run written before the shared form has no folded sticker (filled, ``folded`` False)."""
+        if prefix + "folded" not in state_dict:
+            if prefix + "message" in state_dict:  # the older, unfolded layout
+                for k, v in module.folded_sticker.state_dict().items():
+                    state_dict.setdefault(prefix + "folded_sticker." + k, v)
+                state_dict[prefix + "folded"] = torch.tensor(False)
+            return
+        if bool(state_dict[prefix + "folded"]):
+            for k, v in module.sticker.state_dict().items():
+                state_dict.setdefault(prefix + "sticker." + k, v)
+            state_dict.setdefault(prefix + "message", module.message)
+
     @contextmanager
     def sticker_enabled(self, enabled: bool):
         old = self.wrap_state.enabled
@@ -163,7 +205,9 @@ class GeometryStickerModel(Model):
 
     # ------------------------------------------------------------------------------------------ rendering
     def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Any]:
-        self.wrap_state.message = self.message
+        folded = bool(self.folded)
+        self.wrap_state.message = None if folded else self.message
+        self.wrap_state.folded = self.folded_sticker if folded else None
         self.wrap_state.record = True
         try:
             with self.final_pass() as masks:
@@ -258,6 +302,9 @@ class GeometryStickerModel(Model):
             })
             return out
 
+        if message is not None and bool(self.folded):
+            raise GStickerError("this run holds the shared (folded) sticker and no message; render another message "
+                                "with the owner key's sticker (gsticker_plugin.geometry.load_base_reference)")
         old_message = None if message is None else self.message.clone()
         object.__setattr__(fld, "forward", forward)
         try:
@@ -282,3 +329,16 @@ class GeometryStickerModel(Model):
         raise GStickerError(f"the base's background '{bg}' is not supported by the fast trainer; retrain the "
                             "base with --pipeline.model.background-color white (or black), or pass "
                             "--pipeline.fast-path False")
+
+
+def shareable_state(model: nn.Module) -> Dict[str, Tensor]:
+    """``model``'s state as a shared run holds it: every GeometrySticker model inside it (a recolor run wraps one) in
+    its folded form, without message or per-bit sticker."""
+    state = dict(model.state_dict())
+    for name, m in model.named_modules():
+        if isinstance(m, GeometryStickerModel):
+            prefix = name + "." if name else ""
+            for k in [k for k in state if k.startswith(prefix + "sticker.") or k == prefix + "message"]:
+                del state[k]
+            state.update(m.shareable_state_dict(prefix=prefix))
+    return state

@@ -28,7 +28,7 @@ from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import ViewCache, cache_view, orbit_cameras, pool_memory_mb, render_cached
 from gsticker_plugin.geometry import geometry_reference
 from gsticker_plugin.heads import HeadConfig, Heads, count_parameters
-from gsticker_plugin.key import OwnerKey, message_from_owner_id, parse_message
+from gsticker_plugin.key import OwnerKey, message_from_owner_id, parse_message, random_message
 from gsticker_plugin.model import GeometryStickerModel, GeometryStickerModelConfig
 from gsticker_plugin.sticker import composite, sparsity_loss
 
@@ -43,12 +43,19 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     model: GeometryStickerModelConfig = field(default_factory=GeometryStickerModelConfig)
     heads: HeadConfig = field(default_factory=HeadConfig)
     """Extractor and classifier networks (the owner's secret)."""
-    owner_id: str = "gsticker-owner"
-    """Owner ID; the 48-bit message is derived from it (sha256) unless --pipeline.message is given."""
+    owner_id: str = ""
+    """A label for the owner, kept in the owner key only (reports name it); not the source of the bits."""
     message: Optional[str] = None
-    """The message as 0/1 characters (overrides --pipeline.owner-id)."""
+    """The message as 0/1 characters (default: drawn uniformly at random with `secrets`; the key records which)."""
+    message_from_owner_id: bool = False
+    """Derive the message from --pipeline.owner-id (sha256) instead of drawing it: weaker, anyone who knows the ID
+    knows the bits; the key and the verification report say so."""
+    message_source: tyro.conf.Suppress[str] = ""
+    """How the message was drawn (random, owner-id, given); set by the trainer."""
     key_path: Optional[Path] = None
-    """Where the owner key is written (default: beside the run folder, RUN.gskey). Keep it secret."""
+    """Where the owner key is written (default: the per-user keys folder, $GSTICKER_KEYS_DIR or
+    ~/.local/share/gsticker/keys/EXPERIMENT-METHOD-TIMESTAMP.gskey; never inside the run's output folder). Keep it
+    secret."""
     base_run: tyro.conf.Suppress[Dict[str, Any]] = field(default_factory=dict)
     """Reference to the base run (method, config, checkpoint and its sha256); filled in automatically."""
     fast_path: bool = True
@@ -101,8 +108,14 @@ class GeometryStickerPipeline(VanillaPipeline):
     def __init__(self, config: GeometryStickerPipelineConfig, device: str, test_mode: Literal["test", "val", "inference"] = "val",
                  world_size: int = 1, local_rank: int = 0, grad_scaler=None):
         super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
-        self.owner_message = self.resolve_message(config)
-        self.model.set_message(self.owner_message)
+        # training draws (or takes) the owner's message; a loaded shared run has none (its sticker is folded)
+        self.owner_message: Optional[Tensor] = self.resolve_message(config) if test_mode == "val" else None
+        if self.owner_message is not None:
+            self.model.set_message(self.owner_message)
+        self.message_source = config.message_source or ("given" if config.message else
+                                                        "owner-id" if config.message_from_owner_id else "random")
+        self.owner_label = config.owner_id
+        self.resumed_key: Optional[OwnerKey] = None
         # Heads: plain attribute, not a registered submodule (keeps them out of the shareable state dict).
         self.__dict__["heads"] = Heads(config.heads, config.model.num_bits).to(device) if test_mode == "val" else None
         self.distort = RandomDistortion(config.distortion)
@@ -114,9 +127,34 @@ class GeometryStickerPipeline(VanillaPipeline):
 
     @staticmethod
     def resolve_message(config: GeometryStickerPipelineConfig) -> Tensor:
+        """--pipeline.message, else bits derived from the owner ID when asked, else fresh uniformly random bits."""
         if config.message:
             return parse_message(config.message, config.model.num_bits)
-        return message_from_owner_id(config.owner_id, config.model.num_bits)
+        if config.message_from_owner_id:
+            return message_from_owner_id(config.owner_id, config.model.num_bits)
+        return random_message(config.model.num_bits)
+
+    def set_owner(self, message: Tensor, source: str, label: str, resumed_key: Optional[OwnerKey] = None) -> None:
+        """The owner's message, how it was drawn and the owner's label (the trainer keeps them out of the config);
+        ``resumed_key``: the key of the run being resumed (its secret, salt and creation time are kept)."""
+        self.owner_message = message.to(torch.long).cpu()
+        self.model.set_message(self.owner_message)
+        self.message_source, self.owner_label, self.resumed_key = source, label, resumed_key
+
+    def restore_owner(self, key: OwnerKey, heads: bool = True) -> None:
+        """Take the owner's side from ``key`` after loading a shared run: the trainable sticker (unfolded), the message
+        and how it was drawn, and (``heads``) the heads when this pipeline has them."""
+        if key.geometry and bool(self.model.folded):
+            self.model.unfold(key.geometry["sticker_state"], key.message)
+        if heads and self.heads is not None:
+            self.heads.load_state_dict(key.heads_state, strict=True)
+        self.set_owner(key.message, key.message_source, key.owner_id, key)
+
+    def shareable_state_dict(self) -> Dict[str, Tensor]:
+        """The pipeline state a shared checkpoint holds (see GeometryStickerModel.shareable_state_dict)."""
+        state = {k: v for k, v in self.state_dict().items() if not k.startswith("_model.")}
+        state.update(self.model.shareable_state_dict(prefix="_model."))
+        return state
 
     @property
     def heads(self) -> Optional[Heads]:
@@ -135,9 +173,9 @@ class GeometryStickerPipeline(VanillaPipeline):
         self.model.load_state_dict(model_state, strict=True)
 
     def owner_key(self, training_state: Optional[Dict[str, Any]] = None, model_run: str = "") -> OwnerKey:
-        assert self.heads is not None
-        return OwnerKey(
-            owner_id=self.config.owner_id if not self.config.message else "",
+        assert self.heads is not None and self.owner_message is not None
+        key = OwnerKey(
+            owner_id=self.owner_label,
             message=self.owner_message.cpu(),
             heads_config=dict(vars(self.config.heads)),
             heads_state=self.heads.state_dict(),
@@ -145,7 +183,13 @@ class GeometryStickerPipeline(VanillaPipeline):
             model_run=model_run,
             training_state=training_state or {},
             geometry=geometry_reference(self.model),
+            message_source=self.message_source,
+            owner_message_prob=float(self.config.owner_message_prob),
         )
+        old = self.resumed_key
+        if old is not None and old.secret and old.salt:
+            key.secret, key.salt, key.created = old.secret, old.salt, old.created
+        return key
 
     # ------------------------------------------------------------------------------------ fast-path pool
     @torch.no_grad()
@@ -174,8 +218,12 @@ class GeometryStickerPipeline(VanillaPipeline):
                     "mu": round(mu, 6)}
         path = self.config.pool_cache
         if path is not None and Path(path).is_file():
-            saved = torch.load(path, map_location="cpu", weights_only=False)
-            if saved.get("id") == cache_id:
+            try:  # tensors and plain containers only: a cache file is never trusted with arbitrary objects
+                saved = torch.load(path, map_location="cpu", weights_only=True)
+            except Exception as e:  # unreadable or not a pool cache: rebuilt below
+                CONSOLE.print(f"\\[gsticker] pool cache {path} not used ({type(e).__name__}); rendering the pool")
+                saved = {}
+            if isinstance(saved, dict) and saved.get("id") == cache_id:
                 self.pool = [ViewCache(**v) for v in saved["pool"]]
                 self.monitor = [ViewCache(**v) for v in saved["monitor"]]
                 CONSOLE.print(f"\\[gsticker] pool reused from {path} ({len(self.pool)} views)")

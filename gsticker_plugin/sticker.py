@@ -176,6 +176,39 @@ class Sticker(nn.Module):
     def forward(self, positions01: Float[Tensor, "N 3"], message: Float[Tensor, "K"]) -> Float[Tensor, "N 1"]:
         return self.mix(self.features(positions01), message_to_signs(message))
 
+    @torch.no_grad()
+    def fold(self, message: Tensor) -> Dict[str, Tensor]:
+        """The state of a :class:`FoldedSticker` equal to this sticker with ``message`` fixed: bilinear: ``2M - 1``
+        folds into the last layer (one output); concat: the message term folds into the first layer's bias."""
+        signs = message_to_signs(message).to(self.pos_in.weight)
+        state = {k: v.detach().clone() for k, v in self.state_dict().items() if not k.startswith("msg_in.")}
+        if self.msg_in is not None:
+            state["pos_in.bias"] = self.pos_in.bias + self.msg_in.weight @ signs
+            return state
+        last = self.mlp[-1]
+        name = f"mlp.{len(self.mlp) - 1}"
+        state[name + ".weight"] = (signs @ last.weight)[None] / math.sqrt(self.num_bits)
+        state[name + ".bias"] = (last.bias @ signs).reshape(1) / math.sqrt(self.num_bits)
+        return state
+
+
+class FoldedSticker(nn.Module):
+    """The sticker of one fixed message, ``m = tanh(MLP(gamma(x)))`` with one output: what a shared run holds. Its
+    weights carry the message only mixed with the per-bit patterns, which stay in the owner key."""
+
+    def __init__(self, num_frequencies: int = 5, hidden_dim: int = 64, num_layers: int = 2) -> None:
+        super().__init__()
+        self.num_frequencies = num_frequencies
+        self.pos_in = nn.Linear(3 + 6 * num_frequencies, hidden_dim)
+        layers = []
+        for _ in range(num_layers - 1):
+            layers += [nn.ReLU(), nn.Linear(hidden_dim, hidden_dim)]
+        layers += [nn.ReLU(), nn.Linear(hidden_dim, 1)]
+        self.mlp = nn.Sequential(*layers)
+
+    def forward(self, positions01: Float[Tensor, "N 3"]) -> Float[Tensor, "N 1"]:
+        return torch.tanh(self.mlp(self.pos_in(positional_encoding(positions01, self.num_frequencies))))
+
 
 @dataclass
 class WrapState:
@@ -183,6 +216,7 @@ class WrapState:
 
     enabled: bool = True
     message: Optional[Tensor] = None
+    folded: Optional[FoldedSticker] = None  # used when no message is set (a shared run)
     record: bool = False
     final_only: bool = False  # mark only the final field's rendering pass (not the passes that place samples)
     in_final: bool = False  # set by the model while the final field renders
@@ -213,13 +247,15 @@ class DensityWrap:
         lo, hi = self.aabb[0].to(positions), self.aabb[1].to(positions)
         return ((positions - lo) / (hi - lo)).clamp(0.0, 1.0)
 
-    def delta(self, sigma: Tensor, positions: Tensor, message: Tensor) -> Tuple[Tensor, Tensor]:
-        """The density added at each sample (only evaluated where the gate is open), and psi."""
+    def delta(self, sigma: Tensor, positions: Tensor, message: Optional[Tensor]) -> Tuple[Tensor, Tensor]:
+        """The density added at each sample (only evaluated where the gate is open), and psi; ``message`` None:
+        the folded sticker of the shared state."""
         psi = self.gate(sigma)
         out = torch.zeros_like(sigma)
         open_ = (psi.detach() > self.gate_threshold).squeeze(-1)
         if open_.any():
-            m = self.sticker(self.normalize(positions[open_]), message)
+            pos = self.normalize(positions[open_])
+            m = self.sticker(pos, message) if message is not None else self.state.folded(pos)
             out[open_] = psi[open_] * self.gate.scale * m
         return out, psi
 
@@ -227,7 +263,8 @@ class DensityWrap:
         result = self.original(ray_samples, *args, **kwargs)
         density, rest = (result[0], result[1:]) if isinstance(result, tuple) else (result, None)
         marks = not self.state.final_only or (self.is_final and self.state.in_final)
-        if marks and self.state.enabled and self.state.message is not None and self.gate.calibrated:
+        has_sticker = self.state.message is not None or self.state.folded is not None
+        if marks and self.state.enabled and has_sticker and self.gate.calibrated:
             positions = ray_samples.frustums.get_positions()
             delta, _ = self.delta(density, positions.reshape(*density.shape[:-1], 3), self.state.message)
             if self.state.record:

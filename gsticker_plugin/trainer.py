@@ -5,8 +5,10 @@
   the frozen base, and training starts at step 0 of our own schedule.
 * The same flags pointing at one of *our* runs resume it (sticker, gates and optimizers from the
   checkpoint, heads and their optimizer from the owner key).
-* Checkpoints are written atomically and hold no extractor/classifier weights; the owner key is written
-  beside the run folder at every save.
+* Checkpoints are written atomically and hold what a recipient may see: the folded sticker, no message, no
+  extractor/classifier, no optimizer state of the sticker; the owner key (default: the per-user keys folder,
+  :func:`gsticker_plugin.key.default_key_path`) is written at every save. The saved config.yml records no owner
+  ID, message or key path.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from gsticker_plugin import base_run
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.key import OwnerKey, bits_to_str, file_sha256
+from gsticker_plugin.key import OwnerKey, bits_to_str, default_key_path, file_sha256
 from gsticker_plugin.pipeline import GeometryStickerPipeline, GeometryStickerPipelineConfig
 
 
@@ -49,6 +51,11 @@ def copy_datamanager(base_config, data_override: Optional[Path]) -> VanillaDataM
                                     eval_num_rays_per_batch=1024, camera_res_scale_factor=dm.camera_res_scale_factor)
 
 
+def step_key_path(key_path: Path, step: int) -> Path:
+    """The owner key of checkpoint ``step`` (written beside the key with --save-only-latest-checkpoint False)."""
+    return Path(key_path).with_name(f"{Path(key_path).stem}.step-{step:09d}{Path(key_path).suffix}")
+
+
 def exit_with_error(error: GStickerError) -> None:
     """One line ``error: <message>`` on stderr, exit status 2 (the plugin's convention for bad input)."""
     sys.stderr.write(f"error: {error}\n")
@@ -64,11 +71,22 @@ class GeometryStickerTrainer(Trainer):
         super().__init__(config, local_rank, world_size)
         self._checkpoint: Optional[Path] = None
         self._resume = False
+        self._key_path: Optional[Path] = None
+        self._resume_key: Optional[OwnerKey] = None
 
     @property
     def key_path(self) -> Path:
+        if self._key_path is not None:
+            return self._key_path
         p = self.config.pipeline.key_path
-        return Path(p) if p is not None else self.base_dir.with_name(self.base_dir.name + ".gskey")
+        cfg = self.config
+        return Path(p) if p is not None else default_key_path(cfg.experiment_name, cfg.method_name, cfg.timestamp)
+
+    def save_shared_config(self) -> None:
+        """config.yml as a recipient sees it: no owner ID, message or key path (they live in the key)."""
+        shared = copy.deepcopy(self.config)
+        shared.pipeline.owner_id, shared.pipeline.message, shared.pipeline.key_path = "", None, None
+        shared.save_config()
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         """Stock setup around a strict load of the base (or of our run, to resume).
@@ -100,13 +118,21 @@ class GeometryStickerTrainer(Trainer):
                 pcfg.datamanager = run_cfg.pipeline.datamanager
                 if cfg.data is not None:
                     pcfg.datamanager.data = pcfg.datamanager.dataparser.data = Path(cfg.data)
-                pcfg.owner_id, pcfg.message = run_cfg.pipeline.owner_id, run_cfg.pipeline.message
-                # --pipeline.key-path, else the recorded key if it is there, else the one beside the run folder.
-                recorded = run_cfg.pipeline.key_path
+                # the message, label and sticker come from the run's key: --pipeline.key-path, else the key's
+                # default place for that run, else (runs written before the keys folder) beside the run folder
                 run_dir = ckpt.resolve().parent.parent
-                pcfg.key_path = pcfg.key_path or (
-                    recorded if recorded is not None and Path(recorded).is_file()
-                    else run_dir.with_name(run_dir.name + ".gskey"))
+                candidates = [Path(pcfg.key_path)] if pcfg.key_path is not None else [
+                    default_key_path(run_cfg.experiment_name, run_cfg.method_name, run_cfg.timestamp),
+                    run_dir.with_name(run_dir.name + ".gskey")]
+                found = next((c for c in candidates if c.is_file()), None)
+                if found is None:
+                    raise GStickerError(f"resuming {run_dir} needs its owner key (looked at "
+                                        f"{', '.join(map(str, candidates))}); pass --pipeline.key-path OWNER.gskey")
+                self._resume_key = OwnerKey.load(found)
+                pcfg.key_path = found
+                pcfg.message = bits_to_str(self._resume_key.message)
+                pcfg.message_source = self._resume_key.message_source
+                pcfg.owner_id = self._resume_key.owner_id
             else:
                 pcfg.model.base_model = run_cfg.pipeline.model
                 pcfg.model.base_step = base_run.checkpoint_step(ckpt)
@@ -119,11 +145,18 @@ class GeometryStickerTrainer(Trainer):
                     "checkpoint_sha256": file_sha256(ckpt),
                 }
             self._checkpoint = ckpt
-        if pcfg.key_path is None:
-            pcfg.key_path = self.key_path
-        cfg.save_config()  # again, now with the base filled in: stock ns-viewer/ns-render rebuild from it
+        # the secrets leave the config before anything writes it (config.yml, the event files' config dump)
+        self._key_path = self.key_path
+        message = GeometryStickerPipeline.resolve_message(pcfg)
+        source = pcfg.message_source or ("given" if pcfg.message else
+                                         "owner-id" if pcfg.message_from_owner_id else "random")
+        label = pcfg.owner_id
+        pcfg.owner_id, pcfg.message, pcfg.key_path, pcfg.message_source = "", None, None, source
+        self.save_shared_config()  # again, now with the base filled in: stock ns-viewer/ns-render rebuild from it
         super().setup(test_mode)
-        CONSOLE.print(f"\\[gsticker] {self.pipeline.describe()}; message {bits_to_str(self.pipeline.owner_message)}")
+        self.pipeline.set_owner(message, source, label, self._resume_key)
+        CONSOLE.print(f"\\[gsticker] {self.pipeline.describe()}; message source {source}; "
+                      f"owner key {self._key_path}")
 
     def _load_checkpoint(self) -> None:
         ckpt = self._checkpoint
@@ -142,27 +175,30 @@ class GeometryStickerTrainer(Trainer):
         self.optimizers.load_optimizers(state["optimizers"])
         if "schedulers" in state and self.config.load_scheduler:
             self.optimizers.load_schedulers(state["schedulers"])
-        key = OwnerKey.load(self.key_path)
+        key = self._resume_key if self._resume_key is not None else OwnerKey.load(self.key_path)
         assert self.pipeline.heads is not None
-        self.pipeline.heads.load_state_dict(key.heads_state, strict=True)
+        self.pipeline.restore_owner(key)
         ts = key.training_state
-        if "heads_optimizer" in ts:
-            self.optimizers.optimizers["heads"].load_state_dict(ts["heads_optimizer"])
-        if "heads_scheduler" in ts and "heads" in self.optimizers.schedulers:
-            self.optimizers.schedulers["heads"].load_state_dict(ts["heads_scheduler"])
+        for group in ("heads", "sticker"):
+            if f"{group}_optimizer" in ts and group in self.optimizers.optimizers:
+                self.optimizers.optimizers[group].load_state_dict(ts[f"{group}_optimizer"])
+            if f"{group}_scheduler" in ts and group in self.optimizers.schedulers:
+                self.optimizers.schedulers[group].load_state_dict(ts[f"{group}_scheduler"])
         self._start_step = state["step"] + 1
         CONSOLE.print(f"\\[gsticker] resumed from {ckpt} (step {state['step']}) with heads from {self.key_path}")
 
     def save_checkpoint(self, step: int) -> None:
-        """Shareable checkpoint without the heads (atomic), then the owner key (atomic)."""
+        """Shareable checkpoint (atomic): the folded sticker, no heads, message or sticker optimizer state; then the
+        owner key (atomic) with what was left out."""
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         ckpt_path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
         opts = self.optimizers
+        secret_groups = ("heads", "sticker")
         state = {
             "step": step,
-            "pipeline": self.pipeline.state_dict(),
-            "optimizers": {k: v.state_dict() for k, v in opts.optimizers.items() if k != "heads"},
-            "schedulers": {k: v.state_dict() for k, v in opts.schedulers.items() if k != "heads"},
+            "pipeline": self.pipeline.shareable_state_dict(),
+            "optimizers": {k: v.state_dict() for k, v in opts.optimizers.items() if k not in secret_groups},
+            "schedulers": {k: v.state_dict() for k, v in opts.schedulers.items() if k not in secret_groups},
             "scalers": self.grad_scaler.state_dict(),
         }
         # (a prefix check: base fields have their own "heads", e.g. vanilla-nerf's field_coarse.field_heads)
@@ -171,12 +207,15 @@ class GeometryStickerTrainer(Trainer):
         torch.save(state, tmp)
         os.replace(tmp, ckpt_path)
         training_state = {"step": step}
-        if "heads" in opts.optimizers:
-            training_state["heads_optimizer"] = opts.optimizers["heads"].state_dict()
-        if "heads" in opts.schedulers:
-            training_state["heads_scheduler"] = opts.schedulers["heads"].state_dict()
+        for group in secret_groups:
+            if group in opts.optimizers:
+                training_state[f"{group}_optimizer"] = opts.optimizers[group].state_dict()
+            if group in opts.schedulers:
+                training_state[f"{group}_scheduler"] = opts.schedulers[group].state_dict()
         key = self.pipeline.owner_key(training_state, model_run=str(self.base_dir))
         key.save(self.key_path)
+        if not self.config.save_only_latest_checkpoint:  # every kept checkpoint keeps its own key (step_key_path)
+            key.save(step_key_path(self.key_path, step))
         if self.config.save_only_latest_checkpoint:
             for f in self.checkpoint_dir.glob("*.ckpt"):
                 if f != ckpt_path:

@@ -1,10 +1,11 @@
 """``ns-verify-owner``: does a suspect model, or a folder of suspect images, carry an owner's message?
 
-Three subcommands (``verify`` is the default and may be left out)::
+Four subcommands (``verify`` is the default and may be left out)::
 
     ns-verify-owner [verify] (--load-config RUN/config.yml | --images DIR) (--key KEY.gskey | --keys DIR) [...]
     ns-verify-owner calibrate --key KEY.gskey [--load-config RUN/config.yml ...] [--images DIR ...] [...]
     ns-verify-owner export-key --load-config WATERMARKED_RUN/config.yml --key KEY.gskey [--output NEW.gskey]
+    ns-verify-owner commit --key KEY.gskey      (prints the key's commitment; verify --commitment HEX checks it)
 
 ``verify`` renders N views of a run (its own cameras and sampled orbit poses) or reads the images of a folder,
 decodes each view with the owner key's extractor, tests each view on its own against the binomial null
@@ -41,7 +42,7 @@ from torch import Tensor
 from gsticker_plugin import metrics
 from gsticker_plugin.base_run import final_rgb
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.key import KEY_SUFFIX, OwnerKey, bits_to_str
+from gsticker_plugin.key import KEY_SUFFIX, OwnerKey, bits_to_str, commitment
 
 EXIT_OWNED, EXIT_NOT_SHOWN, EXIT_ERROR = 0, 1, 2
 DECODER_NAMES = {"extractor": "extractor", "geometry": "geometric decoder", "image": "image decoder"}
@@ -115,6 +116,9 @@ class VerifyConfig:
     """Device for rendering and decoding (auto: cuda when available)."""
     progress: bool = True
     """Show tqdm progress bars (on stderr)."""
+    commitment: Optional[str] = None
+    """The commitment (hex) printed by `ns-verify-owner commit` and published when the model was released: checked
+    against --key (a mismatch is an error, exit 2); the report says it matched, i.e. this key existed then."""
 
 
 @dataclass
@@ -420,7 +424,7 @@ def load_run(config_path: Path, data: Optional[Path] = None, device: Optional[to
                             "pass --data with the run's dataset folder") from None
     pipeline.eval()
     state = base_run.load_checkpoint_state(ckpt)
-    pipeline.load_pipeline(state["pipeline"], state["step"])
+    base_run.load_pipeline_strictly(pipeline, state, ckpt)
     pipeline.eval()
     return config, pipeline, ckpt
 
@@ -604,6 +608,9 @@ def key_result(key: OwnerKey, key_path: Path, dec: Dict[str, Any], views: Views,
         "mean_bit_accuracy": float(dec["bit_acc"].float().mean()),
         "mean_score": float(scores.float().mean()) if scores is not None else None,
         "decoder": decoder,
+        "null_exact": not key.null_caveats(),
+        "null_caveats": key.null_caveats(),
+        "message_source": key.message_source,
         "empirical_null": emp,
         **({"null_note": (f"the key's empirical null was measured with the extractor and does not apply to the "
                           f"{'geometric' if decoder == 'geometry' else 'image'} decoder; run `ns-verify-owner "
@@ -666,6 +673,8 @@ def summary_text(report: Dict[str, Any]) -> str:
         emp = (f"empirical {t['empirical']} from {r['empirical_null']['n']} null views"
                if r["empirical_null"] else f"no empirical null for this decoder (run {calib})")
         lines.append(f"  key {r['owner_id']} ({r['key']}): {r['verdict'].upper()}")
+        for c in r.get("null_caveats", []):
+            lines.append(f"    weaker claim: {c}")
         lines.append(f"    {r['views_passing']}/{r['views']} views pass ({100 * r['share_passing']:.0f} %; needs "
                      f"{r['views_needed']} = {100 * r['min_share']:.0f} %) at >= {t['used']}/{r['num_bits']} matches "
                      f"(theoretical {t['theoretical']} at per-view FPR {t['per_view_fpr_target']:g}; {emp})")
@@ -680,6 +689,10 @@ def summary_text(report: Dict[str, Any]) -> str:
         if "adjusted_pvalue" in r:
             line += f"; {report['multiple_testing']['correction']}-adjusted p {_fmt_p(r['adjusted_pvalue'])}"
         lines.append(line)
+    if report.get("commitment"):
+        c = report["commitment"]
+        lines.append(f"  commitment {c['given'][:16]}... matches the key: it existed when this commitment was "
+                     "published")
     if report.get("multiple_testing"):
         mt = report["multiple_testing"]
         lines.append(f"  {mt['keys']} keys tested, {mt['correction']} correction; family-wise FPR <= "
@@ -932,8 +945,15 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
         except ValueError as e:
             raise GStickerError(f"--attack: {e}") from None
     keys = _load_keys(config.key, config.keys)
+    committed = check_commitment(config.commitment, keys)
     device = _device(config.device)
     decoder, notes = choose_decoder(config, keys)
+    if decoder == "extractor":
+        leaning = [str(p) for p, k in keys if k.owner_message_prob > 0]
+        if leaning:
+            raise GStickerError(f"{', '.join(leaning)}: its extractor was trained on the owner's message "
+                                "(--pipeline.owner-message-prob > 0) and decodes it from unmarked images too; its "
+                                "binomial null does not hold: use --decode geometry or --decode image")
     if decoder == "geometry":
         results, views, info = _verify_geometry(config, keys, device)
         notes += info.pop("notes")
@@ -977,6 +997,7 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
                      "num_views": config.num_views if views.kind == "model" else None, "seed": config.seed,
                      "correction": config.correction if len(keys) > 1 else None},
         "decoder": decoder_info,
+        "commitment": committed,
         "keys": results,
         "multiple_testing": correct_keys(results, config.fpr, config.min_share, config.correction)
         if len(keys) > 1 else None,
@@ -999,6 +1020,40 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
         raise GStickerError(f"cannot write the report to {out} ({e.strerror or e}); pass --output with a "
                             "writable folder") from None
     return report["exit_status"], report
+
+
+def check_commitment(given: Optional[str], keys: List[Tuple[Path, OwnerKey]]) -> Optional[Dict[str, Any]]:
+    """``--commitment HEX`` against the one key given: None without it; a mismatch is an error."""
+    if given is None:
+        return None
+    hex_ = given.strip().lower()
+    if len(keys) != 1:
+        raise GStickerError("--commitment checks one key: pass it with --key KEY.gskey, not --keys")
+    path, key = keys[0]
+    if len(hex_) != 64 or set(hex_) - set("0123456789abcdef"):
+        raise GStickerError(f"--commitment must be the 64 hex digits printed by `ns-verify-owner commit`, got {given!r}")
+    own = commitment(key)
+    if own != hex_:
+        raise GStickerError(f"{path} does not match the commitment {hex_[:16]}... (its own is {own[:16]}...): this is "
+                            "not the key that was committed to; pass the committed key")
+    return {"given": hex_, "matches": True, "key": str(path),
+            "meaning": "sha256 over a secret salt and the key's message, sticker, heads and base checksum: the key "
+                       "existed when this value was published or timestamped"}
+
+
+@dataclass
+class CommitConfig:
+    """Print the commitment of an owner key: 64 hex digits to publish or timestamp when the model is released.
+    Later, `ns-verify-owner --commitment HEX --key KEY` shows this key existed then (see docs/verify.md)."""
+
+    key: Path
+    """The owner key (.gskey) to commit to."""
+
+
+def commit(config: CommitConfig) -> Dict[str, Any]:
+    key = OwnerKey.load(Path(config.key))
+    return {"key": str(config.key), "commitment": commitment(key), "message_source": key.message_source,
+            "null_caveats": key.null_caveats()}
 
 
 def calibrate(config: CalibrateConfig) -> Dict[str, Any]:
@@ -1066,11 +1121,21 @@ def _store_null(config: CalibrateConfig, key_path: Path, key: OwnerKey, decoder:
     OwnerKey.load(key_path)  # the rewritten key passes its own fingerprint check
     k = key.num_bits
     return {"key": str(key_path), "backup": str(backup) if backup else None, "null_views": len(matches),
-            "decoder": decoder, "sources": src_info, "notes": notes,
+            "decoder": decoder, "sources": src_info, "notes": notes, **distinct_sources(src_info),
             "mean_matches": sum(matches) / len(matches), "max_matches": max(matches),
             "thresholds": {f"{a:g}": {"theoretical": metrics.min_matches_for_fpr(k, a),
                                       "empirical": metrics.empirical_threshold(matches, a, k)}
                            for a in (1e-3, 1e-6, 1e-9)}}
+
+
+def distinct_sources(src_info: List[Dict[str, Any]]) -> Dict[str, int]:
+    """How many *distinct* unmarked models, image folders and synthetic random images a null holds (views of one
+    model are not independent samples of the null)."""
+    def count(kind: str) -> int:
+        return len({str(Path(x["source"]).resolve()) for x in src_info if x["kind"] == kind})
+
+    return {"distinct_models": count("model"), "distinct_image_sources": count("images"),
+            "synthetic_views": sum(int(x["n"]) for x in src_info if x["kind"] == "random")}
 
 
 def _calibrate_geometry(config: CalibrateConfig, key_path: Path, key: OwnerKey, device: torch.device) -> Dict[str, Any]:
@@ -1166,6 +1231,9 @@ def export_key(config: ExportKeyConfig) -> Dict[str, Any]:
     if not hasattr(model, "sticker") or not hasattr(model, "final_wrap"):
         raise GStickerError(f"{config.load_config} is a {run_cfg.method_name} run without a sticker; pass the "
                             "watermarked run (ns-train geometrysticker) the key was written for")
+    if bool(getattr(model, "folded", False)):
+        raise GStickerError(f"{config.load_config} is a shared run (its sticker is folded, it holds no message); its "
+                            "owner key already carries the geometry reference: nothing to export")
     if not torch.equal(model.message.cpu().long(), key.message.long()):
         raise GStickerError(f"the run {config.load_config} carries a different message than the key {key_path}; "
                             "pass the watermarked run this key was written for")
@@ -1190,7 +1258,9 @@ def export_key(config: ExportKeyConfig) -> Dict[str, Any]:
 
 def calibrate_text(res: Dict[str, Any]) -> str:
     lines = [f"calibrated {res['key']} ({res['decoder']} decoder): {res['null_views']} unmarked views in its null "
-             f"(mean {res['mean_matches']:.1f}, max {res['max_matches']} matches; chance mean 24 of 48)"]
+             f"(mean {res['mean_matches']:.1f}, max {res['max_matches']} matches; chance mean 24 of 48), from "
+             f"{res['distinct_models']} distinct models, {res['distinct_image_sources']} image folders and "
+             f"{res['synthetic_views']} synthetic random images"]
     for s in res["sources"]:
         lines.append(f"  {s['kind']} {s['source']}: {s['n']} views, mean {s['mean_matches']:.1f}, max {s['max_matches']}")
     for n in res["notes"]:
@@ -1218,24 +1288,35 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     compat.apply()
     argv = list(sys.argv[1:] if argv is None else argv)
     sub = "verify"
-    if argv and argv[0] in ("verify", "calibrate", "export-key"):
+    if argv and argv[0] in ("verify", "calibrate", "export-key", "commit"):
         sub, argv = argv[0], argv[1:]
     try:
         if sub == "calibrate":
             cfg = tyro.cli(CalibrateConfig, args=argv, prog="ns-verify-owner calibrate")
         elif sub == "export-key":
             cfg = tyro.cli(ExportKeyConfig, args=argv, prog="ns-verify-owner export-key")
+        elif sub == "commit":
+            cfg = tyro.cli(CommitConfig, args=argv, prog="ns-verify-owner commit")
         else:
             cfg = tyro.cli(VerifyConfig, args=argv, prog="ns-verify-owner [verify]",
                            description=(VerifyConfig.__doc__ or "") + "\n\nSubcommands: verify (default), calibrate "
                            "(ns-verify-owner calibrate --help), export-key (adds the geometry reference to a "
-                           "version-1 key).")
+                           "version-1 key), commit (prints the key's commitment to publish at release).")
     except SystemExit as e:  # --help (0) or a parse error (tyro prints it; status 2)
         return int(e.code) if isinstance(e.code, int) else EXIT_ERROR
     try:
         if sub == "calibrate":
             res = calibrate(cfg)
             print(calibrate_text(res))
+            return 0
+        if sub == "commit":
+            res = commit(cfg)
+            print(res["commitment"])
+            print(f"commitment of {res['key']}: publish or timestamp it when you release the model; later "
+                  f"`ns-verify-owner --key {res['key']} --commitment HEX ...` shows this key existed then",
+                  file=sys.stderr)
+            for c in res["null_caveats"]:
+                print(f"note: weaker claim: {c}", file=sys.stderr)
             return 0
         if sub == "export-key":
             res = export_key(cfg)
@@ -1251,6 +1332,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return _error("interrupted; no verdict")
     except MemoryError:
         return _error("out of memory while decoding; lower --max-side or --num-views")
+    except Exception as e:  # a crash is never a verdict: one line, exit 2
+        where = ""
+        tb = e.__traceback__
+        while tb is not None:
+            where = f" at {Path(tb.tb_frame.f_code.co_filename).name}:{tb.tb_lineno}"
+            tb = tb.tb_next
+        return _error(f"no verdict: {type(e).__name__}: {e}{where} (a failure inside ns-verify-owner, not a "
+                      "negative verdict; rerun with the same inputs to reproduce and report it)")
 
 
 def entrypoint() -> None:

@@ -25,6 +25,21 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED = REPO_ROOT.parent / "shared"
 
 
+@pytest.fixture(scope="session", autouse=True)
+def owner_keys_dir(tmp_path_factory) -> Path:
+    """Owner keys written by default go to a per-session folder, never the user's own keys folder."""
+    import os
+
+    folder = tmp_path_factory.mktemp("owner-keys")
+    old = os.environ.get("GSTICKER_KEYS_DIR")
+    os.environ["GSTICKER_KEYS_DIR"] = str(folder)  # inherited by the ns-* subprocesses
+    yield folder
+    if old is None:
+        os.environ.pop("GSTICKER_KEYS_DIR", None)
+    else:
+        os.environ["GSTICKER_KEYS_DIR"] = old
+
+
 @pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory) -> Path:
     """A tiny generated scene (32 px; 6 train, 2 val, 2 test views; seed 0), made once per test session."""

@@ -142,10 +142,10 @@ def runs(tiny_scene, tmp_path_factory) -> Dict[str, Path]:
             "--experiment-name", "gs", "--timestamp", "run", "--max-num-iterations", "10",
             "--pipeline.message", MESSAGE, "--pipeline.pool-train-views", "2", "--pipeline.pool-novel-views", "2",
             "--pipeline.monitor-views", "1", "--pipeline.steps-per-monitor", "5", "--pipeline.views-per-step", "2",
-            "--pipeline.heads.width", "8"], ws)
+            "--pipeline.heads.width", "8", "--pipeline.key-path", str(ws / "keys" / "run.gskey")], ws)
     run = out / "gs" / "gs" / "geometrysticker" / "run"
     color = C.write_color_marked_run(run / "config.yml", ws / "colormark", AMPLITUDE)
-    return {"ws": ws, "base": base / "config.yml", "run": run / "config.yml", "key": run.with_name("run.gskey"),
+    return {"ws": ws, "base": base / "config.yml", "run": run / "config.yml", "key": ws / "keys" / "run.gskey",
             "color": color}
 
 
@@ -173,7 +173,15 @@ def test_written_run_round_trips_through_load_run(runs, loaded):
     assert loaded.ckpt.name == src.name and file_sha256(loaded.ckpt) == file_sha256(src)
     model = loaded.model
     assert type(model) is C.ColorMarkModel and model.config.color_amplitude == AMPLITUDE
-    assert torch.equal(model.message.cpu(), loaded.key.message) and model.calibrated
+    # the shared form: the key's sticker folded with the key's message
+    from gsticker_plugin.sticker import Sticker
+
+    sc = loaded.key.geometry["sticker_config"]
+    full = Sticker(sc["num_bits"], sc["num_frequencies"], sc["hidden_dim"], sc["num_layers"], kind=sc["kind"])
+    full.load_state_dict(loaded.key.geometry["sticker_state"])
+    assert bool(model.folded) and model.calibrated
+    for k, v in full.fold(loaded.key.message).items():
+        assert torch.allclose(model.folded_sticker.state_dict()[k].cpu(), v, atol=1e-6), k
     # the same state dict as the watermarked run (loaded strictly by load_run)
     with _quiet():
         _, wpipe, _ = V.load_run(run, device=CPU)

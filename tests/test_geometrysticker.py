@@ -181,13 +181,14 @@ def gs_runs(base_runs: Dict[str, Path], work: Path) -> Dict[str, dict]:
     for b in BASES:
         outs[b] = work / "gs" / b
         commands.append(gs_command(ckpt_of(base_runs[b]), outs[b], MESSAGES[b],
-                                   "--pipeline.pool-cache", str(work / f"pool-{b}.pt")))
+                                   "--pipeline.pool-cache", str(work / f"pool-{b}.pt"),
+                                   "--pipeline.key-path", str(work / "keys" / f"{b}.gskey")))
     runs = {}
     for b, proc in zip(BASES, run_parallel(commands, work / "logs-gs")):
         assert proc.returncode == 0, f"ns-train geometrysticker on {b} failed: {fail_msg(proc)}"
         run_dir = outs[b] / "gs" / "geometrysticker" / "run"
         runs[b] = {"run_dir": run_dir, "config": run_dir / "config.yml", "ckpt": ckpt_of(run_dir),
-                   "key": run_dir.with_name("run.gskey"), "base_ckpt": ckpt_of(base_runs[b]),
+                   "key": work / "keys" / f"{b}.gskey", "base_ckpt": ckpt_of(base_runs[b]),
                    "message": MESSAGES[b], "stdout": proc.stdout}
     return runs
 
@@ -202,7 +203,10 @@ def val_pipeline(gs_runs):
 
     def get(base: str):
         if base not in _PIPELINES:
+            from gsticker_plugin.key import OwnerKey
+
             _, pipeline, _, _ = eval_setup(gs_runs[base]["config"], test_mode="val")
+            pipeline.restore_owner(OwnerKey.load(gs_runs[base]["key"]), heads=False)  # the owner's sticker, message
             _PIPELINES[base] = pipeline
         return _PIPELINES[base]
 
@@ -554,8 +558,8 @@ def test_base_weights_are_bit_identical_after_training(gs_runs, base):
     for k in sorted(base_keys):
         a, b = ours["_model.base." + k], theirs["_model." + k]
         assert a.dtype == b.dtype and torch.equal(a, b), f"base weight {k} changed"
-    # The sticker did train (its weights are in the checkpoint).
-    assert any(k.startswith("_model.sticker.") for k in ours)
+    # The sticker did train (its folded form is in the checkpoint).
+    assert any(k.startswith("_model.folded_sticker.") for k in ours) and bool(ours["_model.folded"])
 
 
 @pytest.mark.parametrize("base", BASES)
@@ -568,16 +572,40 @@ def test_checkpoint_is_shareable_and_owner_key_holds_the_heads(gs_runs, base):
     state = load_raw(run["ckpt"])
     secret = {"extractor", "classifier", "heads"}  # (vanilla-nerf's own "field_heads" are base weights)
     assert not [k for k in state["pipeline"] if secret & set(k.split("."))]
-    assert set(state["optimizers"]) == {"sticker"}
+    assert set(state["optimizers"]) == set()  # the sticker's optimizer state is the owner's (in the key)
     assert not secret & set(state.get("schedulers", {}))
 
     key = OwnerKey.load(run["key"])
     assert key.num_bits == 48 and bits_to_str(key.message) == run["message"]
-    assert torch.equal(state["pipeline"]["_model.message"].cpu(), key.message)
+    # no message and no per-bit sticker in the shared checkpoint; the key's sticker folded with its message is the
+    # shared one
+    assert not [k for k in state["pipeline"] if k.startswith(("_model.message", "_model.sticker."))]
+    from gsticker_plugin.sticker import Sticker
+
+    sc = key.geometry["sticker_config"]
+    full = Sticker(sc["num_bits"], sc["num_frequencies"], sc["hidden_dim"], sc["num_layers"], kind=sc["kind"])
+    full.load_state_dict(key.geometry["sticker_state"])
+    for k, v in full.fold(key.message).items():
+        assert torch.allclose(state["pipeline"]["_model.folded_sticker." + k], v, atol=1e-6), k
     assert key.heads_config["width"] == 8
-    heads = Heads(HeadConfig(**key.heads_config), key.num_bits)
-    heads.load_state_dict(key.heads_state, strict=True)
-    assert key.build_heads() is not None
+    # The heads rebuilt from the key compute what the run's own heads compute: the pipeline's construction (the
+    # run's config.yml) loaded with the key's state, as the trainer resumes them; a fresh initialization does not.
+    import yaml
+
+    run_cfg = yaml.load(Path(run["config"]).read_text(), Loader=yaml.Loader).pipeline
+    assert key.heads_config == dict(vars(run_cfg.heads))
+    pipeline_heads = Heads(run_cfg.heads, run_cfg.model.num_bits)
+    pipeline_heads.load_state_dict(key.heads_state, strict=True)
+    rebuilt = key.build_heads()
+    assert not rebuilt.training  # eval mode
+    x = torch.rand(2, 3, 32, 32, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        logits = rebuilt.decode(x)
+        assert logits.shape == (2, 48) and torch.isfinite(logits).all()
+        assert torch.equal(logits, pipeline_heads.eval().decode(x))
+        assert torch.equal(rebuilt.classify(x), pipeline_heads.classify(x))
+        torch.manual_seed(1)
+        assert not torch.allclose(logits, Heads(HeadConfig(**key.heads_config), key.num_bits).eval().decode(x))
     assert key.training_state["step"] == GS_STEPS - 1
     assert key.base["checkpoint_sha256"]
 
@@ -589,7 +617,7 @@ def test_checkpoint_is_shareable_and_owner_key_holds_the_heads(gs_runs, base):
     raw["heads_state"][name] = tensor
     tampered = run["key"].with_name("tampered.gskey")
     torch.save(raw, tampered)
-    with pytest.raises(GStickerError, match="fingerprint"):
+    with pytest.raises(GStickerError, match="integrity check"):
         OwnerKey.load(tampered)
 
 
@@ -613,7 +641,7 @@ def test_eval_setup_loads_strictly_and_renders_with_and_without_sticker(gs_runs,
 
     # Strict: a checkpoint with a key missing does not load (the host would silently load it non-strictly).
     state = load_raw(Path(ckpt_path))["pipeline"]
-    state.pop(next(k for k in state if k.startswith("_model.sticker.")))
+    state.pop(next(k for k in state if k.startswith("_model.folded_sticker.")))
     with pytest.raises(RuntimeError, match="Missing key"):
         pipeline.load_pipeline(state, step)
 
@@ -632,6 +660,9 @@ def test_short_training_lowers_the_message_loss(gs_runs):
 
     torch.manual_seed(0)  # the heads' initialisation
     _, pipeline, _, _ = eval_setup(gs_runs["nerfacto"]["config"], test_mode="val")
+    from gsticker_plugin.key import OwnerKey
+
+    pipeline.restore_owner(OwnerKey.load(gs_runs["nerfacto"]["key"]), heads=False)
     pipeline.config.views_per_step = 4
     pipeline.config.steps_per_monitor = 10**9
     generator = torch.Generator().manual_seed(0)

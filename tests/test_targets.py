@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from gsticker_plugin.bench.targets import chart, report, summarize
+from gsticker_plugin.bench.targets import chart, page, report, summarize
 
 
 def _rows(matches, psnr_clean=40.0, marked_gt=26.0, clean_gt=26.1):
@@ -37,3 +37,20 @@ def test_chart_is_a_png(tmp_path):
     with Image.open(p) as im:
         assert im.format == "PNG" and im.size[0] > 100
     assert chart([], 48, 41, tmp_path / "none.png") is None
+
+
+def test_page_prints_only_numbers_the_summary_holds():
+    """The page's targets table and counts come from summarize's JSON: bits matched, the views below all bits,
+    the per-view PSNR change range, the training wall time."""
+    rows = _rows([48, 47, 48])
+    rows[1]["psnr_marked_vs_gt_db"] = 26.2  # +0.1 dB for view 1, -0.1 for the others
+    v = summarize(rows, 48, {"wall_s": 155.0}, split_size=3)
+    assert v["bits_matched"] == 143 and v["bits_total"] == 144
+    assert v["views_below_all_bits"] == [{"index": 1, "matches": 47}] and v["train_wall_s"] == 155.0
+    assert abs(v["psnr_change_per_view_db"]["min"] + 0.1) < 1e-9 and abs(v["psnr_change_per_view_db"]["max"] - 0.1) < 1e-9
+    run = {"command": "python -m gsticker_plugin.bench.targets --x", "date": "d", "cpu": "c", "threads": 2, "steps": 300,
+           "pool_views": 16, "warmup_steps": 50, "owner_id": "o"}
+    md = page({"run": run, "train": {"wall_s": 155.0}, "views": v}, "bench-targets.json", "bench-targets.png")
+    assert "**99.31 %** (143 of 144 bits; 2 views 48/48; view 1 47/48)" in md
+    assert "per view -0.10..+0.10" in md and "**2.6 min** (155 s wall" in md and "3 of 3; decoding 5.0 s" in md
+    assert "[bench-targets.json](bench-targets.json)" in md and "a 300-step sticker" in md

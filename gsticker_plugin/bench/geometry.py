@@ -97,7 +97,8 @@ def train_sticker(cfg: StickerRunConfig, out: Path, base_ckpt: Path, data: List[
     return _run([_bin("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
                  "--output-dir", str(out), "--experiment-name", "bench", "--timestamp", "watermarked",
                  "--max-num-iterations", str(cfg.steps), "--steps-per-save", str(cfg.steps),
-                 "--pipeline.owner-id", cfg.owner_id, "--pipeline.pool-train-views", str(cfg.pool_views),
+                 "--pipeline.owner-id", cfg.owner_id, "--pipeline.key-path", str(wm.with_name("watermarked.gskey")),
+                 "--pipeline.pool-train-views", str(cfg.pool_views),
                  "--pipeline.pool-novel-views", str(cfg.pool_views), "--pipeline.monitor-views", "4",
                  "--pipeline.steps-per-monitor", "50", "--pipeline.warmup-steps", str(cfg.warmup_steps),
                  "--load-checkpoint", str(base_ckpt), *data], logs / "train.log")

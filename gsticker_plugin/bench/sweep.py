@@ -131,6 +131,7 @@ def decode_checkpoint(pipeline, key, base_config: Path, data: Optional[Path], nu
 def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
     from gsticker_plugin import base_run, metrics
     from gsticker_plugin.key import OwnerKey
+    from gsticker_plugin.trainer import step_key_path
     from gsticker_plugin.verify import load_run
 
     overrides, res = VARIANTS[name]
@@ -155,6 +156,7 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
               "--output-dir", str(out), "--experiment-name", name, "--timestamp", "watermarked",
               "--max-num-iterations", str(cfg.steps), "--steps-per-save", str(cfg.save_every),
               "--save-only-latest-checkpoint", "False", "--pipeline.owner-id", cfg.owner_id,
+              "--pipeline.key-path", str(key_path),
               "--pipeline.pool-train-views", str(cfg.pool_views), "--pipeline.pool-novel-views", str(cfg.pool_views),
               "--pipeline.monitor-views", "2", "--pipeline.steps-per-monitor", str(cfg.save_every),
               "--pipeline.warmup-steps", str(cfg.warmup_steps), *overrides, *cfg.extra,
@@ -175,9 +177,11 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
         n = int(ckpt.stem.split("-")[1])
         step = n if n % cfg.save_every == 0 else n + 1  # the final checkpoint is saved at step max - 1
         state = base_run.load_checkpoint_state(ckpt)
-        base_run.strict_load(pipeline.model, base_run.model_state_from_pipeline_state(state["pipeline"]))
+        pipeline.model.load_state_dict(base_run.model_state_from_pipeline_state(state["pipeline"]), strict=True)
+        step_key = OwnerKey.load(step_key_path(key_path, n))  # the sticker as it was at this checkpoint
+        pipeline.restore_owner(step_key, heads=False)
         pipeline.model.eval()
-        pt = decode_checkpoint(pipeline, key, base_config, data, cfg.num_views, cfg.psnr_views, threshold)
+        pt = decode_checkpoint(pipeline, step_key, base_config, data, cfg.num_views, cfg.psnr_views, threshold)
         secs = step_s.get(step, step_s.get(n + 1))
         pt.update(step=step, train_seconds=None if secs is None or pool_s is None else pool_s + secs)
         print(f"    {name} step {step}: bit acc {pt['bit_acc']:.3f} ({pt['views_passing']}/{cfg.num_views} views), "

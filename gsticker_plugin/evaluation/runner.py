@@ -356,7 +356,8 @@ class Runner:
         self.run_cmd([_bin("ns-train"), "geometrysticker", "--machine.device-type", self.p.device, "--vis",
                       "tensorboard", "--output-dir", str(self.out / "runs"), "--experiment-name", experiment,
                       "--timestamp", "watermarked", "--max-num-iterations", str(s.steps),
-                      "--pipeline.owner-id", s.owner_id, *[str(a) for a in s.args], *extra,
+                      "--pipeline.owner-id", s.owner_id, "--pipeline.key-path", str(wm.with_name("watermarked.gskey")),
+                      *[str(a) for a in s.args], *extra,
                       "--load-checkpoint", str(self.latest_ckpt(self.base_config(base).parent)),
                       "--data", str(self.scene_dir)], f"sticker-{experiment}")
         return round(time.time() - t0, 1)

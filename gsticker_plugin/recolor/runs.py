@@ -22,6 +22,7 @@ from torch import Tensor
 
 from gsticker_plugin import base_run
 from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.model import shareable_state
 
 
 # ---------------------------------------------------------------------------------------------- paths
@@ -205,7 +206,7 @@ def write_run(config, model, step: int, out: Path, timestamp: str, source_run_di
         ckpt_dir = run_dir / config.relative_model_dir
         ckpt_dir.mkdir(parents=True)
         (run_dir / "config.yml").write_text(yaml.dump(config), "utf8")
-        state = {"step": int(step), "pipeline": {"_model." + k: v.detach().cpu() for k, v in model.state_dict().items()},
+        state = {"step": int(step), "pipeline": {"_model." + k: v.detach().cpu() for k, v in shareable_state(model).items()},
                  "optimizers": {}, "schedulers": {}, "scalers": {}}
         torch.save(state, ckpt_dir / f"step-{int(step):09d}.ckpt")
         if source_run_dir is not None and (source_run_dir / "dataparser_transforms.json").is_file():
