@@ -464,11 +464,11 @@ def test_bench_decode_times_whole_and_read_ray_renders_with_the_same_bits(runs, 
     assert [(r["sticker"], r["renders"]) for r in rows] == [("on", "whole views"), ("on", "read rays only"),
                                                             ("off", "whole views"), ("off", "read rays only")]
     assert all(r["bits_identical_to_whole"] for r in rows) and all(r["seconds"] > 0 for r in rows)
-    # sticker on: every bit fitted (none left to the coin flips), so "identical" compares two real decodes
+    # sticker on: every bit fitted (none undetermined), so "identical" compares two real decodes
     assert rows[0]["matches"] == rows[1]["matches"] == [48, 48]
     assert rows[0]["undetermined"] == rows[1]["undetermined"] == [0, 0]
-    # sticker off: the render differs (at chance, below the threshold) and every bit is a coin flip, which is why the
-    # off rows agree whatever the render mode; the on rows above are the check of the two modes
+    # sticker off: the render differs (below the threshold) and every bit is undetermined, which is why the off rows
+    # agree whatever the render mode; the on rows above are the check of the two modes
     assert max(rows[2]["matches"] + rows[3]["matches"]) < 41
     assert rows[2]["undetermined"] == rows[3]["undetermined"] == [48, 48]
     assert 0 < rows[1]["rays_read_mean"] <= res["pixels_per_view"]

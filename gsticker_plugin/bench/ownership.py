@@ -108,7 +108,8 @@ def train_nulls(cfg: BenchOwnershipConfig, out: Path, logs: Path) -> List[Dict[s
                   "--output-dir", str(nulls), "--experiment-name", name, "--timestamp", "base",
                   "--max-num-iterations", str(cfg.null_steps), "--steps-per-save", str(cfg.null_steps),
                   "--data", str(data)], logs / f"null-{name}.log")
-        found.append({"name": f"{name} ({cfg.null_preset}, {cfg.null_steps} steps)", "config": run / "config.yml",
+        steps = 1 + max(int(c.stem.split("-")[1]) for c in (run / "nerfstudio_models").glob("step-*.ckpt"))
+        found.append({"name": f"{name} ({cfg.null_preset}, {steps} steps)", "config": run / "config.yml",
                       "data": data})
     return found
 
