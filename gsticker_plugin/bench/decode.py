@@ -7,8 +7,8 @@ The owner's base is rebuilt from the key and its reference views rendered once (
 them); then the suspect is decoded ``--repeats`` times each way (geometric decoder, sticker on and off), with
 ``full_renders=True`` (``ns-verify-owner``: whole views, for its figure) and ``full_renders=False`` (the protocol,
 ``calibrate``, the sweep: the suspect rendered only at the rays the fit reads). Writes a Markdown table (seconds per
-suspect and per view, rays read, whether the decoded bits are identical, and how many of them were undetermined,
-i.e. coin flips drawn alike in both modes) and a JSON beside it.
+suspect and per view, rays read, how many bits the suspect left undetermined, whether the decoded bits are
+identical) and a JSON beside it.
 """
 
 from __future__ import annotations
@@ -97,14 +97,15 @@ def main(cfg: BenchDecodeConfig) -> Dict[str, Any]:
              f"{cfg.num_views} views of {res['pixels_per_view']} pixels; the base's reference views rendered once "
              f"before ({reference_s:.1f} s, as the protocol caches them).", "",
              "| sticker | suspect renders | s per suspect | s per view | rays read per view | matches | undetermined bits "
-             "(coin flips) | bits identical |",
+             "| bits identical |",
              "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['sticker']} | {r['renders']} | {r['seconds']:.2f} | {r['seconds_per_view']:.2f} | "
                      f"{r['rays_read_mean']:.0f} | {' '.join(map(str, r['matches']))} | "
                      f"{' '.join(map(str, r['undetermined']))} | {'yes' if r['bits_identical_to_whole'] else 'NO'} |")
-    lines += ["", "Undetermined bits (zero residual: the suspect's geometry equals the base's there) are coin flips from "
-              "the same seeded generator in both modes, so they agree by construction; only the others test the modes."]
+    lines += ["", "Undetermined bits (zero residual: the suspect's geometry equals the base's there) are marked "
+              "undetermined in both modes (and count as mismatches), so they agree by construction; only the fitted "
+              "bits test the two modes."]
     cfg.output.parent.mkdir(parents=True, exist_ok=True)
     cfg.output.write_text("\n".join(lines) + "\n")
     cfg.output.with_suffix(".json").write_text(json.dumps(res, indent=2))
