@@ -105,7 +105,8 @@ import zipfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from gsticker_plugin import verify as V  # noqa: E402
-from gsticker_plugin.key import bits_to_str, parse_message  # noqa: E402
+from gsticker_plugin.key import bits_to_str  # noqa: E402
+from test_geometry import one_error_line  # noqa: E402  (the tests' shared one-line-error check)
 
 BIN = Path(sys.executable).parent
 COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
@@ -125,13 +126,6 @@ def run_cli(argv, capsys):
     status = V.main([*argv, "--no-progress"] if argv[:1] not in (["commit"], ["export-key"]) else argv)
     cap = capsys.readouterr()
     return status, cap.out, cap.err
-
-
-def one_error_line(err: str) -> str:
-    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
-    assert lines and lines[-1].startswith("error: "), err
-    assert sum(1 for ln in lines if ln.startswith("error: ")) == 1, err
-    return lines[-1]
 
 
 def moved_copy(run: Path, dst: Path) -> Path:
