@@ -342,8 +342,10 @@ def test_calibrate_stores_the_null_and_verify_uses_the_stricter_threshold(alice,
                                  "--random-images", "32"], capsys)
     assert status == 0, stdout
     assert "calibrated" in stdout and "empirical 45" in stdout
+    # the null says how many distinct sources it rests on (views of one source are not independent)
+    assert "from 0 distinct models, 1 image folders and 32 synthetic random images" in stdout
     assert (key.parent / "alice.gskey.bak").read_bytes() == original
-    loaded = OwnerKey.load(key)  # rewritten with a valid fingerprint
+    loaded = OwnerKey.load(key)  # rewritten with its HMAC recomputed under the key's secret
     assert len(loaded.null["matches"]) == 6 + 32 and max(loaded.null["matches"]) == 44
     assert {s["kind"] for s in loaded.null["sources"]} == {"images", "random"}
     status, stdout, _ = run_cli(["--images", str(dirs["near44"]), "--key", str(key), "--output", str(out)], capsys)
@@ -377,10 +379,14 @@ def test_key_errors_wrong_format_version_tampered_missing(alice, dirs, ws, capsy
     wrong_version = dict(payload, version=99)
     wrong_version["fingerprint"] = fingerprint(wrong_version)
     torch.save(wrong_version, bad / "version.gskey")
-    tampered = dict(payload, message=1 - payload["message"])  # fingerprint kept: must fail
+    tampered = dict(payload, message=1 - payload["message"])  # HMAC kept: must fail
     torch.save(tampered, bad / "tampered.gskey")
+    forged = dict(tampered)  # the unkeyed fingerprint recomputed, as older keys' check accepted: must fail too
+    forged["fingerprint"] = fingerprint(forged)
+    torch.save(forged, bad / "forged.gskey")
     (bad / "text.gskey").write_text("not a key")
-    expect = {"format.gskey": "wrong format", "version.gskey": "version 99", "tampered.gskey": "fingerprint",
+    expect = {"format.gskey": "wrong format", "version.gskey": "version 99", "tampered.gskey": "integrity check",
+              "forged.gskey": "integrity check",
               "text.gskey": "not a readable", "missing.gskey": "does not exist"}
     for name, words in expect.items():
         status, stdout, err = run_cli(["--images", str(dirs["marked"]), "--key", str(bad / name),

@@ -162,6 +162,7 @@ def main(cfg: BenchOwnershipConfig) -> Dict[str, Any]:
     res: Dict[str, Any] = {
         "command": "python -m gsticker_plugin.bench.ownership " + " ".join(
             [f"--load-checkpoint {cfg.load_checkpoint}"] + ([f"--data {cfg.data}"] if cfg.data else [])
+            + [f"--steps {cfg.steps} --null-steps {cfg.null_steps} --num-views {cfg.num_views}"]
             + ([f"--nulls {' '.join(map(str, cfg.nulls))}"] if cfg.nulls else [])
             + ([f"--doc {cfg.doc}"] if cfg.doc else [])),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
