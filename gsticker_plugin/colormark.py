@@ -248,25 +248,29 @@ def match_amplitude(pipeline, target_psnr: float, num_views: int = 4, sampled_sh
                     trial_amplitude: Optional[float] = None) -> float:
     """The color amplitude whose mark has mean PSNR ``target_psnr`` against the unmarked render.
 
-    One measurement at ``trial_amplitude`` (default: the model's own) suffices: the RGB change is linear in the
-    amplitude (up to the final [0, 1] clamp), so every view's PSNR moves by ``-20 log10(a / a0)`` and
-    ``a = a0 * 10 ** ((psnr(a0) - target) / 20)``. Views where the gate never opens (infinite PSNR) are ignored.
+    The RGB change is linear in the amplitude up to the final [0, 1] clamp, so every view's PSNR moves by
+    ``-20 log10(a / a0)``: ``a = a0 * 10 ** ((psnr(a0) - target) / 20)`` from a measurement at ``trial_amplitude``
+    (default: the model's own), then once more from a measurement at that ``a`` (the clamp bends the line for strong
+    marks). Views where the gate never opens (infinite PSNR) are ignored.
     """
     from gsticker_plugin.verify import select_cameras
 
     model = color_mark_model(pipeline.model)
-    a0 = check_amplitude(model.config.color_amplitude if trial_amplitude is None else trial_amplitude)
+    cams = select_cameras(pipeline, num_views, sampled_share, seed)
+    a = check_amplitude(model.config.color_amplitude if trial_amplitude is None else trial_amplitude)
     old = model.config.color_amplitude
-    model.config.color_amplitude = a0
     try:
-        psnr = mark_psnr(model, select_cameras(pipeline, num_views, sampled_share, seed))
+        for _ in range(2):
+            model.config.color_amplitude = a
+            psnr = mark_psnr(model, cams)
+            finite = psnr[torch.isfinite(psnr)]
+            if finite.numel() == 0:
+                raise GStickerError("the color mark changes no pixel in the chosen views (the gate never opens); pass "
+                                    "more --num-views or check that the run's gates are calibrated")
+            a = a * 10.0 ** ((float(finite.mean()) - float(target_psnr)) / 20.0)
     finally:
         model.config.color_amplitude = old
-    finite = psnr[torch.isfinite(psnr)]
-    if finite.numel() == 0:
-        raise GStickerError("the color mark changes no pixel in the chosen views (the gate never opens); pass more "
-                            "--num-views or check that the run's gates are calibrated")
-    return a0 * 10.0 ** ((float(finite.mean()) - float(target_psnr)) / 20.0)
+    return a
 
 
 # ================================================================================================================

@@ -51,7 +51,7 @@ def test_prediction_at_zero_is_the_base_render_and_the_jacobian_is_ad():
     assert I.image_change_jacobian(ref, Sticker(48, 5, 16, 2, 0.5, "concat"), s0) is None
 
 
-def test_fit_reads_the_message_from_an_8_bit_image_and_the_base_render_gives_coin_flips():
+def test_fit_reads_the_message_from_an_8_bit_image_and_the_base_render_reads_no_match():
     torch.manual_seed(0)
     st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
     ref = _view(st)
@@ -60,13 +60,10 @@ def test_fit_reads_the_message_from_an_8_bit_image_and_the_base_render_gives_coi
         marked = I.predict_image_change(ref, st, message_to_signs(msg))
     d = I.decode_image_view(ref, st, torch.round(marked * 255) / 255, torch.Generator().manual_seed(1))
     assert torch.equal(d["bits"], msg) and d["undetermined"] == 0 and d["explained"] > 0.9
-    gen = torch.Generator().manual_seed(2)
-    matches = []
-    for _ in range(200):
-        d0 = I.decode_image_view(ref, st, ref.base_rgb.clone(), gen)
-        assert d0["undetermined"] == 48 and d0["iterations"] == 0
-        matches.append(int((d0["bits"] == msg).sum()))
-    assert 23.0 < sum(matches) / len(matches) < 25.0 and max(matches) < 41  # Binomial(48, 1/2)
+    # the base render itself: nothing to fit, every bit undetermined and a mismatch whatever the message
+    d0 = I.decode_image_view(ref, st, ref.base_rgb.clone(), torch.Generator().manual_seed(2))
+    assert d0["undetermined"] == 48 and d0["iterations"] == 0
+    assert int((d0["bits"] == msg).sum()) == 0 and int((d0["bits"] == 1 - msg).sum()) == 0
 
 
 def test_leaked_key_attack_keeps_its_psnr_budget_and_flips_the_bits_once_the_budget_allows():
