@@ -338,7 +338,6 @@ def shareable_state(model: nn.Module) -> Dict[str, Tensor]:
     for name, m in model.named_modules():
         if isinstance(m, GeometryStickerModel):
             prefix = name + "." if name else ""
-            for k in [k for k in state if k.startswith(prefix + "sticker.") or k == prefix + "message"]:
-                del state[k]
+            state = {k: v for k, v in state.items() if not k.startswith(prefix)}
             state.update(m.shareable_state_dict(prefix=prefix))
     return state

@@ -29,7 +29,7 @@ from gsticker_plugin.fastpath import ViewCache, cache_view, orbit_cameras, pool_
 from gsticker_plugin.geometry import geometry_reference
 from gsticker_plugin.heads import HeadConfig, Heads, count_parameters
 from gsticker_plugin.key import OwnerKey, message_from_owner_id, parse_message, random_message
-from gsticker_plugin.model import GeometryStickerModel, GeometryStickerModelConfig
+from gsticker_plugin.model import GeometryStickerModel, GeometryStickerModelConfig, shareable_state
 from gsticker_plugin.sticker import composite, sparsity_loss
 
 
@@ -112,8 +112,7 @@ class GeometryStickerPipeline(VanillaPipeline):
         self.owner_message: Optional[Tensor] = self.resolve_message(config) if test_mode == "val" else None
         if self.owner_message is not None:
             self.model.set_message(self.owner_message)
-        self.message_source = config.message_source or ("given" if config.message else
-                                                        "owner-id" if config.message_from_owner_id else "random")
+        self.message_source = self.source_of_message(config)
         self.owner_label = config.owner_id
         self.resumed_key: Optional[OwnerKey] = None
         # Heads: plain attribute, not a registered submodule (keeps them out of the shareable state dict).
@@ -134,6 +133,12 @@ class GeometryStickerPipeline(VanillaPipeline):
             return message_from_owner_id(config.owner_id, config.model.num_bits)
         return random_message(config.model.num_bits)
 
+    @staticmethod
+    def source_of_message(config: GeometryStickerPipelineConfig) -> str:
+        """How :meth:`resolve_message` draws the message for ``config`` (the key records it)."""
+        return config.message_source or ("given" if config.message else
+                                         "owner-id" if config.message_from_owner_id else "random")
+
     def set_owner(self, message: Tensor, source: str, label: str, resumed_key: Optional[OwnerKey] = None) -> None:
         """The owner's message, how it was drawn and the owner's label (the trainer keeps them out of the config);
         ``resumed_key``: the key of the run being resumed (its secret, salt and creation time are kept)."""
@@ -152,9 +157,7 @@ class GeometryStickerPipeline(VanillaPipeline):
 
     def shareable_state_dict(self) -> Dict[str, Tensor]:
         """The pipeline state a shared checkpoint holds (see GeometryStickerModel.shareable_state_dict)."""
-        state = {k: v for k, v in self.state_dict().items() if not k.startswith("_model.")}
-        state.update(self.model.shareable_state_dict(prefix="_model."))
-        return state
+        return shareable_state(self)
 
     @property
     def heads(self) -> Optional[Heads]:

@@ -148,8 +148,7 @@ class GeometryStickerTrainer(Trainer):
         # the secrets leave the config before anything writes it (config.yml, the event files' config dump)
         self._key_path = self.key_path
         message = GeometryStickerPipeline.resolve_message(pcfg)
-        source = pcfg.message_source or ("given" if pcfg.message else
-                                         "owner-id" if pcfg.message_from_owner_id else "random")
+        source = GeometryStickerPipeline.source_of_message(pcfg)
         label = pcfg.owner_id
         pcfg.owner_id, pcfg.message, pcfg.key_path, pcfg.message_source = "", None, None, source
         self.save_shared_config()  # again, now with the base filled in: stock ns-viewer/ns-render rebuild from it

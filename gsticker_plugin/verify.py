@@ -1333,11 +1333,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except MemoryError:
         return _error("out of memory while decoding; lower --max-side or --num-views")
     except Exception as e:  # a crash is never a verdict: one line, exit 2
-        where = ""
-        tb = e.__traceback__
-        while tb is not None:
-            where = f" at {Path(tb.tb_frame.f_code.co_filename).name}:{tb.tb_lineno}"
-            tb = tb.tb_next
+        import traceback
+
+        frames = traceback.extract_tb(e.__traceback__)
+        where = f" at {Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else ""
         return _error(f"no verdict: {type(e).__name__}: {e}{where} (a failure inside ns-verify-owner, not a "
                       "negative verdict; rerun with the same inputs to reproduce and report it)")
 
