@@ -45,10 +45,15 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
-from gsticker_plugin.base_run import final_rgb
+from gsticker_plugin.decoders.fit import fit_and_decide, fit_summary, per_ray_jacobian, tie_generator
+from gsticker_plugin.decoders.geometric import suspect_renders
+from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker
+from gsticker_plugin.decoders.result import decoded
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.model import GeometryStickerModel, GeometryStickerModelConfig
+from gsticker_plugin.runs import final_rgb
 from gsticker_plugin.sticker import DensityWrap, Sticker, WrapState, render_weights
+from gsticker_plugin.views import View, select_cameras
 
 # ================================================================================================================
 # the model
@@ -58,11 +63,9 @@ from gsticker_plugin.sticker import DensityWrap, Sticker, WrapState, render_weig
 @dataclass
 class ColorMarkModelConfig(GeometryStickerModelConfig):
     """A geometrysticker run's sticker and gates, with the mark added to the final field's color, not its density."""
-
     _target: Type = field(default_factory=lambda: ColorMarkModel)
     color_amplitude: float = 0.05
     """Largest per-sample RGB change of the color mark (at psi = 1 and |m| = 1), the same on the 3 channels."""
-
 
 class ColorMarkWrap:
     """Installs the color mark on a field instance: ``get_density`` is only watched (density and samples of the
@@ -179,7 +182,7 @@ def write_color_marked_run(watermarked_config: Path, output_dir: Path, amplitude
     """Write ``output_dir/config.yml`` (the watermarked run's config with a :class:`ColorMarkModelConfig` of the same
     field values plus ``color_amplitude``) and a copy of its latest checkpoint in ``output_dir/nerfstudio_models``.
 
-    Opens with :func:`gsticker_plugin.verify.load_run` and ``ns-recolor ... --load-config`` (both find the
+    Opens with :func:`gsticker_plugin.runs.load_run` and ``ns-recolor ... --load-config`` (both find the
     checkpoint beside config.yml). Stock ``ns-viewer`` / ``ns-render`` look for it under
     ``output_dir/experiment/method/timestamp`` instead, which this layout does not have. Returns the config path.
     """
@@ -226,7 +229,7 @@ def color_mark_model(model) -> ColorMarkModel:
 
 
 @torch.no_grad()
-def mark_psnr(model, cameras: Sequence[Tuple[str, Any]]) -> Float[Tensor, "V"]:
+def mark_psnr(model, cameras: Sequence[Tuple[str, Any]]) -> Float[Tensor, " V"]:
     """Per-view PSNR of the color-marked render against the same model with the mark off (renders clamped)."""
     from gsticker_plugin import metrics
 
@@ -253,7 +256,6 @@ def match_amplitude(pipeline, target_psnr: float, num_views: int = 4, sampled_sh
     (default: the model's own), then once more from a measurement at that ``a`` (the clamp bends the line for strong
     marks). Views where the gate never opens (infinite PSNR) are ignored.
     """
-    from gsticker_plugin.verify import select_cameras
 
     model = color_mark_model(pipeline.model)
     cams = select_cameras(pipeline, num_views, sampled_share, seed)
@@ -281,7 +283,6 @@ def match_amplitude(pipeline, target_psnr: float, num_views: int = 4, sampled_sh
 @dataclass
 class ColorReferenceView:
     """One reference view in the color decoder's terms: what the suspect's RGB change at the rays depends on."""
-
     view: Any  # gsticker_plugin.geometry.ReferenceView
     psi: Float[Tensor, "N 1"]  # the gate at the open samples (psi_scale without the gate's density scale)
     weights: Float[Tensor, "R S 1"]  # the base's render weights (the color mark leaves density unchanged)
@@ -295,7 +296,7 @@ def color_reference(ref_view, gate_scale: float) -> ColorReferenceView:
                               weights=render_weights(ref_view.density, ref_view.deltas), base_rgb=base)
 
 
-def predict_color_change(ref: ColorReferenceView, sticker: Sticker, signs: Float[Tensor, "K"],
+def predict_color_change(ref: ColorReferenceView, sticker: Sticker, signs: Float[Tensor, " K"],
                          amplitude: float) -> Float[Tensor, "R 3"]:
     """The suspect's RGB change at the rays for continuous message ``signs``: ``clamp(base + sum_j w_j a psi_j
     m_j(s)) - base`` (the renderer clamps the composite to [0, 1]); differentiable in ``signs``."""
@@ -312,15 +313,14 @@ def color_of_sticker(ref: ColorReferenceView, m: Float[Tensor, "N 1"], amplitude
     return (ref.base_rgb + change).clamp(0.0, 1.0) - ref.base_rgb
 
 
-def color_change_jacobian(ref: ColorReferenceView, sticker: Sticker, signs: Float[Tensor, "K"],
+def color_change_jacobian(ref: ColorReferenceView, sticker: Sticker, signs: Float[Tensor, " K"],
                           amplitude: float) -> Optional[Float[Tensor, "M K"]]:
     """d predict_color_change / d signs, flattened like ``predict_color_change(...).reshape(-1)`` (None: no closed
     form)."""
-    from gsticker_plugin import geometry as G
 
     v = ref.view
     r, s = v.density.shape[:2]
-    j = G.per_ray_jacobian(lambda x: color_of_sticker(ref, x, amplitude).T, sticker, v.features, signs,
+    j = per_ray_jacobian(lambda x: color_of_sticker(ref, x, amplitude).T, sticker, v.features, signs,
                            v.open_index // s, r)
     return None if j is None else j.permute(1, 0, 2).reshape(-1, j.shape[-1])  # [3 R K] -> rows r * 3 + c
 
@@ -328,16 +328,14 @@ def color_change_jacobian(ref: ColorReferenceView, sticker: Sticker, signs: Floa
 def decode_color_view(ref: ColorReferenceView, sticker: Sticker, suspect_rgb: Float[Tensor, "R 3"], amplitude: float,
                       generator: torch.Generator, iterations: int = 10) -> Dict[str, Any]:
     """Fit the continuous message to one view's RGB change (suspect minus base) and decide the bits."""
-    from gsticker_plugin import geometry as G
-
     target = (suspect_rgb.float() - ref.base_rgb).reshape(-1)
-    fit, bits, undetermined = G.fit_and_decide(lambda x: predict_color_change(ref, sticker, x, amplitude),
+    fit, bits, undetermined = fit_and_decide(lambda x: predict_color_change(ref, sticker, x, amplitude),
                                                lambda x: color_change_jacobian(ref, sticker, x, amplitude), target,
                                                sticker.num_bits, ref.view.rays.numel() > 0, generator, iterations)
-    return {"bits": bits, **G.fit_summary(fit, undetermined, int(ref.view.rays.numel())), "signals": ["rgb"]}
+    return {"bits": bits, **fit_summary(fit, undetermined, int(ref.view.rays.numel())), "signals": ["rgb"]}
 
 
-def suspect_rgb_at(outputs: Dict[str, Tensor], rays: Int[Tensor, "R"], hw: Tuple[int, int]) -> Float[Tensor, "R 3"]:
+def suspect_rgb_at(outputs: Dict[str, Tensor], rays: Int[Tensor, " R"], hw: Tuple[int, int]) -> Float[Tensor, "R 3"]:
     rgb = final_rgb(outputs)
     flat = rgb.float().reshape(-1, 3)
     if flat.shape[0] != hw[0] * hw[1]:
@@ -360,21 +358,20 @@ def decode_color_suspect(key, reference, suspect_model, num_views: int, sampled_
     ``pvalues``, ``scores`` (None) and ``color`` (per-view fit details); ``views`` the suspect's RGB renders
     (none with ``full_renders=False``: the suspect is rendered only at the rays the fit reads).
     """
-    from gsticker_plugin import geometry as G
-    from gsticker_plugin.verify import View
+
 
     check_amplitude(amplitude)
-    st = G.cpu_sticker(reference.model)
+    st = cpu_sticker(reference.model)
     gate_scale = float(reference.model.final_wrap.gate.scale)
-    gen = G.tie_generator(seed)
+    gen = tie_generator(seed)
     per_view: List[Dict[str, Any]] = []
     bits, views = [], []
     ref_cache = {} if ref_cache is None else ref_cache  # one base render per camera
-    rays_for = None if full_renders else (lambda name, cam: G.any_reference_view(reference, name, cam, ref_cache).rays)
-    for name, cam, rendered in G.suspect_renders(reference, suspect_model, num_views, sampled_share, seed, sticker,
+    rays_for = None if full_renders else (lambda name, cam: any_reference_view(reference, name, cam, ref_cache).rays)
+    for name, cam, rendered in suspect_renders(reference, suspect_model, num_views, sampled_share, seed, sticker,
                                                  progress, "color decoding", rays_for=rays_for):
         # any reference view of this camera will do (the color fit uses no depth)
-        ref_view = G.any_reference_view(reference, name, cam, ref_cache)
+        ref_view = any_reference_view(reference, name, cam, ref_cache)
         ref = color_reference(ref_view, gate_scale)
         d = decode_color_view(ref, st, suspect_rgb_at(rendered, ref_view.rays, ref_view.hw), float(amplitude), gen,
                               iterations)
@@ -383,4 +380,4 @@ def decode_color_suspect(key, reference, suspect_model, num_views: int, sampled_
         if full_renders:
             img = final_rgb(rendered)
             views.append(View(name=name, image=img.clamp(0, 1).permute(2, 0, 1).contiguous()))
-    return G.decoded(key, bits, "color", per_view), views
+    return decoded(key, bits, "color", per_view), views

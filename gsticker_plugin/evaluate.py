@@ -10,8 +10,8 @@ import torch
 from torch import Tensor
 
 from gsticker_plugin import metrics
-from gsticker_plugin.base_run import final_rgb
 from gsticker_plugin.key import OwnerKey
+from gsticker_plugin.runs import final_rgb
 
 
 def load_pipeline(config_path: Path, test_mode: str = "test"):

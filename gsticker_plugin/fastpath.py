@@ -14,9 +14,8 @@ from typing import Dict, List, Optional
 
 import torch
 from jaxtyping import Float
-from torch import Tensor
-
 from nerfstudio.cameras.cameras import Cameras
+from torch import Tensor
 
 from gsticker_plugin.sticker import composite
 

@@ -43,6 +43,7 @@ import torch
 from torch import Tensor
 
 from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.runs import final_rgb, load_run
 from gsticker_plugin.sticker import render_weights
 
 # ================================================================================================================
@@ -60,7 +61,6 @@ def transmittance(density: Tensor, deltas: Tensor) -> Tensor:
 @dataclass
 class LossWeights:
     """Weights of the distillation terms (each a mean over the batch's rays)."""
-
     weights: float = 1.0
     """sum over samples of (w_student - w_teacher)^2: the whole per-ray geometry."""
     accumulation: float = 1.0
@@ -71,7 +71,6 @@ class LossWeights:
     """Squared error of the composited colour (PSNR against the watermarked render)."""
     log_density: float = 1e-3
     """Transmittance-weighted squared error of log density (keeps hidden samples where the teacher has them)."""
-
 
 def distill_losses(student_density: Tensor, student_rgb: Tensor, teacher_density: Tensor, teacher_rgb: Tensor,
                    deltas: Tensor, steps: Tensor, background: Tensor, depth_scale: float,
@@ -169,7 +168,6 @@ def checkpoint_state(step: int, pipeline_state: Dict[str, Tensor], base_state: D
 @dataclass
 class SamplePool:
     """Cached final-field samples of many rays with the teacher's marked density and colour at them."""
-
     origins: Tensor  # [R 3]
     directions: Tensor  # [R 3]
     pixel_area: Tensor  # [R 1]
@@ -263,7 +261,6 @@ def ray_samples_of(pool: SamplePool, device: torch.device):
 @dataclass
 class FuseConfig:
     """Distil a watermarked run into a stock run of its base's method (no sticker module in the shared file)."""
-
     load_config: Path
     """The watermarked (ns-train geometrysticker) run's config.yml."""
     output_dir: Path = Path("outputs/fused")
@@ -296,11 +293,9 @@ class FuseConfig:
     pool_cache: Optional[Path] = None
     """Keep the sample pool in this file and reuse it when it exists (experiments)."""
 
-
 def setup_runs(cfg: FuseConfig, device: torch.device):
     """Teacher (the watermarked run) and student (a fresh strict load of the base run it was made on)."""
-    from gsticker_plugin import base_run
-    from gsticker_plugin.verify import load_run
+    from gsticker_plugin import runs
 
     with contextlib.redirect_stdout(sys.stderr):
         wm_config, wm_pipeline, _ = load_run(cfg.load_config, data=cfg.data, device=device)
@@ -314,7 +309,7 @@ def setup_runs(cfg: FuseConfig, device: torch.device):
         raise GStickerError(f"the base run {base_cfg_path} the watermark was made on does not exist here; the fused "
                             "export starts from it")
     ckpt = Path(base_info["checkpoint"])
-    base_config = base_run.load_run_config(base_cfg_path)
+    base_config = runs.load_run_config(base_cfg_path)
     if base_config.method_name != base_info.get("method"):
         raise GStickerError(f"{base_cfg_path} is a {base_config.method_name} run, the watermark was made on a "
                             f"{base_info.get('method')} run")
@@ -323,8 +318,8 @@ def setup_runs(cfg: FuseConfig, device: torch.device):
                             f"not mark); this base is {type(wm_model.base).__name__}")
     with contextlib.redirect_stdout(sys.stderr):
         _, student_pipeline, _ = load_run(base_cfg_path, data=cfg.data, device=device)
-    state = base_run.load_checkpoint_state(ckpt)
-    base_run.strict_load(student_pipeline.model, base_run.model_state_from_pipeline_state(state["pipeline"]))
+    state = runs.load_checkpoint_state(ckpt)
+    runs.strict_load(student_pipeline.model, runs.model_state_from_pipeline_state(state["pipeline"]))
     return wm_config, wm_pipeline, base_config, student_pipeline, ckpt, state
 
 
@@ -444,7 +439,6 @@ def save_fused_run(fused_config, student_pipeline, base_state: Dict[str, Any], b
 def compare_renders(wm_model, student, base_model_ctx, cameras: List[Tuple[str, Any]]) -> Dict[str, float]:
     """Mean PSNR of the student's renders against the watermarked and against the unwatermarked (sticker off)
     renders at ``cameras``."""
-    from gsticker_plugin.base_run import final_rgb
 
     vs_wm, vs_base, wm_vs_base = [], [], []
     for _, cam in cameras:
@@ -508,7 +502,9 @@ def fuse(cfg: FuseConfig) -> Dict[str, Any]:
 
 def main(cfg: FuseConfig) -> int:
     try:
-        import method_configs  # noqa: F401  (host fixes: offline LPIPS, numpy checkpoint types)
+        from gsticker_plugin import compat
+
+        compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
     except Exception:  # pragma: no cover
         pass
     import warnings

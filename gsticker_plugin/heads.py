@@ -10,7 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal, Tuple
 
-import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
@@ -83,7 +82,7 @@ class Heads(nn.Module):
     def decode(self, images: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B K"]:
         return self.extractor(images)
 
-    def classify(self, images: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B"]:
+    def classify(self, images: Float[Tensor, "B 3 H W"]) -> Float[Tensor, " B"]:
         return self.classifier(images).squeeze(-1)
 
 

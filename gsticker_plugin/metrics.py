@@ -58,7 +58,7 @@ def message_to_bits(message: Union[int, str, Sequence[int], Tensor], k: int | No
     return bits
 
 
-def bits_to_int(bits: Int[Tensor, "K"]) -> int:
+def bits_to_int(bits: Int[Tensor, " K"]) -> int:
     """Inverse of :func:`message_to_bits` for an int: most significant bit first."""
     value = 0
     for b in torch.as_tensor(bits).reshape(-1).tolist():
@@ -66,12 +66,12 @@ def bits_to_int(bits: Int[Tensor, "K"]) -> int:
     return value
 
 
-def bits_to_string(bits: Int[Tensor, "K"]) -> str:
+def bits_to_string(bits: Int[Tensor, " K"]) -> str:
     """Bits as a ``'0101...'`` string."""
     return "".join(str(int(b)) for b in torch.as_tensor(bits).reshape(-1).tolist())
 
 
-def random_message(k: int = 48, generator: torch.Generator | None = None) -> Int[Tensor, "K"]:
+def random_message(k: int = 48, generator: torch.Generator | None = None) -> Int[Tensor, " K"]:
     """A uniformly random K-bit message (long 0/1 tensor on CPU)."""
     return torch.randint(0, 2, (k,), generator=generator, dtype=torch.long)
 
@@ -344,7 +344,7 @@ def clopper_pearson_upper(x: int, n: int, confidence: float = 0.95) -> float:
 # ----------------------------------------------------------------------------------------------------------------
 # image quality
 # ----------------------------------------------------------------------------------------------------------------
-def psnr(a: Float[Tensor, "B C H W"], b: Float[Tensor, "B C H W"], max_val: float = 1.0) -> Float[Tensor, "B"]:
+def psnr(a: Float[Tensor, "B C H W"], b: Float[Tensor, "B C H W"], max_val: float = 1.0) -> Float[Tensor, " B"]:
     """Per-image PSNR in dB, ``10 log10(max_val^2 / MSE)``; ``inf`` for identical images."""
     if a.shape != b.shape or a.ndim < 3:
         raise ValueError(f"psnr: need two images of one shape (..., C, H, W), got {tuple(a.shape)}, {tuple(b.shape)}")
@@ -353,7 +353,7 @@ def psnr(a: Float[Tensor, "B C H W"], b: Float[Tensor, "B C H W"], max_val: floa
     return 10.0 * torch.log10(max_val**2 / mse)
 
 
-def ssim(a: Float[Tensor, "B C H W"], b: Float[Tensor, "B C H W"]) -> Float[Tensor, "B"]:
+def ssim(a: Float[Tensor, "B C H W"], b: Float[Tensor, "B C H W"]) -> Float[Tensor, " B"]:
     """Per-image SSIM (torchmetrics, Gaussian 11x11 window, ``data_range=1.0``)."""
     # the torchmetrics.functional root alias warns (FutureWarning) in torchmetrics >= 1.x; import from .image
     from torchmetrics.functional.image import structural_similarity_index_measure

@@ -13,15 +13,16 @@ from typing import Any, Dict, Iterator, List, Literal, Optional, Tuple, Type
 
 import torch
 import tyro
-from torch import Tensor, nn
-from torch.nn import Parameter
-
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.fields.base_field import Field
 from nerfstudio.models.base_model import Model, ModelConfig
+from torch import Tensor, nn
+from torch.nn import Parameter
 
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.sticker import DensityWrap, FoldedSticker, Gate, Sticker, WrapState
+
+GEOMETRY_REFERENCE_VERSION = 1
 
 
 @dataclass
@@ -341,3 +342,23 @@ def shareable_state(model: nn.Module) -> Dict[str, Tensor]:
             state = {k: v for k, v in state.items() if not k.startswith(prefix)}
             state.update(m.shareable_state_dict(prefix=prefix))
     return state
+
+
+def geometry_reference(model: "GeometryStickerModel") -> Dict[str, Any]:
+    """The key's geometry reference: the sticker and gates the informed decoders rebuild on the owner's base."""
+    cfg = model.config
+    return {
+        "version": GEOMETRY_REFERENCE_VERSION,
+        "sticker_config": {"kind": cfg.sticker_kind, "num_bits": int(cfg.num_bits),
+                           "num_frequencies": int(cfg.num_frequencies), "hidden_dim": int(cfg.sticker_hidden_dim),
+                           "num_layers": int(cfg.sticker_num_layers)},
+        "gate_threshold": float(cfg.gate_threshold),
+        "wrap_proposal_networks": bool(cfg.wrap_proposal_networks),
+        "mark_sampling_passes": bool(cfg.mark_sampling_passes),
+        "sticker_state": {k: v.detach().cpu().clone() for k, v in model.sticker.state_dict().items()},
+        "gates_state": {k: v.detach().cpu().clone() for k, v in model.gates.state_dict().items()},
+        "fields": [w.name for w in model.wraps],
+        "final_field": model.final_wrap.name,
+        "aabb": {w.name: w.aabb.detach().cpu().float().clone() for w in model.wraps},
+        "null": None,
+    }

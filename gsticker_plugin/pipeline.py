@@ -6,7 +6,6 @@ module tree, so they never enter the shareable checkpoint; the trainer writes th
 
 from __future__ import annotations
 
-import random
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,21 +14,18 @@ from typing import Any, Dict, List, Literal, Mapping, Optional, Type
 import torch
 import torch.nn.functional as F
 import tyro
-from torch import Tensor
-
 from nerfstudio.data.datamanagers.base_datamanager import DataManagerConfig, VanillaDataManagerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
+from torch import Tensor
 
 from gsticker_plugin import metrics
 from gsticker_plugin.attacks import RandomDistortion, RandomDistortionConfig
-from gsticker_plugin.base_run import final_rgb
-from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import ViewCache, cache_view, orbit_cameras, pool_memory_mb, render_cached
-from gsticker_plugin.geometry import geometry_reference
 from gsticker_plugin.heads import HeadConfig, Heads, count_parameters
 from gsticker_plugin.key import OwnerKey, message_from_owner_id, parse_message, random_message
-from gsticker_plugin.model import GeometryStickerModel, GeometryStickerModelConfig, shareable_state
+from gsticker_plugin.model import GeometryStickerModel, GeometryStickerModelConfig, geometry_reference, shareable_state
+from gsticker_plugin.runs import final_rgb
 from gsticker_plugin.sticker import composite, sparsity_loss
 
 
@@ -80,6 +76,9 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     """Training-time distortions applied to renders before the extractor and classifier."""
     target_psnr: float = 38.0
     """PSNR budget of watermarked vs clean renders; the content loss rises steeply below it."""
+    content_stop_psnr: Optional[float] = 44.0
+    """The content loss stops pulling once watermarked and clean renders are this close (PSNR above it), so a long
+    run cannot shrink the mark toward the renderer's float noise; None pulls toward 0 at every step."""
     content_weight: float = 1.0
     """Weight of the content loss (MSE, in units of the PSNR budget)."""
     warmup_steps: int = 200
@@ -301,7 +300,8 @@ class GeometryStickerPipeline(VanillaPipeline):
         cfg = self.config
         mse = F.mse_loss(marked, clean)
         budget = 10.0 ** (-cfg.target_psnr / 10.0)
-        content = mse / budget + 10.0 * F.relu(mse / budget - 1.0)
+        floor = 0.0 if cfg.content_stop_psnr is None else 10.0 ** (-cfg.content_stop_psnr / 10.0)
+        content = F.relu(mse - floor) / budget + 10.0 * F.relu(mse / budget - 1.0)
         # Warm-up: no content loss and no distortions for warmup_steps, then both ramp in over as many steps.
         ramp = min(1.0, max(0.0, (step + 1 - cfg.warmup_steps) / max(1, cfg.warmup_steps)))
         losses = {"content_loss": cfg.content_weight * ramp * content,

@@ -123,7 +123,7 @@ def _unmerged(mesh) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     return verts, np.arange(len(verts)).reshape(-1, 3), normals
 
 
-def _angular_u(points: Float[np.ndarray, "v 3"], center: Float[np.ndarray, "3"]) -> Float[np.ndarray, "v"]:
+def _angular_u(points: Float[np.ndarray, "v 3"], center: Float[np.ndarray, "3"]) -> Float[np.ndarray, " v"]:
     """Azimuthal texture coordinate in [0, 1], unwrapped per triangle so no triangle spans the seam."""
     d = points - center
     u = (np.arctan2(d[:, 1], d[:, 0]) / (2 * math.pi) + 0.5).reshape(-1, 3)

@@ -65,7 +65,7 @@ def composite(
     density: Float[Tensor, "R S 1"],
     rgb: Float[Tensor, "R S 3"],
     deltas: Float[Tensor, "R S 1"],
-    background: Float[Tensor, "3"],
+    background: Float[Tensor, " 3"],
 ) -> Tuple[Float[Tensor, "R 3"], Float[Tensor, "R S 1"]]:
     """Volume rendering (same quadrature as Nerfstudio's RaySamples.get_weights + RGBRenderer)."""
     weights = render_weights(density, deltas)
@@ -159,7 +159,7 @@ class Sticker(nn.Module):
         h = self.pos_in(positional_encoding(positions01, self.num_frequencies))
         return h if self.msg_in is not None else self.mlp(h)
 
-    def mix(self, features: Float[Tensor, "N F"], signs: Float[Tensor, "K"]) -> Float[Tensor, "N 1"]:
+    def mix(self, features: Float[Tensor, "N F"], signs: Float[Tensor, " K"]) -> Float[Tensor, "N 1"]:
         """The sticker from :meth:`features` and message *signs* (+-1 for bits; any value in [-1, 1] is allowed,
         which makes the sticker a differentiable function of a continuous message, see gsticker_plugin.geometry)."""
         if self.msg_in is not None:
@@ -173,7 +173,7 @@ class Sticker(nn.Module):
             return None
         return (1.0 - m * m) * features / math.sqrt(self.num_bits)
 
-    def forward(self, positions01: Float[Tensor, "N 3"], message: Float[Tensor, "K"]) -> Float[Tensor, "N 1"]:
+    def forward(self, positions01: Float[Tensor, "N 3"], message: Float[Tensor, " K"]) -> Float[Tensor, "N 1"]:
         return self.mix(self.features(positions01), message_to_signs(message))
 
     @torch.no_grad()

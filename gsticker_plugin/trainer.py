@@ -21,15 +21,17 @@ from pathlib import Path
 from typing import Literal, Optional, Type
 
 import torch
-
-from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from gsticker_plugin import base_run
+from gsticker_plugin import runs
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import OwnerKey, bits_to_str, default_key_path, file_sha256
-from gsticker_plugin.pipeline import GeometryStickerPipeline, GeometryStickerPipelineConfig
+from gsticker_plugin.pipeline import (
+    GeometryStickerPipeline,
+    GeometryStickerPipelineConfig,
+)
+from gsticker_plugin.runs import copy_datamanager
 
 
 @dataclass
@@ -38,17 +40,6 @@ class GeometryStickerTrainerConfig(TrainerConfig):
 
     _target: Type = field(default_factory=lambda: GeometryStickerTrainer)
     pipeline: GeometryStickerPipelineConfig = field(default_factory=GeometryStickerPipelineConfig)
-
-
-def copy_datamanager(base_config, data_override: Optional[Path]) -> VanillaDataManagerConfig:
-    """The base's dataparser and data path in a single-process VanillaDataManager (we sample no ray batches)."""
-    dm = base_config.pipeline.datamanager
-    dataparser = copy.deepcopy(dm.dataparser)
-    recorded = dm.data if getattr(dm, "data", None) is not None else getattr(dataparser, "data", None)
-    data = base_run.resolve_data_path(recorded, data_override)
-    dataparser.data = data
-    return VanillaDataManagerConfig(dataparser=dataparser, data=data, train_num_rays_per_batch=1024,
-                                    eval_num_rays_per_batch=1024, camera_res_scale_factor=dm.camera_res_scale_factor)
 
 
 def step_key_path(key_path: Path, step: int) -> Path:
@@ -102,13 +93,13 @@ class GeometryStickerTrainer(Trainer):
     def _setup(self, test_mode: Literal["test", "val", "inference"]) -> None:
         cfg = self.config
         pcfg = cfg.pipeline
-        ckpt = base_run.resolve_checkpoint(cfg.load_checkpoint, cfg.load_dir, cfg.load_step)
+        ckpt = runs.resolve_checkpoint(cfg.load_checkpoint, cfg.load_dir, cfg.load_step)
         if ckpt is None and pcfg.model.base_model is None:
             raise GStickerError("geometrysticker needs a trained base: pass --load-checkpoint "
                                 "BASE_RUN/nerfstudio_models/step-N.ckpt (any nerfacto, vanilla-nerf or tensorf run)")
         GeometryStickerPipeline.resolve_message(pcfg)  # a malformed message stops here, before any work
         if ckpt is not None:
-            run_cfg = base_run.load_run_config(base_run.run_config_path(ckpt))
+            run_cfg = runs.load_run_config(runs.run_config_path(ckpt))
             if isinstance(run_cfg.pipeline, GeometryStickerPipelineConfig):
                 self._resume = True
                 # The trained shapes (sticker, gates, heads) are the run's own, whatever the CLI defaults say.
@@ -135,12 +126,12 @@ class GeometryStickerTrainer(Trainer):
                 pcfg.owner_id = self._resume_key.owner_id
             else:
                 pcfg.model.base_model = run_cfg.pipeline.model
-                pcfg.model.base_step = base_run.checkpoint_step(ckpt)
+                pcfg.model.base_step = runs.checkpoint_step(ckpt)
                 pcfg.datamanager = copy_datamanager(run_cfg, cfg.data)
                 pcfg.base_run = {
                     "method": run_cfg.method_name,
                     "model": type(run_cfg.pipeline.model).__name__,
-                    "config": str(base_run.run_config_path(ckpt)),
+                    "config": str(runs.run_config_path(ckpt)),
                     "checkpoint": str(ckpt.resolve()),
                     "checkpoint_sha256": file_sha256(ckpt),
                 }
@@ -161,11 +152,11 @@ class GeometryStickerTrainer(Trainer):
         ckpt = self._checkpoint
         if ckpt is None:
             return
-        state = base_run.load_checkpoint_state(ckpt)
+        state = runs.load_checkpoint_state(ckpt)
         if not self._resume:
-            model_state = base_run.model_state_from_pipeline_state(state["pipeline"])
-            base_run.check_tcnn(self.config.pipeline.model.base_model, model_state)
-            base_run.strict_load(self.pipeline.model.base, model_state,
+            model_state = runs.model_state_from_pipeline_state(state["pipeline"])
+            runs.check_tcnn(self.config.pipeline.model.base_model, model_state)
+            runs.strict_load(self.pipeline.model.base, model_state,
                                  num_train_data=len(self.pipeline.datamanager.train_dataset))
             self._start_step = 0
             CONSOLE.print(f"\\[gsticker] base loaded strictly from {ckpt} (frozen); starting at step 0")

@@ -7,10 +7,13 @@ from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-import method_configs  # noqa: F401  (host fixes)
+from gsticker_plugin import compat
 from gsticker_plugin.model import GeometryStickerModelConfig
 from gsticker_plugin.pipeline import GeometryStickerPipelineConfig
 from gsticker_plugin.trainer import GeometryStickerTrainerConfig
+
+# ns-train imports this entry point before it builds or loads a model: the plugin's host fixes go first
+compat.apply()
 
 
 def geometrysticker_config(max_num_iterations: int = 1500) -> GeometryStickerTrainerConfig:

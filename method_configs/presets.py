@@ -19,8 +19,11 @@ from nerfstudio.models.tensorf import TensoRFModelConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-import method_configs  # noqa: F401  (host fixes)
+from gsticker_plugin import compat
 from gsticker_plugin.small_nerf import SmallNeRFModelConfig
+
+# ns-train imports this entry point before it builds or loads a model: the plugin's host fixes go first
+compat.apply()
 
 
 def _small_trainer(method_name: str, max_num_iterations: int, model, optimizers, viewer_chunk: int) -> TrainerConfig:

@@ -12,8 +12,11 @@ from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConf
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-import method_configs  # noqa: F401  (host fixes)
+from gsticker_plugin import compat
 from gsticker_plugin.recolor.model import RecolorModelConfig, RecolorTrainerConfig
+
+# ns-train imports this entry point before it builds or loads a model: the plugin's host fixes go first
+compat.apply()
 
 
 def recolor_config(method_name: str) -> RecolorTrainerConfig:

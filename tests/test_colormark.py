@@ -20,14 +20,16 @@ from typing import Dict
 import pytest
 import torch
 import yaml
+from test_geometry import COMMON, MESSAGE, NERFACTO_TINY, _train  # the tiny-run recipe shared with the geometry tests
 
 from gsticker_plugin import colormark as C
-from gsticker_plugin import geometry as G
-from gsticker_plugin import verify as V
+from gsticker_plugin import runs as RUNS
+from gsticker_plugin import views as VW
+from gsticker_plugin.decoders import geometric as G
+from gsticker_plugin.decoders import reference as R
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import OwnerKey, file_sha256
 from gsticker_plugin.sticker import DensityWrap, Gate, Sticker, WrapState
-from test_geometry import COMMON, MESSAGE, NERFACTO_TINY, _train  # the tiny-run recipe shared with the geometry tests
 
 BASE_STEPS = "400"
 AMPLITUDE = 0.05
@@ -95,11 +97,15 @@ def test_color_wrap_adds_a_gray_mark_where_the_gate_opens_and_leaves_density():
 @pytest.mark.parametrize("kind", ["tensorf", "vanilla-nerf"])
 def test_tensorf_and_vanilla_nerf_bases_get_the_mark_with_their_density_unchanged(kind):
     """Real model classes, untrained and in memory (gates calibrated by hand on their own renders)."""
-    import method_configs  # noqa: F401  (host fixes: offline LPIPS)
     from nerfstudio.cameras.cameras import Cameras
     from nerfstudio.data.scene_box import SceneBox
     from nerfstudio.models.tensorf import TensoRFModelConfig
     from nerfstudio.models.vanilla_nerf import VanillaModelConfig
+
+    from gsticker_plugin import compat
+
+
+    compat.apply()  # the host fixes the ns-* commands apply
 
     torch.manual_seed(0)
     base = (TensoRFModelConfig(init_resolution=16, final_resolution=32, num_samples=32, num_uniform_samples=16,
@@ -153,8 +159,8 @@ def runs(tiny_scene, tmp_path_factory) -> Dict[str, Path]:
 def loaded(runs):
     key = OwnerKey.load(runs["key"])
     with _quiet():
-        ref = G.load_base_reference(key, runs["key"], None, None, CPU)
-        _, pipe, ckpt = V.load_run(runs["color"], device=CPU)
+        ref = R.load_base_reference(key, runs["key"], None, None, CPU)
+        _, pipe, ckpt = RUNS.load_run(runs["color"], device=CPU)
     return SimpleNamespace(key=key, ref=ref, pipe=pipe, model=pipe.model, ckpt=ckpt)
 
 
@@ -174,7 +180,6 @@ def test_written_run_round_trips_through_load_run(runs, loaded):
     model = loaded.model
     assert type(model) is C.ColorMarkModel and model.config.color_amplitude == AMPLITUDE
     # the shared form: the key's sticker folded with the key's message
-    from gsticker_plugin.sticker import Sticker
 
     sc = loaded.key.geometry["sticker_config"]
     full = Sticker(sc["num_bits"], sc["num_frequencies"], sc["hidden_dim"], sc["num_layers"], kind=sc["kind"])
@@ -184,7 +189,7 @@ def test_written_run_round_trips_through_load_run(runs, loaded):
         assert torch.allclose(model.folded_sticker.state_dict()[k].cpu(), v, atol=1e-6), k
     # the same state dict as the watermarked run (loaded strictly by load_run)
     with _quiet():
-        _, wpipe, _ = V.load_run(run, device=CPU)
+        _, wpipe, _ = RUNS.load_run(run, device=CPU)
     assert type(wpipe.model).__name__ == "GeometryStickerModel"
     from gsticker_plugin.model import shareable_state
 
@@ -204,7 +209,7 @@ def test_written_run_round_trips_through_load_run(runs, loaded):
 def test_density_is_the_base_and_color_carries_the_mark(loaded):
     model, base = loaded.model, loaded.ref.pipeline.model  # base: the owner's unwatermarked base run
     assert type(base).__name__ == "NerfactoModel"
-    for name, cam in V.select_cameras(loaded.ref.pipeline, 2, 0.5, 0):
+    for name, cam in VW.select_cameras(loaded.ref.pipeline, 2, 0.5, 0):
         cam = cam.to(CPU)
         with torch.no_grad():
             o_base = base.get_outputs_for_camera(cam)
@@ -215,7 +220,7 @@ def test_density_is_the_base_and_color_carries_the_mark(loaded):
             assert torch.equal(o_on[k], o_base[k]) and torch.equal(o_off[k], o_base[k]), (name, k)
         assert torch.equal(o_off["rgb"], o_base["rgb"]), name
         d = (o_on["rgb"] - o_base["rgb"]).reshape(-1, 3)
-        ref_view = G.reference_view(loaded.ref, name, cam, use_depth=False)
+        ref_view = R.reference_view(loaded.ref, name, cam, use_depth=False)
         gate_open = torch.zeros(d.shape[0], dtype=torch.bool)
         gate_open[ref_view.rays] = True
         changed = d.abs().amax(-1) > 0
@@ -246,7 +251,7 @@ def test_match_amplitude_hits_the_target_psnr(loaded):
     target = 40.0
     a = C.match_amplitude(loaded.pipe, target, num_views=3)
     assert isinstance(a, float) and a > 0 and model.config.color_amplitude == AMPLITUDE
-    cams = V.select_cameras(loaded.pipe, 3, 0.0, 0)
+    cams = VW.select_cameras(loaded.pipe, 3, 0.0, 0)
     model.config.color_amplitude = a
     try:
         got = C.mark_psnr(model, cams)
@@ -263,7 +268,7 @@ def test_hue_shift_defeats_the_color_decoder_not_the_geometric_one(runs, loaded)
     assert cli.run(["hue", "--load-config", str(runs["color"]), "--output-dir", str(dest), "--shift", "0.5"]) == 0
     (cfg,) = dest.glob("**/config.yml")
     with _quiet():
-        _, pipe, _ = V.load_run(cfg, device=CPU)
+        _, pipe, _ = RUNS.load_run(cfg, device=CPU)
     rec = pipe.model
     marked = C.color_mark_model(rec)
     assert type(rec).__name__ == "RecolorModel" and float(rec.hue_shift) == 0.5
@@ -273,7 +278,7 @@ def test_hue_shift_defeats_the_color_decoder_not_the_geometric_one(runs, loaded)
     transform = cw.transform
     cw.transform = torch.zeros_like
     try:
-        cam = V.select_cameras(pipe, 1, 0.0, 0)[0][1].to(CPU)
+        cam = VW.select_cameras(pipe, 1, 0.0, 0)[0][1].to(CPU)
         with torch.no_grad():
             on = rec.get_outputs_for_camera(cam)["rgb"]
             with rec.sticker_enabled(False):

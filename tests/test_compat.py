@@ -174,8 +174,12 @@ def _render_first_train_view(base: Path, monkeypatch) -> tuple:
     config_path = base / "config.yml"
     if not config_path.is_file():
         pytest.skip(f"shared base {config_path} is missing")
-    import method_configs  # noqa: F401  (host fixes, as ns-* commands get them through the entry points)
     from nerfstudio.utils.eval_utils import eval_setup
+
+    from gsticker_plugin import compat
+
+
+    compat.apply()  # the host fixes the ns-* commands apply
 
     monkeypatch.chdir(REPO_ROOT)  # the config records ../shared/... relative to the project root
     monkeypatch.setenv("GSTICKER_NO_DOWNLOAD", "1")

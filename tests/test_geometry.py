@@ -20,10 +20,15 @@ from typing import Dict, List
 import pytest
 import torch
 
-from gsticker_plugin import geometry as G
-from gsticker_plugin import verify as V
+from gsticker_plugin import runs as RUNS
+from gsticker_plugin import sticker as S
+from gsticker_plugin import views as VW
+from gsticker_plugin.decoders import fit as FIT
+from gsticker_plugin.decoders import geometric as G
+from gsticker_plugin.decoders import reference as R
 from gsticker_plugin.key import OwnerKey, fingerprint, parse_message, payload_hmac
 from gsticker_plugin.sticker import Sticker, message_to_signs
+from gsticker_plugin.verify import cli as V
 
 BIN = Path(sys.executable).parent
 MESSAGE = "101100111000111100001111100000111111000000111111"
@@ -104,7 +109,7 @@ def test_sticker_mix_is_forward_for_bits(kind):
     assert torch.equal(st(x, m), st.mix(st.features(x), message_to_signs(m)))
 
 
-def _synthetic_view(st: Sticker, r: int = 600, s: int = 24, seed: int = 0) -> G.ReferenceView:
+def _synthetic_view(st: Sticker, r: int = 600, s: int = 24, seed: int = 0) -> R.ReferenceView:
     g = torch.Generator().manual_seed(seed)
     dens = torch.rand(r, s, 1, generator=g) * 5 * (torch.rand(r, s, 1, generator=g) > 0.6)
     psi = torch.sigmoid((dens - 2.5) * 4).reshape(-1, 1)
@@ -112,7 +117,7 @@ def _synthetic_view(st: Sticker, r: int = 600, s: int = 24, seed: int = 0) -> G.
     pos = torch.rand(r * s, 3, generator=g)
     with torch.no_grad():
         feats = st.features(pos[open_index])
-    return G.ReferenceView(name="v", hw=(1, r), rays=torch.arange(r), density=dens,
+    return R.ReferenceView(name="v", hw=(1, r), rays=torch.arange(r), density=dens,
                            deltas=torch.full((r, s, 1), 0.1),
                            steps=torch.linspace(2, 6, s).expand(r, s)[..., None].clone(), open_index=open_index,
                            psi_scale=psi[open_index] * 2.0, features=feats, base_signal=torch.zeros(2, r),
@@ -131,7 +136,7 @@ def test_fit_recovers_the_message_and_a_zero_residual_reads_no_match():
     # the suspect IS the base: nothing to fit, every bit is undetermined and matches no message bit (deterministic)
     d0 = G.decode_view(ref, st, torch.zeros_like(suspect), torch.Generator().manual_seed(2))
     assert d0["undetermined"] == 48 and d0["iterations"] == 0
-    assert bool((d0["bits"] == G.UNDETERMINED).all())
+    assert bool((d0["bits"] == FIT.UNDETERMINED).all())
     assert int((d0["bits"] == msg).sum()) == 0 and int((d0["bits"] == 1 - msg).sum()) == 0
 
 
@@ -141,7 +146,7 @@ def test_jacobian_matches_finite_differences():
     ref = _synthetic_view(st, r=50, s=8)
     s0 = torch.rand(48) * 0.4 - 0.2
     fn = lambda s: G.predict_change(ref, st, s).double().reshape(-1)  # noqa: E731
-    j = G.jacobian(lambda s: G.predict_change(ref, st, s).reshape(-1), s0)
+    j = FIT.jacobian(lambda s: G.predict_change(ref, st, s).reshape(-1), s0)
     eps = 1e-3
     for i in (0, 17, 47):
         e = torch.zeros(48)
@@ -162,13 +167,13 @@ def test_per_ray_jacobian_equals_forward_mode_ad(signals):
     if len(signals) == 1:
         ref.signals, ref.base_signal = signals, ref.base_signal[:1]
     s0 = torch.rand(48) * 1.6 - 0.8
-    ad = G.jacobian(lambda s: G.predict_change(ref, st, s).reshape(-1), s0)
+    ad = FIT.jacobian(lambda s: G.predict_change(ref, st, s).reshape(-1), s0)
     closed = G.change_jacobian(ref, st, s0)
     assert closed.shape == ad.shape == (len(signals) * 80, 48)
     assert torch.allclose(closed, ad, atol=1e-6, rtol=1e-4) and float(closed.abs().max()) > 1e-3
-    cref = CM.ColorReferenceView(view=ref, psi=ref.psi_scale / 2.0, weights=G.render_weights(ref.density, ref.deltas),
+    cref = CM.ColorReferenceView(view=ref, psi=ref.psi_scale / 2.0, weights=S.render_weights(ref.density, ref.deltas),
                                  base_rgb=torch.rand(80, 3) * 0.98)
-    ad_c = G.jacobian(lambda s: CM.predict_color_change(cref, st, s, 0.3).reshape(-1), s0)
+    ad_c = FIT.jacobian(lambda s: CM.predict_color_change(cref, st, s, 0.3).reshape(-1), s0)
     closed_c = CM.color_change_jacobian(cref, st, s0, 0.3)
     assert closed_c.shape == ad_c.shape == (80 * 3, 48)
     assert torch.allclose(closed_c, ad_c, atol=1e-6, rtol=1e-4) and float(closed_c.abs().max()) > 1e-3
@@ -479,13 +484,13 @@ def test_image_decoder_reads_8_bit_renders_of_the_watermarked_run_at_their_camer
     """The informed image decoder (gsticker_plugin/image_decoder.py) on real renders: the watermarked run's 8-bit
     images at the base's cameras decode to the owner's message; the sticker-off renders (the base's image) decode
     to chance (8-bit rounding is all they differ by), and unrounded to coin flips."""
-    from gsticker_plugin.image_decoder import decode_posed_images
+    from gsticker_plugin.decoders.image import decode_posed_images
 
     key = OwnerKey.load(runs["key"])
-    ref = G.load_base_reference(key, runs["key"], None, tiny_scene, torch.device("cpu"))
-    _, pipe, _ = V.load_run(runs["run"], data=tiny_scene, device=torch.device("cpu"))
+    ref = R.load_base_reference(key, runs["key"], None, tiny_scene, torch.device("cpu"))
+    _, pipe, _ = RUNS.load_run(runs["run"], data=tiny_scene, device=torch.device("cpu"))
     model = pipe.model
-    cams = V.select_cameras(ref.pipeline, 4, 0.5, 0)
+    cams = VW.select_cameras(ref.pipeline, 4, 0.5, 0)
     with torch.no_grad():
         on = torch.stack([model.get_outputs_for_camera(c)["rgb"] for _, c in cams])
         with model.sticker_enabled(False):
@@ -510,14 +515,14 @@ def test_verify_images_at_known_cameras_with_the_image_decoder(runs, ws, capsys,
     in the key and ``verify`` then uses; bad input is one line."""
     import imageio.v2 as imageio
 
-    from gsticker_plugin.image_decoder import camera_for_image, match_frame, read_cameras_file
+    from gsticker_plugin.decoders.image import camera_for_image, match_frame, read_cameras_file
 
     frames = read_cameras_file(tiny_scene / "transforms_test.json")
     assert sorted(frames) == ["test/r_0", "test/r_1"] and match_frame("r_1.png", frames) == "test/r_1"
     key = OwnerKey.load(runs["key"])
-    ref = G.load_base_reference(key, runs["key"], None, tiny_scene, torch.device("cpu"))
+    ref = R.load_base_reference(key, runs["key"], None, tiny_scene, torch.device("cpu"))
     own = ref.pipeline.datamanager.eval_dataset.cameras
-    _, pipe, _ = V.load_run(runs["run"], data=tiny_scene, device=torch.device("cpu"))
+    _, pipe, _ = RUNS.load_run(runs["run"], data=tiny_scene, device=torch.device("cpu"))
     images = ws / "suspect-images"
     images.mkdir()
     for i in range(2):

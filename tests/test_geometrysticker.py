@@ -28,6 +28,9 @@ from typing import Dict, List, Sequence
 import pytest
 import torch
 
+from gsticker_plugin.decoders import geometric as G
+from gsticker_plugin.decoders import reference as R
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 
@@ -234,15 +237,15 @@ def test_run_writes_checkpoint_config_and_key(gs_runs, base):
 
 def test_tensorf_grids_grown_during_base_training_are_rebuilt_at_the_base_step(gs_runs):
     """TensoRF's planes grow during training; the watermarked run rebuilds its base at the base's step."""
-    from gsticker_plugin import base_run
+    from gsticker_plugin import runs
 
     run = gs_runs["tensorf"]
-    state = base_run.model_state_from_pipeline_state(base_run.load_checkpoint_state(run["base_ckpt"])["pipeline"])
+    state = runs.model_state_from_pipeline_state(runs.load_checkpoint_state(run["base_ckpt"])["pipeline"])
     grown = [k for k, v in state.items() if k.endswith("plane_coef")]
     assert grown and all(state[k].shape[-1] == 40 for k in grown)  # grown from init-resolution 32
-    cfg = base_run.load_run_config(run["config"])
+    cfg = runs.load_run_config(run["config"])
     assert cfg.pipeline.model.base_step == BASE_STEPS - 1
-    wm = base_run.model_state_from_pipeline_state(base_run.load_checkpoint_state(run["ckpt"])["pipeline"])
+    wm = runs.model_state_from_pipeline_state(runs.load_checkpoint_state(run["ckpt"])["pipeline"])
     assert all(wm["base." + k].shape[-1] == 40 for k in grown)
 
 
@@ -415,17 +418,17 @@ def test_relinearized_view_at_the_true_message_predicts_the_marked_render(gs_run
     vanilla-nerf, with the sampling passes marked as runs made before ``mark_sampling_passes`` were); the
     linearization around the unmarked base's samples does not, for those bases. With only the final pass marked
     (what ns-train writes now) the plain linearization is exact for every base."""
-    from gsticker_plugin import geometry as G
+    from gsticker_plugin.decoders import reference as R
 
     pipeline = val_pipeline(base)
     model = pipeline.model
     camera0 = pipeline.datamanager.train_dataset.cameras[0:1]
-    ref0 = G.BaseReference(config_path=gs_runs[base]["config"], checkpoint=gs_runs[base]["ckpt"], method=base,
+    ref0 = R.BaseReference(config_path=gs_runs[base]["config"], checkpoint=gs_runs[base]["ckpt"], method=base,
                            pipeline=pipeline, model=model)
     with torch.no_grad():
         out0 = {k: v.float().cpu() for k, v in model.get_outputs_for_camera(camera0).items() if isinstance(v, torch.Tensor)}
-        view0 = G.reference_view(ref0, "cam0", camera0, False)
-        st0 = G.cpu_sticker(model)
+        view0 = R.reference_view(ref0, "cam0", camera0, False)
+        st0 = R.cpu_sticker(model)
         signs0 = model.message.float() * 2 - 1
         pred0 = view0.base_signal + G.predict_change(view0, st0, signs0) - G.predict_change(view0, st0, torch.zeros(48))
     sus0 = G.suspect_signal(out0, view0)
@@ -439,13 +442,12 @@ def test_relinearized_view_at_the_true_message_predicts_the_marked_render(gs_run
 
 
 def _relinearized_checks(gs_runs, pipeline, model, base):
-    from gsticker_plugin import geometry as G
 
-    ref = G.BaseReference(config_path=gs_runs[base]["config"], checkpoint=gs_runs[base]["ckpt"], method=base,
+    ref = R.BaseReference(config_path=gs_runs[base]["config"], checkpoint=gs_runs[base]["ckpt"], method=base,
                           pipeline=pipeline, model=model)
     camera = pipeline.datamanager.train_dataset.cameras[0:1]
     message = model.message.clone()
-    st = G.cpu_sticker(model)
+    st = R.cpu_sticker(model)
     with torch.no_grad():
         out = {k: v.float().cpu() for k, v in model.get_outputs_for_camera(camera).items() if isinstance(v, torch.Tensor)}
     signs = message.float() * 2 - 1
@@ -460,7 +462,7 @@ def _relinearized_checks(gs_runs, pipeline, model, base):
     assert torch.equal(model.message, message)  # restored after the capture
     assert change > 1e-3, "the sticker changes this view's accumulation"
     assert relin < 1e-4 * max(1.0, change * 100), (relin, change)
-    plain, _ = residual(G.reference_view(ref, "cam0", camera, False))
+    plain, _ = residual(R.reference_view(ref, "cam0", camera, False))
     if base == "nerfacto":  # proposal samplers are not wrapped: the base's own samples are the marked model's
         assert plain < 1e-4, plain
     else:
@@ -472,13 +474,12 @@ def test_decoding_from_the_read_rays_only_equals_decoding_whole_renders(gs_runs,
     """``full_renders=False`` renders the suspect only at the rays the fit reads: those pixels equal a whole
     render's, and the decoded bits, fits and matches are the whole render's (TensoRF and vanilla-nerf refit on
     the rays of the relinearized view, which the first view may not hold); the view without depth is derived."""
-    from gsticker_plugin import geometry as G
     from gsticker_plugin.colormark import decode_color_suspect
     from gsticker_plugin.key import OwnerKey
 
     pipeline = val_pipeline(base)
     model = pipeline.model
-    ref = G.BaseReference(config_path=gs_runs[base]["config"], checkpoint=gs_runs[base]["ckpt"], method=base,
+    ref = R.BaseReference(config_path=gs_runs[base]["config"], checkpoint=gs_runs[base]["ckpt"], method=base,
                           pipeline=pipeline, model=model, samples_follow_sticker=base != "nerfacto")
     key = OwnerKey.load(gs_runs[base]["key"])
     cams = pipeline.datamanager.train_dataset.cameras
@@ -514,8 +515,8 @@ def test_decoding_from_the_read_rays_only_equals_decoding_whole_renders(gs_runs,
             assert abs(x["explained"] - y["explained"]) < 1e-6 and abs(x["signs_abs_mean"] - y["signs_abs_mean"]) < 1e-6
     assert results[True, True]["matches"].float().mean() > results[True, False]["matches"].float().mean()
     # the view without depth is the one with depth less its second signal
-    with_depth = G.reference_view(ref, "cam0", cams[0:1], True)
-    plain, derived = G.reference_view(ref, "cam0", cams[0:1], False), G.without_depth(with_depth)
+    with_depth = R.reference_view(ref, "cam0", cams[0:1], True)
+    plain, derived = R.reference_view(ref, "cam0", cams[0:1], False), R.without_depth(with_depth)
     assert plain.signals == derived.signals == ("accumulation",)
     assert torch.equal(plain.rays, derived.rays) and torch.equal(plain.base_signal, derived.base_signal)
     # the color decoder reads the same pixels either way
@@ -529,23 +530,22 @@ def test_decoding_from_the_read_rays_only_equals_decoding_whole_renders(gs_runs,
 def test_a_base_without_expected_depth_reads_a_suspect_that_has_it(gs_runs, val_pipeline):
     """A vanilla-nerf base renders no expected depth, a nerfacto suspect does (decoding another model of the scene
     with the vanilla-nerf owner's key): the reference keeps accumulation only, and so does the suspect's signal."""
-    from gsticker_plugin import geometry as G
 
     pipeline = val_pipeline("vanilla-nerf")
-    ref = G.BaseReference(config_path=gs_runs["vanilla-nerf"]["config"], checkpoint=gs_runs["vanilla-nerf"]["ckpt"],
+    ref = R.BaseReference(config_path=gs_runs["vanilla-nerf"]["config"], checkpoint=gs_runs["vanilla-nerf"]["ckpt"],
                           method="vanilla-nerf", pipeline=pipeline, model=pipeline.model)
     camera = pipeline.datamanager.train_dataset.cameras[0:1]
     suspect = val_pipeline("nerfacto").model
     with torch.no_grad():
         out = {k: v.float().cpu() for k, v in suspect.get_outputs_for_camera(camera).items() if isinstance(v, torch.Tensor)}
-    assert G.has_expected_depth(out)
-    view = G.reference_view(ref, "cam0", camera, use_depth=G.has_expected_depth(out))
+    assert R.has_expected_depth(out)
+    view = R.reference_view(ref, "cam0", camera, use_depth=R.has_expected_depth(out))
     assert view.signals == ("accumulation",) and view.base_signal.shape[0] == 1
     assert G.suspect_signal(out, view).shape == view.base_signal.shape
     own = val_pipeline("nerfacto")
-    ref_n = G.BaseReference(config_path=gs_runs["nerfacto"]["config"], checkpoint=gs_runs["nerfacto"]["ckpt"],
+    ref_n = R.BaseReference(config_path=gs_runs["nerfacto"]["config"], checkpoint=gs_runs["nerfacto"]["ckpt"],
                             method="nerfacto", pipeline=own, model=own.model)
-    assert G.reference_view(ref_n, "cam0", camera, use_depth=True).signals == ("accumulation", "expected_depth")
+    assert R.reference_view(ref_n, "cam0", camera, use_depth=True).signals == ("accumulation", "expected_depth")
 
 
 @pytest.mark.parametrize("base", BASES)
@@ -718,7 +718,7 @@ def test_resume_continues_from_the_saved_step(gs_runs, work):
     assert proc.returncode == 0, fail_msg(proc)
     assert "pool reused" in proc.stdout  # same base, cameras, sizes and gate: the cached pool
     saved = GS_STEPS - 1
-    assert f"resumed from" in proc.stdout and f"(step {saved})" in proc.stdout, proc.stdout[-3000:]
+    assert "resumed from" in proc.stdout and f"(step {saved})" in proc.stdout, proc.stdout[-3000:]
     new_ckpt = ckpt_of(out / "gs" / "geometrysticker" / "resumed")
     state = load_raw(new_ckpt)
     assert state["step"] == saved + 3 and int(new_ckpt.stem.split("-")[1]) == saved + 3

@@ -7,8 +7,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gsticker_plugin import geometry as G
-from gsticker_plugin import image_decoder as I
+from gsticker_plugin.decoders import fit as FIT
+from gsticker_plugin.decoders import image as I
+from gsticker_plugin.decoders import reference as R
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import parse_message
 from gsticker_plugin.sticker import Sticker, composite, message_to_signs
@@ -28,7 +29,7 @@ def _view(st: Sticker, r: int = 600, s: int = 24, seed: int = 0) -> I.ImageRefer
     with torch.no_grad():
         feats = st.features(pos[open_index])
     image = composite(dens, rgb, deltas, bg)[0].clamp(0, 1)  # [R 3]: the base render at the rays
-    view = G.ReferenceView(name="v", hw=(1, r), rays=torch.arange(r), density=dens, deltas=deltas,
+    view = R.ReferenceView(name="v", hw=(1, r), rays=torch.arange(r), density=dens, deltas=deltas,
                            steps=torch.linspace(2, 6, s).expand(r, s)[..., None].clone(), open_index=open_index,
                            psi_scale=psi[open_index] * 2.0, features=feats, base_signal=torch.zeros(1, r),
                            depth_scale=4.0, signals=("accumulation",), image=image.T.reshape(3, 1, r), rgb=rgb)
@@ -44,7 +45,7 @@ def test_prediction_at_zero_is_the_base_render_and_the_jacobian_is_ad():
         # a message changes the colour (through the density only)
         assert float((I.predict_image_change(ref, st, message_to_signs(parse_message(MESSAGE))) - ref.base_rgb).abs().max()) > 1e-3
     s0 = torch.rand(48) * 1.6 - 0.8
-    ad = G.jacobian(lambda s: I.predict_image_change(ref, st, s).reshape(-1), s0)
+    ad = FIT.jacobian(lambda s: I.predict_image_change(ref, st, s).reshape(-1), s0)
     closed = I.image_change_jacobian(ref, st, s0)
     assert closed.shape == ad.shape == (80 * 3, 48)
     assert torch.allclose(closed, ad, atol=1e-6, rtol=1e-4) and float(closed.abs().max()) > 1e-3

@@ -8,8 +8,16 @@ import torch
 
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.heads import HeadConfig, Heads
-from gsticker_plugin.key import (OwnerKey, commitment, default_key_path, fingerprint, keys_dir, message_from_owner_id,
-                                 payload_hmac, random_message)
+from gsticker_plugin.key import (
+    OwnerKey,
+    commitment,
+    default_key_path,
+    fingerprint,
+    keys_dir,
+    message_from_owner_id,
+    payload_hmac,
+    random_message,
+)
 from gsticker_plugin.sticker import FoldedSticker, Sticker
 
 
@@ -104,9 +112,11 @@ import sys  # noqa: E402
 import zipfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from gsticker_plugin import verify as V  # noqa: E402
-from gsticker_plugin.key import bits_to_str  # noqa: E402
 from test_geometry import one_error_line  # noqa: E402  (the tests' shared one-line-error check)
+
+from gsticker_plugin.decoders import fit as FIT  # noqa: E402
+from gsticker_plugin.key import bits_to_str  # noqa: E402
+from gsticker_plugin.verify import cli as V  # noqa: E402
 
 BIN = Path(sys.executable).parent
 COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
@@ -274,12 +284,10 @@ def test_every_verification_failure_is_one_error_line_and_exit_2(shared_run, cap
         assert words in one_error_line(err), (argv, err[-2000:])
     assert not flag.exists()
     # a crash inside decoding is an error, never "not shown"
-    from gsticker_plugin import geometry as G
-
     def boom(*a, **k):
         raise RuntimeError("simulated failure in the fit")
 
-    monkeypatch.setattr(G, "fit_message", boom)
+    monkeypatch.setattr(FIT, "fit_message", boom)
     status, stdout, err = run_cli(["--load-config", str(run_cfg), "--key", key, "--output", str(ws / "rep-crash"),
                                    "--num-views", "2", "--decode", "geometry"], capsys)
     line = one_error_line(err)

@@ -55,8 +55,12 @@ def test_preset_trains_with_ns_train_and_loads_back(preset, tiny_scene, tmp_path
     assert [c.name for c in checkpoints] == ["step-000000002.ckpt"], checkpoints  # 3 iterations: steps 0..2
 
     # Load it back the way ns-viewer / ns-render do, and render one camera.
-    import method_configs  # noqa: F401  (host fixes, as the ns-* commands get them)
     from nerfstudio.utils.eval_utils import eval_setup
+
+    from gsticker_plugin import compat
+
+
+    compat.apply()  # the host fixes the ns-* commands apply
 
     monkeypatch.setenv("GSTICKER_NO_DOWNLOAD", "1")
     config, pipeline, checkpoint, step = eval_setup(config_path, test_mode="inference")
@@ -72,11 +76,14 @@ def test_preset_trains_with_ns_train_and_loads_back(preset, tiny_scene, tmp_path
 
 
 def test_small_vanilla_nerf_builds_stock_fields_of_the_configured_size(monkeypatch):
-    import method_configs  # noqa: F401  (host fixes: offline LPIPS)
     from nerfstudio.data.scene_box import SceneBox
     from nerfstudio.fields.vanilla_nerf_field import NeRFField
     from nerfstudio.models.vanilla_nerf import NeRFModel
 
+    from gsticker_plugin import compat
+
+
+    compat.apply()  # the host fixes the ns-* commands apply
     from gsticker_plugin.small_nerf import SmallNeRFModel, SmallNeRFModelConfig
 
     monkeypatch.setenv("GSTICKER_NO_DOWNLOAD", "1")
@@ -229,8 +236,8 @@ def test_bench_evaluate_reproduces_shared_nerfacto_psnr(monkeypatch):
 
 
 def test_final_rgb_takes_vanilla_nerfs_fine_image_and_names_the_fix_otherwise():
-    from gsticker_plugin.base_run import final_rgb
     from gsticker_plugin.errors import GStickerError
+    from gsticker_plugin.runs import final_rgb
 
     a, b = torch.zeros(2, 2, 3), torch.ones(2, 2, 3)
     assert final_rgb({"rgb": a, "rgb_fine": b}) is a

@@ -163,10 +163,10 @@ def render(pipeline, n: int = 3, keys=("rgb", "depth", "accumulation")) -> Dict[
 
 
 def dataset_palette(tiny_scene: Path, k=None):
-    from gsticker_plugin.recolor import palette as P
-
-    from PIL import Image
     import numpy as np
+    from PIL import Image
+
+    from gsticker_plugin.recolor import palette as P
 
     ims = [torch.from_numpy(np.asarray(Image.open(p))).float() / 255 for p in sorted((tiny_scene / "train").glob("r_*.png"))
            if not p.stem.endswith("depth")]
@@ -235,7 +235,6 @@ def test_palette_of_the_same_pixels_is_extracted_once_per_process(monkeypatch):
 
 
 def test_color_parsing_presets_and_recolor_identity():
-    from gsticker_plugin.errors import GStickerError
     from gsticker_plugin.recolor import palette as P
 
     assert P.parse_color("#1E90FF") == P.parse_color("dodger blue") == P.parse_color("DodgerBlue")
@@ -547,7 +546,6 @@ def test_bad_input_is_one_line_naming_the_fix(runs, work, case, capsys):
 
 
 def test_model_without_color_output_is_refused():
-    from gsticker_plugin.errors import GStickerError
     from gsticker_plugin.recolor.model import require_color_fields
 
     with pytest.raises(GStickerError, match="no field with a separable color output"):

@@ -38,8 +38,9 @@ import pytest
 import torch
 
 from gsticker_plugin import metrics
+from gsticker_plugin import runs as RUNS
 from gsticker_plugin.key import OwnerKey, fingerprint
-from gsticker_plugin import verify as V
+from gsticker_plugin.verify import cli as V
 
 BIN = Path(sys.executable).parent
 G, CELL = 7, 8  # 7 x 7 cells (48 bits + 1 neutral cell) of 8 px: 56 px images
@@ -644,11 +645,10 @@ def test_load_run_keeps_stock_nerfacto_in_process(shared_dir):
     from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager
     from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManager
 
-    from gsticker_plugin import verify as V
 
-    assert V._spawns_workers(ParallelDataManager) and not V._spawns_workers(VanillaDataManager)
+    assert RUNS.spawns_workers(ParallelDataManager) and not RUNS.spawns_workers(VanillaDataManager)
     config = shared_dir / "checkpoints" / "lego100-nerfacto-small" / "nerfacto" / "base" / "config.yml"
-    _, pipe, ckpt = V.load_run(config, data=shared_dir / "data" / "lego100", device=torch.device("cpu"))
+    _, pipe, ckpt = RUNS.load_run(config, data=shared_dir / "data" / "lego100", device=torch.device("cpu"))
     dm = pipe.datamanager
     assert type(dm) is VanillaDataManager and ckpt.name.startswith("step-")
     assert not multiprocessing.active_children()

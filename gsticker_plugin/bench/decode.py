@@ -25,11 +25,14 @@ from typing import Any, Dict, List, Optional
 import torch
 import tyro
 
+from gsticker_plugin.decoders.geometric import decode_suspect
+from gsticker_plugin.decoders.reference import load_base_reference
+from gsticker_plugin.runs import load_run
+
 
 @dataclass
 class BenchDecodeConfig:
     """Time the geometric decoder on one suspect with whole renders and with the read rays only."""
-
     key: Path
     """The owner key (version 2: it carries the geometry reference)."""
     load_config: Path
@@ -45,15 +48,14 @@ class BenchDecodeConfig:
     output: Path = Path("outputs/bench-decode.md")
     """Markdown table; the JSON goes beside it."""
 
-
 def main(cfg: BenchDecodeConfig) -> Dict[str, Any]:
     import warnings
 
-    import method_configs  # noqa: F401  (host fixes: offline LPIPS, checkpoint types)
-    from gsticker_plugin import geometry as G
+    from gsticker_plugin import compat
+
+    compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
     from gsticker_plugin.errors import GStickerError
     from gsticker_plugin.key import OwnerKey
-    from gsticker_plugin.verify import load_run
 
     warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
     if cfg.repeats < 1 or cfg.num_views < 1:
@@ -61,11 +63,11 @@ def main(cfg: BenchDecodeConfig) -> Dict[str, Any]:
     device = torch.device("cpu")
     key = OwnerKey.load(cfg.key)
     with contextlib.redirect_stdout(sys.stderr):
-        ref = G.load_base_reference(key, cfg.key, None, cfg.data, device)
+        ref = load_base_reference(key, cfg.key, None, cfg.data, device)
         _, pipe, _ = load_run(cfg.load_config, data=cfg.data, device=device)
     cache: Dict[Any, Any] = {}
     t0 = time.time()
-    G.decode_suspect(key, ref, pipe.model, cfg.num_views, cfg.sampled_share, 0, ref_cache=cache, relinearize=0,
+    decode_suspect(key, ref, pipe.model, cfg.num_views, cfg.sampled_share, 0, ref_cache=cache, relinearize=0,
                      full_renders=False)
     reference_s = time.time() - t0
     rows: List[Dict[str, Any]] = []
@@ -75,7 +77,7 @@ def main(cfg: BenchDecodeConfig) -> Dict[str, Any]:
             best = float("inf")
             for _ in range(cfg.repeats):
                 t0 = time.time()
-                dec, _ = G.decode_suspect(key, ref, pipe.model, cfg.num_views, cfg.sampled_share, 0, ref_cache=cache,
+                dec, _ = decode_suspect(key, ref, pipe.model, cfg.num_views, cfg.sampled_share, 0, ref_cache=cache,
                                           sticker=sticker, full_renders=full)
                 best = min(best, time.time() - t0)
             decoded[full] = dec

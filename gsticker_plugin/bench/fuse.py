@@ -29,12 +29,12 @@ import torch
 import tyro
 
 from gsticker_plugin.fuse import FuseConfig
+from gsticker_plugin.runs import final_rgb, load_run
 
 
 @dataclass
 class BenchFuseConfig:
     """Fuse a watermarked run into a stock run and measure what the geometric decoder reads from it."""
-
     load_config: Path
     """The watermarked run's config.yml."""
     key: Path
@@ -54,7 +54,6 @@ class BenchFuseConfig:
     """Also verify the watermarked run itself (the reference row)."""
     doc: Path = Path("docs/bench-fuse.md")
     """Markdown report; the JSON goes beside it."""
-
 
 def verify(config: Path, key: Path, out: Path, num_views: int, data: Optional[Path], reuse: bool) -> Dict[str, Any]:
     report = out / "report.json"
@@ -79,9 +78,7 @@ def verify(config: Path, key: Path, out: Path, num_views: int, data: Optional[Pa
 
 @torch.no_grad()
 def psnr_table(wm_config: Path, fused_config: Path, data: Optional[Path], num: int) -> Dict[str, float]:
-    from gsticker_plugin.base_run import final_rgb
     from gsticker_plugin.fuse import eval_cameras, psnr
-    from gsticker_plugin.verify import load_run
 
     dev = torch.device("cpu")
     with contextlib.redirect_stdout(sys.stderr):
@@ -140,7 +137,7 @@ def write_doc(res: Dict[str, Any], doc: Path) -> None:
         f"- {res['settings']['steps']} steps x {res['settings']['rays_per_step']} rays, Adam {res['settings']['lr']} -> "
         f"{res['settings']['lr_final']} on the final field (hash grid + MLPs; proposal networks kept): "
         f"{f['distill_seconds']:.0f} s",
-        f"- final losses: " + ", ".join(f"{k} {val:.3g}" for k, val in f["final_losses"].items()),
+        "- final losses: " + ", ".join(f"{k} {val:.3g}" for k, val in f["final_losses"].items()),
         "",
         "## Verification (geometric decoder, theoretical threshold)",
         "",
@@ -187,7 +184,9 @@ def conclusion(res: Dict[str, Any]) -> str:
 def main(cfg: BenchFuseConfig) -> Dict[str, Any]:
     import warnings
 
-    import method_configs  # noqa: F401  (host fixes)
+    from gsticker_plugin import compat
+
+    compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
     from gsticker_plugin.fuse import fuse
 
     warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")

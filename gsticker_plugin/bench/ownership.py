@@ -55,7 +55,7 @@ class BenchOwnershipConfig(StickerRunConfig):
 def verify_run(cfg: BenchOwnershipConfig, name: str, config: Path, key: Path, out: Path,
                data: Optional[Path]) -> Dict[str, Any]:
     """``ns-verify-owner --decode geometry`` of one run (in this process); its report's numbers."""
-    from gsticker_plugin import verify as V
+    from gsticker_plugin.verify import cli as V
 
     report_dir = out / "reports" / name
     if not (report_dir / "report.json").is_file():

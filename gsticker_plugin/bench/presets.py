@@ -35,7 +35,7 @@ import numpy as np
 import torch
 import tyro
 
-from gsticker_plugin.base_run import final_rgb
+from gsticker_plugin.runs import final_rgb
 
 DEFAULT_PRESETS = ("gsticker-nerfacto-small", "gsticker-tensorf-small")
 QUICK_ITERATIONS = 20
@@ -89,7 +89,9 @@ def log(message: str) -> None:
 
 def method_config(name: str):
     """The ``TrainerConfig`` registered under ``name`` (a fresh deep copy)."""
-    import method_configs  # noqa: F401  (host fixes: offline LPIPS, torch >= 2.6 checkpoint types)
+    from gsticker_plugin import compat
+
+    compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
 
     for ep in importlib.metadata.entry_points(group="nerfstudio.method_configs"):
         if ep.name == name:
@@ -195,7 +197,9 @@ def load_pipeline(config_path: Path, checkpoint: Path, data: Path):
     """Like ``eval_setup``: the saved config, the pipeline on the CPU with the test split, the checkpoint."""
     import yaml
 
-    import method_configs  # noqa: F401
+    from gsticker_plugin import compat
+
+    compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
 
     config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
     config.pipeline.datamanager.data = data

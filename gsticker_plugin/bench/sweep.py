@@ -34,6 +34,9 @@ import torch
 import tyro
 
 from gsticker_plugin.bench.geometry import _bin, _run
+from gsticker_plugin.decoders.geometric import decode_suspect
+from gsticker_plugin.decoders.reference import load_base_reference
+from gsticker_plugin.runs import load_run
 
 # name -> (ns-train geometrysticker overrides, dataset suffix replacement or None)
 VARIANTS: Dict[str, Tuple[List[str], Optional[str]]] = {
@@ -59,7 +62,6 @@ VARIANTS: Dict[str, Tuple[List[str], Optional[str]]] = {
 @dataclass
 class SweepConfig:
     """Train sticker variants on one base and chart bit accuracy and PSNR against training time."""
-
     load_checkpoint: Path
     """The base run's checkpoint (RUN/nerfstudio_models/step-N.ckpt)."""
     data: Optional[Path] = None
@@ -94,7 +96,6 @@ class SweepConfig:
     extra: List[str] = field(default_factory=list)
     """More ns-train arguments for every variant."""
 
-
 _STEP = re.compile(r"step (\d+): held-out .* (\d+) s")
 _POOL = re.compile(r"pool: .* (\d+) s;")
 
@@ -110,7 +111,7 @@ def decode_checkpoint(pipeline, key, base_config: Path, data: Optional[Path], nu
                       threshold: int) -> Dict[str, Any]:
     """Geometric bit accuracy (the checkpoint's own sticker as the reference) and PSNR on/off, at the loaded state."""
     from gsticker_plugin.evaluate import psnr_nhw3, render_split
-    from gsticker_plugin.geometry import decode_suspect, geometry_reference, load_base_reference
+    from gsticker_plugin.model import geometry_reference
 
     model = pipeline.model
     ref_key = SimpleNamespace(geometry=geometry_reference(model), message=key.message, base=key.base,
@@ -129,10 +130,9 @@ def decode_checkpoint(pipeline, key, base_config: Path, data: Optional[Path], nu
 
 
 def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
-    from gsticker_plugin import base_run, metrics
+    from gsticker_plugin import metrics, runs
     from gsticker_plugin.key import OwnerKey
     from gsticker_plugin.trainer import step_key_path
-    from gsticker_plugin.verify import load_run
 
     overrides, res = VARIANTS[name]
     data = cfg.data
@@ -176,8 +176,8 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
     for ckpt in sorted((run / "nerfstudio_models").glob("step-*.ckpt")):
         n = int(ckpt.stem.split("-")[1])
         step = n if n % cfg.save_every == 0 else n + 1  # the final checkpoint is saved at step max - 1
-        state = base_run.load_checkpoint_state(ckpt)
-        pipeline.model.load_state_dict(base_run.model_state_from_pipeline_state(state["pipeline"]), strict=True)
+        state = runs.load_checkpoint_state(ckpt)
+        pipeline.model.load_state_dict(runs.model_state_from_pipeline_state(state["pipeline"]), strict=True)
         step_key = OwnerKey.load(step_key_path(key_path, n))  # the sticker as it was at this checkpoint
         pipeline.restore_owner(step_key, heads=False)
         pipeline.model.eval()

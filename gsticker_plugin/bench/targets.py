@@ -31,12 +31,15 @@ import torch
 import tyro
 
 from gsticker_plugin.bench.geometry import StickerRunConfig, train_sticker
+from gsticker_plugin.decoders.geometric import decode_suspect
+from gsticker_plugin.decoders.reference import load_base_reference
+from gsticker_plugin.runs import load_run
+from gsticker_plugin.views import progress_bar
 
 
 @dataclass
 class BenchTargetsConfig(StickerRunConfig):
     """Train a sticker on a base and measure the issue's targets on every test view."""
-
     output_dir: Path = Path("outputs/bench-targets")
     """Where the run, the per-view rows and the training record are written."""
     output: Path = Path("docs/bench-targets.md")
@@ -52,7 +55,6 @@ class BenchTargetsConfig(StickerRunConfig):
     progress: bool = True
     """tqdm progress bars on stderr."""
 
-
 TARGETS = {"bit_acc": 0.995, "psnr_vs_clean_db": 35.0, "psnr_drop_db": 0.3, "train_minutes": 15.0}
 PER_VIEW_FPR = 1e-6  # the per-view false-positive rate of the threshold (ns-verify-owner's default --fpr)
 
@@ -60,11 +62,11 @@ PER_VIEW_FPR = 1e-6  # the per-view false-positive rate of the threshold (ns-ver
 def main(cfg: BenchTargetsConfig) -> Dict[str, Any]:
     import warnings
 
-    import method_configs  # noqa: F401  (host fixes: offline LPIPS, checkpoint types)
+    from gsticker_plugin import compat
+
+    compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
     from gsticker_plugin.evaluate import psnr_nhw3
-    from gsticker_plugin.geometry import decode_suspect, load_base_reference
     from gsticker_plugin.key import OwnerKey
-    from gsticker_plugin.verify import _tqdm, load_run
 
     out = cfg.output_dir.resolve()
     logs = out / "logs"
@@ -103,7 +105,7 @@ def main(cfg: BenchTargetsConfig) -> Dict[str, Any]:
                 done[r["index"]] = r
     todo = [i for i in range(n) if i not in done]
     ref_cache: Dict[Any, Any] = {}
-    for start in _tqdm(range(0, len(todo), cfg.chunk), "test views (chunks)", cfg.progress):
+    for start in progress_bar(range(0, len(todo), cfg.chunk), "test views (chunks)", cfg.progress):
         idx = todo[start: start + cfg.chunk]
         t0 = time.time()
         cams = [(f"test/{i:03d}", dataset.cameras[i: i + 1]) for i in idx]

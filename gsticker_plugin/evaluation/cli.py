@@ -10,7 +10,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple
+from typing import Optional, Sequence, Tuple
 
 import tyro
 
@@ -42,7 +42,9 @@ class EvalArgs:
 def main(args: EvalArgs) -> int:
     import warnings
 
-    import method_configs  # noqa: F401  (host fixes: offline LPIPS, checkpoint types)
+    from gsticker_plugin import compat
+
+    compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
     from gsticker_plugin.evaluation.config import load_protocol
 
     # nerfstudio 1.1.5's camera indexing warns on every render with this torch: noise in a long log

@@ -144,7 +144,7 @@ class GeometrySpec:
     matched to the sticker's PSNR) and decode it with the informed color decoder, unedited and after each recolor."""
     image_decoder: bool = True
     """Also read the image-level tables (distortions, curves, image hue jitter, image false positives) with the
-    informed image decoder (``gsticker_plugin.image_decoder``: the owner's base and each test view's camera; the
+    informed image decoder (``gsticker_plugin.decoders.image``: the owner's base and each test view's camera; the
     images quantized to 8 bits first), beside the blind extractor."""
 
 
@@ -166,7 +166,7 @@ class Protocol:
     distortions: List[DistortionRow] = field(default_factory=list)
     curves: Dict[str, List[float]] = field(default_factory=dict)
     """Where-it-breaks curves: attack name -> strengths; ``leaked_key`` -> PSNR budgets in dB (PGD on the image
-    decoder by someone holding the owner key and the base: ``gsticker_plugin.image_decoder.leaked_key_attack``)."""
+    decoder by someone holding the owner key and the base: ``gsticker_plugin.decoders.image.leaked_key_attack``)."""
     recolor: Optional[RecolorSpec] = field(default_factory=RecolorSpec)
     false_positives: FalsePositiveSpec = field(default_factory=FalsePositiveSpec)
     geometry: Optional[GeometrySpec] = field(default_factory=GeometrySpec)

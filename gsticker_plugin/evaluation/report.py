@@ -184,7 +184,7 @@ def _distortions(r) -> List[str]:
     head += ["blind extractor bit acc" if img else "bit acc (± over seeds)", "views passing %", "verdict rate %",
              "PSNR attacked vs clean", "paper"]
     defs = [f"- `{x['spec']}`: {x['definition'].replace('``', '`')}" for x in d["rows"] if x["spec"]]
-    note = (["Image decoder: the informed image decoder (`gsticker_plugin.image_decoder`: the owner's base and each "
+    note = (["Image decoder: the informed image decoder (`gsticker_plugin.decoders.image`: the owner's base and each "
              "test view's camera; images quantized to 8 bits; each image's blur, resize, rotation or JPEG quality estimated from the base "
              "render alone, `image_decoder.DEGRADATION_GRID`), per seed (deterministic attacks give the same images for "
              "every seed). Blind extractor: the paper's decoder (at chance before any attack, see the status).", ""]

@@ -28,9 +28,13 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from gsticker_plugin.base_run import final_rgb
+from gsticker_plugin.decoders.geometric import decode_suspect
+from gsticker_plugin.decoders.image import decode_posed_images, image_reference, leaked_key_attack
+from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker, load_base_reference
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.evaluation.config import LEAKED_KEY, Protocol, to_plain
+from gsticker_plugin.runs import final_rgb, load_run
+from gsticker_plugin.views import images_views, random_views
 
 
 def _bin(name: str) -> str:
@@ -38,7 +42,7 @@ def _bin(name: str) -> str:
     return str(cand) if cand.exists() else (shutil.which(name) or name)
 
 
-def _tqdm(iterable, desc: str, enabled: bool, total: Optional[int] = None):
+def progress_bar(iterable, desc: str, enabled: bool, total: Optional[int] = None):
     if not enabled:
         return iterable
     from tqdm import tqdm
@@ -138,7 +142,6 @@ class Runner:
 
     # ------------------------------------------------------------------------------------------ models
     def load(self, config: Path):
-        from gsticker_plugin.verify import load_run
 
         with contextlib.redirect_stdout(sys.stderr):
             _, pipeline, _ = load_run(Path(config), data=self.scene_dir, device=self.device)
@@ -157,7 +160,7 @@ class Runner:
         ctx = model.sticker_enabled(sticker) if (sticker is not None and hasattr(model, "sticker_enabled")) else contextlib.nullcontext()
         rgbs, gts = [], []
         with ctx:
-            for i in _tqdm(idx, f"rendering {desc}", self.progress):
+            for i in progress_bar(idx, f"rendering {desc}", self.progress):
                 cam = dataset.cameras[i: i + 1].to(model.device)
                 rgbs.append(final_rgb(model.get_outputs_for_camera(cam)).float().clamp(0, 1).cpu())
                 img = dataset.get_image_float32(i)
@@ -176,7 +179,6 @@ class Runner:
         if not hasattr(self, "_geo"):
             self._geo: Dict[str, Any] = {}
         if name not in self._geo:
-            from gsticker_plugin.geometry import load_base_reference
 
             ref = load_base_reference(self.key(name), self.key_path(name), self.base_config(name), self.scene_dir,
                                       self.device)
@@ -185,8 +187,6 @@ class Runner:
 
     def geo_decode(self, name: str, suspect_model, sticker: Optional[bool] = None, desc: str = "") -> Dict[str, Any]:
         """Informed geometric decoding of a suspect model with the owner key of base ``name``."""
-        from gsticker_plugin.geometry import decode_suspect
-
         g = self.p.geometry
         ref, views = self.geo_reference(name)
         key = self.key(name)
@@ -241,7 +241,6 @@ class Runner:
         """The informed image decoder on images of the primary base's test views, quantized to 8 bits first (as
         saved image files are). Image ``j`` is read as if taken at test view ``j mod num_views``: for unmarked
         images (false positives) any image of that size is a valid null, the decoder never uses the message."""
-        from gsticker_plugin.image_decoder import decode_posed_images
 
         import hashlib
 
@@ -441,7 +440,6 @@ class Runner:
             del wm
         others = []
         for o in self.p.false_positives.other_runs:
-            from gsticker_plugin.verify import load_run
 
             name, cfg = o.get("name", Path(o["config"]).parent.name), Path(o["config"])
             with contextlib.redirect_stdout(sys.stderr):
@@ -455,7 +453,6 @@ class Runner:
     def stage_seeds(self) -> Dict[str, Any]:
         """The primary base's sticker trained again with other training seeds: each run's model-level geometric
         decode (its own owner key) and its PSNRs on the protocol's test views; mean and spread with the main run."""
-        from gsticker_plugin.geometry import decode_suspect, load_base_reference
         from gsticker_plugin.key import OwnerKey
 
         g, b = self.p.geometry, self.primary
@@ -551,16 +548,14 @@ class Runner:
     def leaked_key_attacked(self, wm: Tensor, psnr_budget: float) -> Tensor:
         """The primary base's watermarked test views (as 8-bit files) attacked by someone holding its owner key and
         the base: PGD on the informed image decoder at each view's camera, within ``psnr_budget`` dB."""
-        from gsticker_plugin import geometry as G
-        from gsticker_plugin.image_decoder import image_reference, leaked_key_attack
 
         ref, cache = self.geo_reference(self.primary)
-        st = G.cpu_sticker(ref.model)
+        st = cpu_sticker(ref.model)
         bg = ref.model.background_color()
         out = []
         for (name, cam), image in zip(self.test_cameras(self.primary), _as_8_bit(wm)):
             with contextlib.redirect_stdout(sys.stderr):
-                view = G.any_reference_view(ref, name, cam, cache)
+                view = any_reference_view(ref, name, cam, cache)
             out.append(leaked_key_attack(image_reference(view, bg), st, image, psnr_budget))
         return torch.stack(out)
 
@@ -568,7 +563,7 @@ class Runner:
         v = self.views(self.primary)
         key = self.key(self.primary)
         rows = []
-        for r in _tqdm(self.p.distortions, "distortions", self.progress):
+        for r in progress_bar(self.p.distortions, "distortions", self.progress):
             per_seed, image_per_seed = [], []
             for seed in self.p.seeds:
                 x = self.attacked(v["watermarked"], v["sticker_off"], r.spec, seed)
@@ -586,14 +581,13 @@ class Runner:
                 "image_decoder": self.reads_images}
 
     def stage_curves(self) -> Dict[str, Any]:
-        from gsticker_plugin.attacks import ATTACKS
 
         v = self.views(self.primary)
         key = self.key(self.primary)
         curves = {}
         for name, strengths in self.p.curves.items():
             pts = []
-            for s in _tqdm(strengths, f"curve {name}", self.progress):
+            for s in progress_bar(strengths, f"curve {name}", self.progress):
                 accs, shares, verdicts, image_per_seed = [], [], [], []
                 leaked = self.leaked_key_attacked(v["watermarked"], float(s)) if name == LEAKED_KEY else None
                 for seed in self.p.seeds:
@@ -741,7 +735,7 @@ class Runner:
             rows.append(row)
         with_color = self.p.geometry is not None and self.p.geometry.color_baseline and self.color_run() is not None
         source = self.palette_source() if self.p.recolor.colors else None
-        for var in _tqdm(self.recolor_variants(), "recolor", self.progress):
+        for var in progress_bar(self.recolor_variants(), "recolor", self.progress):
             wm, base = self.recolored(var, "wm"), self.recolored(var, "base")
             a, b = wm["rgb"], base["rgb"]
             paper = 99.40 if var["kind"] == "palette" else None
@@ -819,7 +813,6 @@ class Runner:
 
     def stage_false_positives(self) -> Dict[str, Any]:
         from gsticker_plugin import metrics
-        from gsticker_plugin.verify import images_views, random_views
 
         key = self.key(self.primary)
         fp = self.p.false_positives
@@ -849,7 +842,6 @@ class Runner:
             data = Path(o["data"]) if o.get("data") else None
 
             def render_other(cfg=cfg, data=data, name=name):
-                from gsticker_plugin.verify import load_run
 
                 with contextlib.redirect_stdout(sys.stderr):
                     _, pipe, _ = load_run(cfg, data=data, device=self.device)
@@ -1001,7 +993,6 @@ def _as_8_bit(images: Tensor) -> Tensor:
 def describe_leaked_key() -> str:
     import inspect
 
-    from gsticker_plugin.image_decoder import leaked_key_attack
 
     doc = inspect.getdoc(leaked_key_attack) or ""
     return "leaked_key (strength: PSNR budget in dB): " + " ".join(doc.split("\n\n")[0].split())
@@ -1038,8 +1029,9 @@ def machine_info() -> Dict[str, Any]:
     except OSError:
         pass
     try:
-        import nerfstudio  # noqa: F401
         from importlib.metadata import version
+
+        import nerfstudio  # noqa: F401
 
         ns = version("nerfstudio")
     except Exception:

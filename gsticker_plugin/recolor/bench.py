@@ -140,7 +140,9 @@ class BenchArgs:
 def main() -> None:
     import tyro
 
-    import method_configs  # noqa: F401
+    from gsticker_plugin import compat
+
+    compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
 
     args = tyro.cli(BenchArgs)
     edits = [(int(e.split("=")[0]), e.split("=", 1)[1]) for e in args.edits]

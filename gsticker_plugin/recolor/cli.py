@@ -282,7 +282,6 @@ def _hue_images(args: HueArgs, out: Path) -> int:
 def _target_images(folder: Path, dataset, size) -> List:
     import torch
 
-    from gsticker_plugin.recolor import runs
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -298,8 +297,8 @@ def _target_images(folder: Path, dataset, size) -> List:
     else:
         raise GStickerError(f"--targets {folder} has {len(files)} images, not one per training view ({len(names)}, named "
                             f"like {names[0]}.png); name them like the training images or give one per view in order")
-    from PIL import Image
     import numpy as np
+    from PIL import Image
 
     out = []
     for p in chosen:
@@ -317,7 +316,12 @@ def cmd_finetune(args: FinetuneArgs) -> int:
 
     from gsticker_plugin.recolor import palette as P
     from gsticker_plugin.recolor import runs
-    from gsticker_plugin.recolor.finetune import finetune_color, ray_schedule, render_ray_targets, split_color_parameters
+    from gsticker_plugin.recolor.finetune import (
+        finetune_color,
+        ray_schedule,
+        render_ray_targets,
+        split_color_parameters,
+    )
     from gsticker_plugin.recolor.model import ColorWrap, require_color_fields, unwrap
 
     P.check_k(args.k)
@@ -412,7 +416,9 @@ def main(args: Union[PaletteArgs, HueArgs, FinetuneArgs]) -> int:
 
 def run(argv: Optional[List[str]] = None) -> int:
     """Parse ``argv`` and run; GStickerError -> one line ``error: ...`` on stderr, exit status 2."""
-    import method_configs  # noqa: F401  (host fixes: offline LPIPS, checkpoint types; registers our methods)
+    from gsticker_plugin import compat
+
+    compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
 
     args = tyro.cli(Args, args=argv, description=__doc__.split("\n\n")[0])
     try:

@@ -19,17 +19,15 @@ from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple, Type
 
 import torch
 import tyro
-from torch import Tensor, nn
-from torch.nn import Parameter
-
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.base_field import Field
 from nerfstudio.models.base_model import Model, ModelConfig
+from torch import Tensor, nn
+from torch.nn import Parameter
 
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.recolor import palette as P
-
 
 # ---------------------------------------------------------------------------------------------- color fields
 

@@ -20,10 +20,10 @@ import torch
 import yaml
 from torch import Tensor
 
-from gsticker_plugin import base_run
+from gsticker_plugin import runs
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.model import shareable_state
-
+from gsticker_plugin.runs import copy_datamanager
 
 # ---------------------------------------------------------------------------------------------- paths
 
@@ -33,7 +33,7 @@ def check_input_config(load_config: Path) -> Tuple[Any, Path, Path]:
     p = Path(load_config)
     if not p.is_file():
         raise GStickerError(f"--load-config {p} does not exist; pass a trained run's RUN/config.yml")
-    run_cfg = base_run.load_run_config(p)
+    run_cfg = runs.load_run_config(p)
     from nerfstudio.engine.trainer import TrainerConfig
 
     if not isinstance(run_cfg, TrainerConfig):
@@ -74,7 +74,6 @@ def check_output_dir(output_dir: Optional[Path], run_dir: Path, overwrite: bool)
 
 class StagedDir:
     """Write into a temporary sibling of ``final`` and move it in place on success (replacing an old one)."""
-
     def __init__(self, final: Path) -> None:
         self.final = final
         final.parent.mkdir(parents=True, exist_ok=True)
@@ -117,22 +116,20 @@ class LoadedRun:
 
 def data_override(run_cfg, data: Optional[Path]):
     """The run's datamanager config as a single-process VanillaDataManagerConfig, with ``--data`` applied."""
-    from gsticker_plugin.trainer import copy_datamanager
-
     return copy_datamanager(run_cfg, data)
 
 
 def load_model_state(ckpt: Path) -> Tuple[Dict[str, Any], int]:
-    state = base_run.load_checkpoint_state(ckpt)
-    return base_run.model_state_from_pipeline_state(state["pipeline"]), int(state.get("step", 0))
+    state = runs.load_checkpoint_state(ckpt)
+    return runs.model_state_from_pipeline_state(state["pipeline"]), int(state.get("step", 0))
 
 
 def strict_load_model(model, ckpt: Path, num_train_data: int) -> int:
     """Load a run's model weights strictly (after sizing grids to the saved step); returns the step."""
     model_state, step = load_model_state(ckpt)
     model.update_to_step(step)
-    base_run.check_tcnn(None, model_state)
-    base_run.strict_load(model, model_state, num_train_data=num_train_data)
+    runs.check_tcnn(None, model_state)
+    runs.strict_load(model, model_state, num_train_data=num_train_data)
     return step
 
 

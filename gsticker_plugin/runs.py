@@ -1,4 +1,4 @@
-"""Reading a foreign (base) Nerfstudio run: its config.yml, its checkpoint, and a strict weight load.
+"""Runs: reading any Nerfstudio run (its config.yml, its latest checkpoint, its data) and loading it strictly.
 
 Nerfstudio's ``Pipeline.load_state_dict`` silently retries with ``strict=False`` when keys do not match;
 a watermark stuck onto a half-loaded base would be worthless, so everything here is strict and every
@@ -7,6 +7,7 @@ failure is a one-line :class:`GStickerError` naming the fix.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import enum
 import importlib.util
@@ -16,6 +17,9 @@ from typing import Any, Dict, Optional, Tuple
 
 import torch
 import yaml
+from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
+from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManager
+from nerfstudio.engine.trainer import TrainerConfig
 
 from gsticker_plugin.errors import GStickerError
 
@@ -37,8 +41,16 @@ def resolve_checkpoint(load_checkpoint: Optional[Path], load_dir: Optional[Path]
             if not p.is_file():
                 raise GStickerError(f"{p} does not exist; pick --load-step from {[c.name for c in ckpts]}")
             return p
-        return max(ckpts, key=lambda c: int(c.stem.split("-")[1]))
+        return latest_checkpoint(d)
     return None
+
+
+def latest_checkpoint(folder: Path) -> Optional[Path]:
+    """The ``step-N.ckpt`` of ``folder`` with the largest N (None when there is none): the one rule for "latest"."""
+    folder = Path(folder)
+    numbered = [(int(m.group(1)), c) for c in (folder.glob("step-*.ckpt") if folder.is_dir() else [])
+                if (m := re.fullmatch(r"step-(\d+)", c.stem))]
+    return max(numbered)[1] if numbered else None
 
 
 def run_config_path(checkpoint: Path) -> Path:
@@ -234,3 +246,82 @@ def final_rgb(outputs: Dict[str, Any]) -> torch.Tensor:
         raise GStickerError(f"the model renders no 'rgb' (or 'rgb_fine') output, only {sorted(outputs)}; "
                             "use a NeRF-style run (nerfacto, vanilla-nerf, tensorf)")
     return rgb
+
+
+def pick_device(choice: str) -> torch.device:
+    """``--device auto|cpu|cuda`` as a torch device (auto: CUDA when present)."""
+    if choice == "cuda" and not torch.cuda.is_available():
+        raise GStickerError("--device cuda but no CUDA device is available; use --device cpu or auto")
+    if choice == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(choice)
+
+
+def spawns_workers(target) -> bool:
+    """Whether a data manager class starts worker processes (nerfacto's ParallelDataManager)."""
+    cls = getattr(target, "__origin__", target)
+    return isinstance(cls, type) and issubclass(cls, ParallelDataManager)
+
+
+def load_run(config_path: Path, data: Optional[Path] = None, device: Optional[torch.device] = None):
+    """A run rebuilt like nerfstudio's ``eval_setup`` (test mode), with one-line errors instead of exits."""
+    config_path = Path(config_path)
+    if config_path.is_dir() and (config_path / "config.yml").is_file():
+        config_path = config_path / "config.yml"
+    if not config_path.is_file():
+        raise GStickerError(f"--load-config {config_path} does not exist; pass RUN/config.yml of the suspect run")
+    config = load_run_config(config_path)
+    # deferred: all_methods imports every installed method's entry point, this plugin's (which imports this module)
+    from nerfstudio.configs.method_configs import all_methods
+
+    if not isinstance(config, TrainerConfig):
+        raise GStickerError(f"{config_path} is not a Nerfstudio run config; pass RUN/config.yml")
+    if config.method_name not in all_methods:
+        raise GStickerError(f"{config_path} was written by method {config.method_name!r}, which is not installed "
+                            "here; install its package and retry")
+    config.pipeline.datamanager._target = all_methods[config.method_name].pipeline.datamanager._target
+    # checkpoint: where the config says, else beside the config (a run folder that was moved)
+    candidates = [config.get_checkpoint_dir(), config_path.parent / config.relative_model_dir]
+    ckpt = next((c for c in map(latest_checkpoint, candidates) if c is not None), None)
+    if ckpt is None:
+        raise GStickerError(f"the run {config_path.parent} has no checkpoint (no step-*.ckpt in "
+                            f"{config_path.parent / config.relative_model_dir}); copy its nerfstudio_models folder")
+    dm = config.pipeline.datamanager
+    recorded = getattr(dm, "data", None) or getattr(dm.dataparser, "data", None)
+    if data is not None:
+        if not Path(data).exists():
+            raise GStickerError(f"--data {data} does not exist; pass the run's dataset folder")
+        dm.data = Path(data)
+        if hasattr(dm.dataparser, "data"):
+            dm.dataparser.data = Path(data)
+    elif recorded is None or not Path(recorded).exists():
+        raise GStickerError(f"the run's dataset {recorded} does not exist from here (its cameras are needed); "
+                            "pass --data with the run's dataset folder")
+    if spawns_workers(config.pipeline.datamanager._target):
+        # nerfacto's ParallelDataManager spawns a worker process that samples training rays nobody reads here, and
+        # its __del__ printed a traceback at exit: the same dataparser in nerfstudio's in-process data manager
+        config.pipeline.datamanager = copy_datamanager(config, None)
+    device = device or torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        pipeline = config.pipeline.setup(device=device, test_mode="test")
+    except GStickerError:
+        raise
+    except (FileNotFoundError, OSError) as e:
+        raise GStickerError(f"could not load the dataset of {config_path} ({type(e).__name__}: {e}); "
+                            "pass --data with the run's dataset folder") from None
+    pipeline.eval()
+    state = load_checkpoint_state(ckpt)
+    load_pipeline_strictly(pipeline, state, ckpt)
+    pipeline.eval()
+    return config, pipeline, ckpt
+
+
+def copy_datamanager(base_config, data_override: Optional[Path]) -> VanillaDataManagerConfig:
+    """The base's dataparser and data path in a single-process VanillaDataManager (we sample no ray batches)."""
+    dm = base_config.pipeline.datamanager
+    dataparser = copy.deepcopy(dm.dataparser)
+    recorded = dm.data if getattr(dm, "data", None) is not None else getattr(dataparser, "data", None)
+    data = resolve_data_path(recorded, data_override)
+    dataparser.data = data
+    return VanillaDataManagerConfig(dataparser=dataparser, data=data, train_num_rays_per_batch=1024,
+                                    eval_num_rays_per_batch=1024, camera_res_scale_factor=dm.camera_res_scale_factor)

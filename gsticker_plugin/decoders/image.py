@@ -27,6 +27,7 @@ be read. :func:`gsticker_plugin.verify` keeps the blind extractor for those.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
@@ -34,20 +35,32 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
+from gsticker_plugin.decoders.fit import (
+    fit_and_decide,
+    fit_message,
+    fit_summary,
+    jacobian,
+    per_ray_jacobian,
+    tie_generator,
+)
+from gsticker_plugin.decoders.geometric import marked_density
+from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker
+from gsticker_plugin.decoders.result import decoded
 from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.sticker import Sticker, render_weights
+from gsticker_plugin.views import View, Views, progress_bar
 
 
 @dataclass
 class ImageReferenceView:
     """One camera of the owner's base in the image decoder's terms."""
-
     view: Any  # gsticker_plugin.geometry.ReferenceView (rays, samples, gate, sticker features, sample colours)
-    background: Float[Tensor, "3"]
+    background: Float[Tensor, " 3"]
     base_rgb: Float[Tensor, "R 3"]  # the base render at the rays (what the suspect image is compared with)
 
 
-def image_reference(ref_view, background: Float[Tensor, "3"]) -> ImageReferenceView:
+def image_reference(ref_view, background: Float[Tensor, " 3"]) -> ImageReferenceView:
     if ref_view.rgb is None:
         raise GStickerError("the reference view holds no sample colours (made by an older gsticker); rebuild it")
     h, w = ref_view.hw
@@ -58,7 +71,6 @@ def image_reference(ref_view, background: Float[Tensor, "3"]) -> ImageReferenceV
 def rgb_of_sticker(ref: ImageReferenceView, m: Float[Tensor, "N 1"]) -> Float[Tensor, "R 3"]:
     """The rendered colour at the rays with sticker values ``m`` at the gate-open samples: the same wrap
     (``relu(sigma + psi * scale * m)``), quadrature, background and clamp as the renderer."""
-    from gsticker_plugin.geometry import marked_density
 
     v = ref.view
     w = render_weights(marked_density(v, m), v.deltas)
@@ -66,27 +78,25 @@ def rgb_of_sticker(ref: ImageReferenceView, m: Float[Tensor, "N 1"]) -> Float[Te
     return rgb.clamp(0.0, 1.0)
 
 
-def predict_image_change(ref: ImageReferenceView, sticker: Sticker, signs: Float[Tensor, "K"]) -> Float[Tensor, "R 3"]:
+def predict_image_change(ref: ImageReferenceView, sticker: Sticker, signs: Float[Tensor, " K"]) -> Float[Tensor, "R 3"]:
     """The base render's colour at the rays with the sticker of continuous message ``signs`` (the fit subtracts
     its value at ``s = 0``); differentiable in ``signs``."""
     return rgb_of_sticker(ref, sticker.mix(ref.view.features, signs))
 
 
 def image_change_jacobian(ref: ImageReferenceView, sticker: Sticker,
-                          signs: Float[Tensor, "K"]) -> Optional[Float[Tensor, "M K"]]:
+                          signs: Float[Tensor, " K"]) -> Optional[Float[Tensor, "M K"]]:
     """d predict_image_change / d signs, rows ``r * 3 + c`` like ``predict_image_change(...).reshape(-1)``
     (None: no closed form for this sticker; the fit then uses forward-mode AD)."""
-    from gsticker_plugin import geometry as G
 
     v = ref.view
     r, s = v.density.shape[:2]
-    j = G.per_ray_jacobian(lambda x: rgb_of_sticker(ref, x).T, sticker, v.features, signs, v.open_index // s, r)
+    j = per_ray_jacobian(lambda x: rgb_of_sticker(ref, x).T, sticker, v.features, signs, v.open_index // s, r)
     return None if j is None else j.permute(1, 0, 2).reshape(-1, j.shape[-1])
 
 
 LUMA = (0.299, 0.587, 0.114)
 """The luma row of JPEG's RGB -> YCbCr conversion (ITU-R BT.601): the channel JPEG keeps at full resolution."""
-
 
 def observe(rows: Tensor, luma: bool) -> Tensor:
     """What a fit reads of colour rows ``[..., 3, K]`` (rows ``p * 3 + c`` flattened as ``[P * 3, K]`` or ``[P * 3]``):
@@ -102,17 +112,17 @@ def decode_image_view(ref: ImageReferenceView, sticker: Sticker, image_rgb: Floa
                       generator: torch.Generator, iterations: int = 10, luma: bool = False) -> Dict[str, Any]:
     """Fit the continuous message to one image's colour change (image minus base render) and decide the bits;
     ``luma``: read the change's luma only (what JPEG keeps at full resolution)."""
-    from gsticker_plugin import geometry as G
+
 
     def jac(x: Tensor) -> Optional[Tensor]:
         j = image_change_jacobian(ref, sticker, x)
         return None if j is None else observe(j, luma)
 
     target = observe((image_rgb.float() - ref.base_rgb).reshape(-1), luma)
-    fit, bits, undetermined = G.fit_and_decide(lambda x: observe(predict_image_change(ref, sticker, x).reshape(-1), luma),
+    fit, bits, undetermined = fit_and_decide(lambda x: observe(predict_image_change(ref, sticker, x).reshape(-1), luma),
                                                jac, target, sticker.num_bits, ref.view.rays.numel() > 0, generator,
                                                iterations)
-    return {"bits": bits, **G.fit_summary(fit, undetermined, int(ref.view.rays.numel())),
+    return {"bits": bits, **fit_summary(fit, undetermined, int(ref.view.rays.numel())),
             "signals": ["luma" if luma else "rgb"]}
 
 
@@ -129,7 +139,7 @@ def leaked_key_attack(ref: ImageReferenceView, sticker: Sticker, image: Float[Te
     and the L2 ball is ``|u| <= eps``: PGD on ``u`` with an exact projection. Pixels outside the decoder's rays are
     left alone. Deterministic; the result is clamped to [0, 1] (quantize it as a saved file would be).
     """
-    from gsticker_plugin import geometry as G
+
 
     if psnr_budget <= 0:
         raise GStickerError(f"leaked_key: a PSNR budget in dB > 0, got {psnr_budget}")
@@ -140,11 +150,11 @@ def leaked_key_attack(ref: ImageReferenceView, sticker: Sticker, image: Float[Te
         return out
     target = (image_at_rays(out, rays, v.hw) - ref.base_rgb).reshape(-1)
     predict = lambda x: predict_image_change(ref, sticker, x)  # noqa: E731
-    fit = G.fit_message(predict, target, sticker.num_bits, jac=lambda x: image_change_jacobian(ref, sticker, x))
+    fit = fit_message(predict, target, sticker.num_bits, jac=lambda x: image_change_jacobian(ref, sticker, x))
     s0 = fit.signs.double()
     jac = image_change_jacobian(ref, sticker, fit.signs)
     if jac is None:
-        jac = G.jacobian(lambda x: predict(x).reshape(-1), fit.signs)
+        jac = jacobian(lambda x: predict(x).reshape(-1), fit.signs)
     q, r = torch.linalg.qr(jac.double())
     keep = torch.diagonal(r).abs() > 1e-9 * float(torch.diagonal(r).abs().max().clamp_min(1e-30))
     q, r = q[:, keep], r[keep][:, keep]  # bits the image does not determine: the attacker has nothing to move
@@ -191,7 +201,6 @@ identified degradation, an upper bound for decoding an image of unknown processi
 @dataclass(frozen=True)
 class Degradation:
     """An image transform of :mod:`gsticker_plugin.attacks` (``blur``, ``resize``, ``rotate``, ``jpeg``; ``none``)."""
-
     name: str = "none"
     strength: float = 0.0
 
@@ -262,7 +271,7 @@ def decode_degraded_view(ref: ImageReferenceView, sticker: Sticker, image: Float
     """:func:`decode_image_view` for an image the degradation ``D`` was applied to: the image is compared with
     ``D(base render)`` over every pixel, and the change is predicted as ``D_lin(change on the base's rays)``;
     ``luma`` (default: the degradation's own :attr:`Degradation.luma`): compare luma only."""
-    from gsticker_plugin import geometry as G
+
 
     luma = degradation.luma if luma is None else luma
     if degradation.name == "none":
@@ -289,9 +298,9 @@ def decode_degraded_view(ref: ImageReferenceView, sticker: Sticker, image: Float
         j = image_change_jacobian(ref, sticker, sg)
         return None if j is None else spread(j)
 
-    fit, bits, undetermined = G.fit_and_decide(predict, jac, target, sticker.num_bits, rays.numel() > 0, generator,
+    fit, bits, undetermined = fit_and_decide(predict, jac, target, sticker.num_bits, rays.numel() > 0, generator,
                                                iterations)
-    return {"bits": bits, **G.fit_summary(fit, undetermined, int(rays.numel())), "signals": ["luma" if luma else "rgb"],
+    return {"bits": bits, **fit_summary(fit, undetermined, int(rays.numel())), "signals": ["luma" if luma else "rgb"],
             "degradation": degradation.label()}
 
 
@@ -333,7 +342,7 @@ def decode_selected(ref: ImageReferenceView, sticker: Sticker, image: Float[Tens
     return d
 
 
-def image_at_rays(image: Float[Tensor, "H W 3"], rays: Int[Tensor, "R"], hw: Tuple[int, int]) -> Float[Tensor, "R 3"]:
+def image_at_rays(image: Float[Tensor, "H W 3"], rays: Int[Tensor, " R"], hw: Tuple[int, int]) -> Float[Tensor, "R 3"]:
     if tuple(image.shape[:2]) != tuple(hw) or image.shape[-1] != 3:
         raise GStickerError(f"an image of {tuple(image.shape)} for a {hw[0]}x{hw[1]} camera; the image decoder needs "
                             "RGB images of the cameras' size (resize them to it)")
@@ -355,26 +364,25 @@ def decode_posed_images(key, reference, images: Sequence[Float[Tensor, "H W 3"]]
     ``None``: compare the image with the base render as it is.
     Returns per image ``bits``, ``matches``, ``bit_acc``, ``pvalues``, ``scores`` (None) and ``image`` (the fits).
     """
-    from gsticker_plugin import geometry as G
-    from gsticker_plugin.verify import _tqdm
+
 
     if len(images) != len(cameras) or any(im.ndim != 3 for im in images):
         raise GStickerError(f"{len(images)} images for {len(cameras)} cameras: pass one [H W 3] image per camera")
-    st = G.cpu_sticker(reference.model)
+    st = cpu_sticker(reference.model)
     background = reference.model.background_color()
-    gen = G.tie_generator(seed)
+    gen = tie_generator(seed)
     ref_cache = {} if ref_cache is None else ref_cache
     bits: List[Tensor] = []
     details: List[Dict[str, Any]] = []
-    for (name, cam), image in _tqdm(list(zip(cameras, images)), "image decoding", progress):
-        ref_view = G.any_reference_view(reference, name, cam, ref_cache)
+    for (name, cam), image in progress_bar(list(zip(cameras, images)), "image decoding", progress):
+        ref_view = any_reference_view(reference, name, cam, ref_cache)
         ref = image_reference(ref_view, background)
         image_at_rays(image, ref_view.rays, ref_view.hw)  # checks the size
         deg = match_degradation(image, ref_view.image)[0] if degradations == "match" else Degradation()
         d = decode_selected(ref, st, image, deg, gen, iterations)
         bits.append(d.pop("bits"))
         details.append(d)
-    return G.decoded(key, bits, "image", details)
+    return decoded(key, bits, "image", details)
 
 
 # ================================================================================================================
@@ -492,3 +500,46 @@ def base_pose_scale(reference) -> float:
                             f"base used {type(parser_cfg).__name__}, whose pose normalization a transforms file "
                             "does not carry; decode these images with --decode extractor")
     return float(parser_cfg.scale_factor)
+
+
+def posed_views(views: Views, frames: Dict[str, Dict[str, Any]], scale_factor: float) -> Tuple[Views, List[Tuple[str, Any]]]:
+    """The images that have a camera in ``frames`` (:func:`gsticker_plugin.decoders.image.read_cameras_file`), each
+    with a camera of its own size; the others are added to ``skipped``."""
+
+    out = Views(kind=views.kind, source=views.source, skipped=list(views.skipped), details=dict(views.details))
+    cams: List[Tuple[str, Any]] = []
+    for v in views.views:
+        f = match_frame(v.name, frames)
+        if f is None:
+            out.skipped.append({"name": v.name, "reason": "no camera for it in --cameras (frames are matched by file "
+                                                          "name without extension)"})
+            continue
+        h, w = v.image.shape[-2:]
+        try:
+            cam = camera_for_image(frames[f], int(h), int(w), scale_factor)
+        except GStickerError as e:
+            out.skipped.append({"name": v.name, "reason": str(e)})
+            continue
+        note = f"camera {f}" + (f"; {v.note}" if v.note else "")
+        out.views.append(View(name=v.name, image=v.image, note=note))
+        cams.append((f"image/{f}/{int(h)}x{int(w)}", cam))
+    if not out.views:
+        raise GStickerError(f"none of the {len(views.views)} images has a camera in --cameras (frames are matched by "
+                            "file name without extension, e.g. r_0.png <-> ./test/r_0); pass the transforms JSON "
+                            "of these images")
+    out.details["cameras"] = len(cams)
+    return out, cams
+
+
+def decode_images_at_cameras(key: OwnerKey, ref, views: Views, frames: Dict[str, Dict[str, Any]], seed: int,
+                             progress: bool) -> Tuple[Views, Dict[str, Any]]:
+    """The informed image decoder on the images of ``views`` that have a camera in ``frames``, against the owner's
+    base ``ref`` (:func:`gsticker_plugin.geometry.load_base_reference`): the posed views and the decoded bits."""
+    import contextlib
+
+
+    posed, cams = posed_views(views, frames, base_pose_scale(ref))
+    with contextlib.redirect_stdout(sys.stderr):
+        dec = decode_posed_images(key, ref, [v.image.permute(1, 2, 0) for v in posed.views], cams, seed,
+                                  progress=progress)
+    return posed, dec

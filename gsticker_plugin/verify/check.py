@@ -1,0 +1,387 @@
+"""``ns-verify-owner``: does a suspect model, or a folder of suspect images, carry an owner's message?
+
+Four subcommands (``verify`` is the default and may be left out)::
+
+    ns-verify-owner [verify] (--load-config RUN/config.yml | --images DIR) (--key KEY.gskey | --keys DIR) [...]
+    ns-verify-owner calibrate --key KEY.gskey [--load-config RUN/config.yml ...] [--images DIR ...] [...]
+    ns-verify-owner export-key --load-config WATERMARKED_RUN/config.yml --key KEY.gskey [--output NEW.gskey]
+    ns-verify-owner commit --key KEY.gskey      (prints the key's commitment; verify --commitment HEX checks it)
+
+``verify`` renders N views of a run (its own cameras and sampled orbit poses) or reads the images of a folder,
+decodes each view with the owner key's extractor, tests each view on its own against the binomial null
+(``P(X >= m)`` for ``X ~ Binomial(48, 1/2)``), and combines the per-view decisions with the vote of
+:func:`gsticker_plugin.metrics.combine_view_decisions` (never pooling bits across views). It prints the verdict
+first, writes ``report.json`` and ``report.png``, and exits 0 ("owned"), 1 ("not shown") or 2 (error).
+
+``calibrate`` decodes unmarked renders and images with a key and stores the observed null in the key (the key is
+rewritten atomically; the previous file is kept as ``KEY.gskey.bak``). ``verify`` then uses the stricter of the
+theoretical and the empirical per-view threshold and reports both. See docs/verify.md.
+
+Three decoders (``--decode``): the blind *extractor* (the key's CNN reads RGB renders or images), the informed
+*geometric* decoder (gsticker_plugin.geometry: fits the key's sticker to a suspect model's accumulation/depth against
+the owner's unwatermarked base run; models only) and the informed *image* decoder (gsticker_plugin.decoders.image:
+the same fit on the colour of images taken at known cameras, ``--images DIR --cameras transforms.json``). ``export-key`` adds the geometric decoder's reference (sticker,
+gates) to a version-1 key from the watermarked run it belongs to.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, List, Literal, Optional, Tuple
+
+import torch
+
+from gsticker_plugin.decoders.blind import decode_views
+from gsticker_plugin.decoders.geometric import decode_suspect
+from gsticker_plugin.decoders.image import (
+    decode_images_at_cameras,
+    read_cameras_file,
+)
+from gsticker_plugin.decoders.reference import (
+    load_base_reference,
+    missing_geometry_message,
+    recorded_base_config,
+)
+from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.key import KEY_SUFFIX, OwnerKey, commitment
+from gsticker_plugin.runs import load_run, pick_device
+from gsticker_plugin.verify.report import _write_json, write_figure
+from gsticker_plugin.verify.stats import (
+    EXIT_NOT_SHOWN,
+    EXIT_OWNED,
+    correct_keys,
+    key_result,
+)
+from gsticker_plugin.views import (
+    Views,
+    apply_attack,
+    images_views,
+    model_views,
+    progress_bar,
+)
+
+# ================================================================================================================
+# configuration
+# ================================================================================================================
+
+
+@dataclass
+class VerifyConfig:
+    """Decide whether a suspect run or a folder of suspect images carries an owner's message.
+
+    Exit status: 0 "owned", 1 "not shown", 2 error. Calibrate a key's empirical null first with
+    `ns-verify-owner calibrate --key KEY` (see docs/verify.md).
+    """
+
+    load_config: Optional[Path] = None
+    """RUN/config.yml of the suspect run (any Nerfstudio method, recolored or not); N views are rendered."""
+    images: Optional[Path] = None
+    """Folder (searched recursively) or single file of suspect images: renders, screenshots, any size or format
+    OpenImageIO reads. Files that cannot be used are skipped and listed in the report."""
+    key: Optional[Path] = None
+    """The owner key (.gskey written by ns-train geometrysticker)."""
+    keys: Optional[Path] = None
+    """A folder of owner keys (*.gskey): every key is tested, corrected for multiple testing (--correction)."""
+    num_views: int = 24
+    """Views rendered from a run (--load-config): its own cameras and sampled orbit poses."""
+    sampled_share: float = 0.5
+    """Share of the rendered views taken from sampled orbit poses; the rest are the run's own train/eval cameras."""
+    data: Optional[Path] = None
+    """Dataset folder of the run, when the path recorded in its config.yml does not exist from here (also used for
+    the owner's base run under --decode geometry when its recorded dataset does not exist and --base-data is unset)."""
+    decode: Literal["auto", "geometry", "image", "extractor"] = "auto"
+    """geometry: informed decoding from the suspect model's accumulation/depth, given the owner's unwatermarked base
+    run (needs a version-2 key and --load-config; model-level only); image: informed decoding of --images taken at
+    the known cameras of --cameras, given the owner's base run (the same fit on colour); extractor: the key's CNN
+    reads the message from RGB renders or images (blind); auto: geometry for a model and image for images with
+    --cameras when the keys' base runs are reachable, else extractor."""
+    cameras: Optional[Path] = None
+    """--images only: a transforms JSON (Blender format, e.g. the base dataset's transforms_test.json) giving each
+    image's camera, matched by file name without extension (r_0.png <-> ./test/r_0); enables --decode image.
+    Images without a camera are skipped and listed."""
+    base_config: Optional[Path] = None
+    """The owner's base run (config.yml) for --decode geometry, when the path recorded in the key moved."""
+    base_data: Optional[Path] = None
+    """Dataset folder of the owner's base run, when its recorded one does not exist from here (default: --data)."""
+    fpr: float = 1e-6
+    """Per-view false-positive rate of the binomial test (1e-6 = at least 41 of 48 bits)."""
+    min_share: float = 0.5
+    """Share of views that must pass for the model-level verdict; its FPR is at most fpr / min-share."""
+    correction: Literal["holm", "bonferroni"] = "holm"
+    """Multiple-testing correction across keys (--keys)."""
+    attack: str = ""
+    """Distortions applied before decoding, in order, e.g. 'noise=0.1,rotate=30,crop=0.25,blur=1,jpeg=50,hue=0.3'."""
+    seed: int = 0
+    """Seed of the sampled poses and of the random attacks."""
+    output: Path = Path("verify-report")
+    """Folder for report.json and report.png (created; an existing report there is replaced)."""
+    figure: bool = True
+    """Write report.png (histogram of matches against the null and a few decoded views)."""
+    max_side: int = 400
+    """Images whose longer side exceeds this are downscaled (area average, streamed) to this size before decoding."""
+    min_side: int = 16
+    """Images with a shorter side below this are skipped (too small to carry a mark)."""
+    max_pixels: int = 1_000_000_000
+    """Images with more pixels than this are skipped (decompression-bomb guard); smaller ones are streamed."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Device for rendering and decoding (auto: cuda when available)."""
+    progress: bool = True
+    """Show tqdm progress bars (on stderr)."""
+    commitment: Optional[str] = None
+    """The commitment (hex) printed by `ns-verify-owner commit` and published when the model was released: checked
+    against --key (a mismatch is an error, exit 2); the report says it matched, i.e. this key existed then."""
+
+
+# ================================================================================================================
+# views
+# ================================================================================================================
+
+
+# ---------------------------------------------------------------------------------------------------- images
+
+
+# ---------------------------------------------------------------------------------------------------- models
+
+
+# ================================================================================================================
+# decoding and statistics
+# ================================================================================================================
+
+
+# ================================================================================================================
+# report
+# ================================================================================================================
+
+
+# ================================================================================================================
+# commands
+# ================================================================================================================
+
+
+def _load_keys(key: Optional[Path], keys: Optional[Path]) -> List[Tuple[Path, OwnerKey]]:
+    if key is not None and keys is not None:
+        raise GStickerError("pass either --key KEY.gskey or --keys DIR, not both")
+    if key is None and keys is None:
+        raise GStickerError("no owner key given; pass --key KEY.gskey (or --keys DIR of keys)")
+    if key is not None:
+        paths = [Path(key)]
+    else:
+        d = Path(keys)
+        if not d.is_dir():
+            raise GStickerError(f"--keys {d} is not a folder; pass a folder of {KEY_SUFFIX} files or use --key")
+        paths = sorted(d.glob(f"*{KEY_SUFFIX}"))
+        if not paths:
+            raise GStickerError(f"--keys {d} holds no *{KEY_SUFFIX} files; pass the folder of owner keys")
+    return [(p, OwnerKey.load(p)) for p in paths]
+
+
+def _check_stats(fpr: float, min_share: float) -> None:
+    if not 0.0 < fpr < 0.5:
+        raise GStickerError(f"--fpr must be in (0, 0.5), got {fpr}; e.g. 1e-6")
+    if not 0.0 < min_share <= 1.0:
+        raise GStickerError(f"--min-share must be in (0, 1], got {min_share}")
+
+
+def choose_decoder(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]]) -> Tuple[str, List[str]]:
+    """``--decode``: geometry or extractor, and why (auto); one-line errors for impossible choices."""
+    if config.cameras is not None and config.images is None:
+        raise GStickerError("--cameras gives the cameras of --images; a model (--load-config) is rendered at its own "
+                            "cameras: drop --cameras")
+    if config.decode in ("geometry", "image"):
+        if config.decode == "geometry" and config.load_config is None:
+            raise GStickerError("--decode geometry reads a model's geometry, not images: pass --load-config "
+                                "SUSPECT/config.yml, or use --decode image --cameras CAMERAS.json with --images")
+        if config.decode == "image" and (config.images is None or config.cameras is None):
+            raise GStickerError("--decode image reads images at known cameras: pass --images DIR and --cameras "
+                                "transforms.json (for a model use --decode geometry)")
+        for path, key in keys:
+            if not key.geometry:
+                raise GStickerError(missing_geometry_message(path))
+        return config.decode, []
+    if config.decode == "extractor":
+        return "extractor", []
+    if config.load_config is None and config.cameras is None:
+        return "extractor", ["auto: images without cameras can only be decoded by the extractor (pass --cameras "
+                             "transforms.json for the informed image decoder)"]
+    kind, what = ("geometry", "geometric") if config.load_config is not None else ("image", "image")
+    for path, key in keys:
+        if not key.geometry:
+            return "extractor", [f"auto: {path} has no geometry reference (version-1 key), so the extractor decodes; "
+                                 "add it with `ns-verify-owner export-key`"]
+        cfg = Path(config.base_config) if config.base_config is not None else recorded_base_config(key)
+        if cfg is None or not cfg.exists():
+            return "extractor", [f"auto: the owner's base run {cfg} is not reachable from here, so the extractor "
+                                 f"decodes; pass --base-config BASE_RUN/config.yml for {what} decoding"]
+    return kind, []
+
+
+def _informed_result(key: OwnerKey, path: Path, dec: Dict[str, Any], views: Views, config: VerifyConfig,
+                     decoder: str, ref, notes: List[str], bases: List[str]) -> Dict[str, Any]:
+    """:func:`key_result` of an informed decoder, with the owner's base run it read against (its notes and path
+    are added to ``notes`` and ``bases``)."""
+    r = key_result(key, path, dec, views, config.fpr, config.min_share, decoder=decoder)
+    r["base"] = {"config": str(ref.config_path), "checkpoint": str(ref.checkpoint), "method": ref.method}
+    notes += ref.notes
+    bases.append(str(ref.config_path))
+    return r
+
+
+def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device):
+    """Geometric decoding of the suspect run for every key (each against its own base run)."""
+    import contextlib
+    import warnings
+
+
+    with contextlib.redirect_stdout(sys.stderr):
+        run_cfg, pipeline, ckpt = load_run(config.load_config, data=config.data, device=device)
+    warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
+    model = pipeline.model
+    results, views, bases, notes = [], None, [], []
+    for path, key in keys:
+        ref = load_base_reference(key, path, config.base_config, config.base_data or config.data, device)
+        dec, vlist = decode_suspect(key, ref, model, config.num_views, config.sampled_share, config.seed,
+                                             progress=config.progress)
+        kv = Views(kind="model", source=str(config.load_config), views=vlist,
+                   details={"method": run_cfg.method_name, "model": type(model).__name__, "checkpoint": str(ckpt),
+                            "sticker": "on" if hasattr(model, "sticker_enabled") else None,
+                            "own_cameras": sum(1 for v in vlist if not v.name.startswith("sampled/")),
+                            "sampled_poses": sum(1 for v in vlist if v.name.startswith("sampled/")),
+                            "cameras_of": f"the owner's base run {ref.config_path}"})
+        results.append(_informed_result(key, path, dec, kv, config, "geometry", ref, notes, bases))
+        views = views or kv
+        del ref
+    signals = sorted({tuple(g["signals"]) for r in results for g in (v["geometry"] for v in r["per_view"])})
+    return results, views, {"bases": bases, "signals": [list(s) for s in signals], "notes": notes}
+
+
+def _verify_images_informed(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], views: Views,
+                            device: torch.device):
+    """The informed image decoder on the images that have a camera in --cameras, for every key (each against its own
+    base run)."""
+
+    frames = read_cameras_file(config.cameras)
+    results, used, bases, notes = [], None, [], []
+    for path, key in keys:
+        ref = load_base_reference(key, path, config.base_config, config.base_data or config.data, device)
+        posed, dec = decode_images_at_cameras(key, ref, views, frames, config.seed, config.progress)
+        posed.details["cameras_of"] = str(config.cameras)
+        results.append(_informed_result(key, path, dec, posed, config, "image", ref, notes, bases))
+        used = used or posed
+        del ref
+    return results, used, {"bases": bases, "cameras": str(config.cameras), "notes": notes}
+
+
+def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
+    """Run ``verify``; returns (exit status, report). Raises GStickerError for bad input."""
+    _check_stats(config.fpr, config.min_share)
+    if (config.load_config is None) == (config.images is None):
+        raise GStickerError("pass exactly one input: --load-config RUN/config.yml or --images DIR")
+    if config.max_side < config.min_side or config.min_side < 1:
+        raise GStickerError(f"need 1 <= --min-side <= --max-side, got {config.min_side} and {config.max_side}")
+    if config.attack.strip():  # fail early on a bad spec, before rendering
+        from gsticker_plugin.attacks import parse_attack_spec
+
+        try:
+            parse_attack_spec(config.attack)
+        except ValueError as e:
+            raise GStickerError(f"--attack: {e}") from None
+    keys = _load_keys(config.key, config.keys)
+    committed = check_commitment(config.commitment, keys)
+    device = pick_device(config.device)
+    decoder, notes = choose_decoder(config, keys)
+    if decoder == "extractor":
+        leaning = [str(p) for p, k in keys if k.owner_message_prob > 0]
+        if leaning:
+            raise GStickerError(f"{', '.join(leaning)}: its extractor was trained on the owner's message "
+                                "(--pipeline.owner-message-prob > 0) and decodes it from unmarked images too; its "
+                                "binomial null does not hold: use --decode geometry or --decode image")
+    if decoder == "geometry":
+        results, views, info = _verify_geometry(config, keys, device)
+        notes += info.pop("notes")
+        if config.attack.strip():
+            notes.append(f"--attack {config.attack!r} not applied: attacks are image-level distortions, and the "
+                         "geometric decoder reads the model's geometry, not images")
+        decoder_info = {"kind": "geometry", "informed": True, **info,
+                        "description": "informed: fits the key's sticker to the suspect's geometry ("
+                                       + " + ".join(sorted({n.replace("_", " ") for sig in info["signals"] for n in sig}))
+                                       + ") against the owner's unwatermarked base run; model-level only"}
+    elif decoder == "image":
+        views = images_views(config.images, config.max_side, config.min_side, config.max_pixels, config.progress)
+        apply_attack(views, config.attack, config.seed)
+        results, views, info = _verify_images_informed(config, keys, views, device)
+        notes += info.pop("notes")
+        decoder_info = {"kind": "image", "informed": True, **info,
+                        "description": "informed: fits the key's sticker to each image's colour change from the "
+                                       "owner's unwatermarked base rendered at the image's camera (--cameras)"}
+    else:
+        if config.load_config is not None:
+            views = model_views(config.load_config, config.num_views, config.sampled_share, config.seed, config.data,
+                                device, progress=config.progress)
+        else:
+            views = images_views(config.images, config.max_side, config.min_side, config.max_pixels, config.progress)
+        if not views.views:
+            raise GStickerError("no view to decode; nothing to base a verdict on")
+        apply_attack(views, config.attack, config.seed)
+        results = []
+        for path, key in progress_bar(keys, "decoding", config.progress and len(keys) > 1):
+            dec = decode_views(key, views, device)
+            results.append(key_result(key, path, dec, views, config.fpr, config.min_share))
+        decoder_info = {"kind": "extractor", "informed": False,
+                        "description": "blind: the key's extractor reads the message from RGB "
+                                       + ("renders" if views.kind == "model" else "images")}
+    decoder_info["notes"] = notes
+    report: Dict[str, Any] = {
+        "tool": "ns-verify-owner", "created": time.time(),
+        "input": {"kind": views.kind, "source": views.source, "views": len(views.views),
+                  "skipped": views.skipped, "details": views.details},
+        "settings": {"fpr": config.fpr, "min_share": config.min_share, "attack": config.attack,
+                     "num_views": config.num_views if views.kind == "model" else None, "seed": config.seed,
+                     "correction": config.correction if len(keys) > 1 else None},
+        "decoder": decoder_info,
+        "commitment": committed,
+        "keys": results,
+        "multiple_testing": correct_keys(results, config.fpr, config.min_share, config.correction)
+        if len(keys) > 1 else None,
+    }
+    owned = [r["owner_id"] for r in results if r["owned"]]
+    report["verdict"] = "owned" if owned else "not shown"
+    report["owned_by"] = owned
+    report["exit_status"] = EXIT_OWNED if owned else EXIT_NOT_SHOWN
+    out = Path(config.output)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        files = [str(out / "report.json")]
+        if config.figure:
+            best = min(range(len(results)), key=lambda i: results[i]["model_pvalue"])
+            write_figure(out / "report.png", report, views, keys[best][1])
+            files.append(str(out / "report.png"))
+        report["files"] = files
+        _write_json(out / "report.json", report)
+    except OSError as e:
+        raise GStickerError(f"cannot write the report to {out} ({e.strerror or e}); pass --output with a "
+                            "writable folder") from None
+    return report["exit_status"], report
+
+
+def check_commitment(given: Optional[str], keys: List[Tuple[Path, OwnerKey]]) -> Optional[Dict[str, Any]]:
+    """``--commitment HEX`` against the one key given: None without it; a mismatch is an error."""
+    if given is None:
+        return None
+    hex_ = given.strip().lower()
+    if len(keys) != 1:
+        raise GStickerError("--commitment checks one key: pass it with --key KEY.gskey, not --keys")
+    path, key = keys[0]
+    if len(hex_) != 64 or set(hex_) - set("0123456789abcdef"):
+        raise GStickerError(f"--commitment must be the 64 hex digits printed by `ns-verify-owner commit`, got {given!r}")
+    own = commitment(key)
+    if own != hex_:
+        raise GStickerError(f"{path} does not match the commitment {hex_[:16]}... (its own is {own[:16]}...): this is "
+                            "not the key that was committed to; pass the committed key")
+    return {"given": hex_, "matches": True, "key": str(path),
+            "meaning": "sha256 over a secret salt and the key's message, sticker, heads and base checksum: the key "
+                       "existed when this value was published or timestamped"}
+
+

@@ -1,0 +1,96 @@
+"""``ns-verify-owner``: the command line (subcommands verify, calibrate, export-key, commit) and its exit codes."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Optional, Sequence
+
+from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.verify.calibrate import CalibrateConfig, calibrate, calibrate_text
+from gsticker_plugin.verify.check import VerifyConfig, verify
+from gsticker_plugin.verify.keys import (
+    CommitConfig,
+    ExportKeyConfig,
+    commit,
+    export_key,
+)
+from gsticker_plugin.verify.report import summary_text
+from gsticker_plugin.verify.stats import EXIT_ERROR, EXIT_NOT_SHOWN, EXIT_OWNED  # noqa: F401 (exit codes of the command)
+
+
+def _error(message: str) -> int:
+    print("error: " + " ".join(str(message).split()), file=sys.stderr)
+    return EXIT_ERROR
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Parse ``argv`` (default ``sys.argv[1:]``), run, and return the exit status (0 owned, 1 not shown, 2 error)."""
+    import tyro
+
+    from gsticker_plugin import compat
+
+    # numpy scalars in keys/checkpoints (optimizer lr) under weights_only=True; offline-safe LPIPS for stock models
+    compat.apply()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    sub = "verify"
+    if argv and argv[0] in ("verify", "calibrate", "export-key", "commit"):
+        sub, argv = argv[0], argv[1:]
+    try:
+        if sub == "calibrate":
+            cfg = tyro.cli(CalibrateConfig, args=argv, prog="ns-verify-owner calibrate")
+        elif sub == "export-key":
+            cfg = tyro.cli(ExportKeyConfig, args=argv, prog="ns-verify-owner export-key")
+        elif sub == "commit":
+            cfg = tyro.cli(CommitConfig, args=argv, prog="ns-verify-owner commit")
+        else:
+            cfg = tyro.cli(VerifyConfig, args=argv, prog="ns-verify-owner [verify]",
+                           description=(VerifyConfig.__doc__ or "") + "\n\nSubcommands: verify (default), calibrate "
+                           "(ns-verify-owner calibrate --help), export-key (adds the geometry reference to a "
+                           "version-1 key), commit (prints the key's commitment to publish at release).")
+    except SystemExit as e:  # --help (0) or a parse error (tyro prints it; status 2)
+        return int(e.code) if isinstance(e.code, int) else EXIT_ERROR
+    try:
+        if sub == "calibrate":
+            res = calibrate(cfg)
+            print(calibrate_text(res))
+            return 0
+        if sub == "commit":
+            res = commit(cfg)
+            print(res["commitment"])
+            print(f"commitment of {res['key']}: publish or timestamp it when you release the model; later "
+                  f"`ns-verify-owner --key {res['key']} --commitment HEX ...` shows this key existed then",
+                  file=sys.stderr)
+            for c in res["null_caveats"]:
+                print(f"note: weaker claim: {c}", file=sys.stderr)
+            return 0
+        if sub == "export-key":
+            res = export_key(cfg)
+            print(f"wrote {res['key']}: geometry reference of {res['run']} (fields {', '.join(res['fields'])})"
+                  + (f"; previous key kept as {res['backup']}" if res["backup"] else ""))
+            return 0
+        status, report = verify(cfg)
+        print(summary_text(report))
+        return status
+    except GStickerError as e:
+        return _error(str(e))
+    except KeyboardInterrupt:
+        return _error("interrupted; no verdict")
+    except MemoryError:
+        return _error("out of memory while decoding; lower --max-side or --num-views")
+    except Exception as e:  # a crash is never a verdict: one line, exit 2
+        import traceback
+
+        frames = traceback.extract_tb(e.__traceback__)
+        where = f" at {Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else ""
+        return _error(f"no verdict: {type(e).__name__}: {e}{where} (a failure inside ns-verify-owner, not a "
+                      "negative verdict; rerun with the same inputs to reproduce and report it)")
+
+
+def entrypoint() -> None:
+    """Console script ``ns-verify-owner``."""
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entrypoint()

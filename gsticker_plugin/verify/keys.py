@@ -1,0 +1,86 @@
+"""``ns-verify-owner export-key`` and ``commit``: a key's geometry reference from its run, and its commitment."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, Optional
+
+import torch
+
+from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.key import OwnerKey, commitment
+from gsticker_plugin.runs import load_run
+
+
+@dataclass
+class ExportKeyConfig:
+    """Add the geometry reference (the sticker, the gates) of a watermarked run to its owner key: a version-1 key
+    becomes a version-2 key that `ns-verify-owner --decode geometry` can use. The run must carry the key's
+    message and be made on the key's base."""
+
+    load_config: Path
+    """The watermarked run (RUN/config.yml written by ns-train geometrysticker) the key belongs to."""
+    key: Path
+    """The owner key (.gskey) to extend."""
+    output: Optional[Path] = None
+    """Where the extended key is written (default: the key itself, the previous file kept as KEY.gskey.bak)."""
+    data: Optional[Path] = None
+    """Dataset folder of the run, when the path recorded in its config.yml does not exist from here."""
+    backup: bool = True
+    """Keep the previous key file as KEY.gskey.bak when rewriting it in place."""
+
+
+def export_key(config: ExportKeyConfig) -> Dict[str, Any]:
+    import contextlib
+
+    from gsticker_plugin.model import geometry_reference
+
+    key_path = Path(config.key)
+    key = OwnerKey.load(key_path)
+    with contextlib.redirect_stdout(sys.stderr):
+        run_cfg, pipeline, ckpt = load_run(config.load_config, data=config.data, device=torch.device("cpu"))
+    model = pipeline.model
+    if not hasattr(model, "sticker") or not hasattr(model, "final_wrap"):
+        raise GStickerError(f"{config.load_config} is a {run_cfg.method_name} run without a sticker; pass the "
+                            "watermarked run (ns-train geometrysticker) the key was written for")
+    if bool(getattr(model, "folded", False)):
+        raise GStickerError(f"{config.load_config} is a shared run (its sticker is folded, it holds no message); its "
+                            "owner key already carries the geometry reference: nothing to export")
+    if not torch.equal(model.message.cpu().long(), key.message.long()):
+        raise GStickerError(f"the run {config.load_config} carries a different message than the key {key_path}; "
+                            "pass the watermarked run this key was written for")
+    run_sha = dict(run_cfg.pipeline.base_run).get("checkpoint_sha256")
+    key_sha = (key.base or {}).get("checkpoint_sha256")
+    if run_sha != key_sha:
+        raise GStickerError(f"the run {config.load_config} was made on another base than the key {key_path} "
+                            "(base checkpoint sha256 differs); pass the watermarked run this key was written for")
+    old = key.geometry or {}
+    key.geometry = {**geometry_reference(model), "null": old.get("null"),
+                    **({"image_null": old["image_null"]} if old.get("image_null") else {})}
+    out = Path(config.output) if config.output is not None else key_path
+    backup = None
+    if out.resolve() == key_path.resolve() and config.backup:
+        backup = key_path.with_name(key_path.name + ".bak")
+        shutil.copy2(key_path, backup)
+    key.save(out)
+    OwnerKey.load(out)
+    return {"key": str(out), "backup": str(backup) if backup else None, "run": str(config.load_config),
+            "checkpoint": str(ckpt), "fields": key.geometry["fields"]}
+
+
+@dataclass
+class CommitConfig:
+    """Print the commitment of an owner key: 64 hex digits to publish or timestamp when the model is released.
+    Later, `ns-verify-owner --commitment HEX --key KEY` shows this key existed then (see docs/verify.md)."""
+
+    key: Path
+    """The owner key (.gskey) to commit to."""
+
+
+def commit(config: CommitConfig) -> Dict[str, Any]:
+    key = OwnerKey.load(Path(config.key))
+    return {"key": str(config.key), "commitment": commitment(key), "message_source": key.message_source,
+            "null_caveats": key.null_caveats()}
