@@ -16,15 +16,16 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List
 
 import tyro
+
+from gsticker_plugin.machine import console_script
+from gsticker_plugin.runs import latest_checkpoint
 
 
 @dataclass
@@ -47,11 +48,6 @@ class DemoConfig:
     """Views rendered per model by ns-verify-owner (blind extractor)."""
     geometry_views: int = 8
     """Views per model for the informed geometric decoder (each renders the suspect and the owner's base)."""
-
-
-def _bin(name: str) -> str:
-    cand = Path(sys.executable).with_name(name)
-    return str(cand) if cand.exists() else (shutil.which(name) or name)
 
 
 def _run(cmd: List[str], log: Path, ok: tuple = (0,)) -> int:
@@ -85,7 +81,7 @@ def main(cfg: DemoConfig) -> None:
 
     print("[1/6] Rendering the embedded scene", flush=True)
     if not (scene / "transforms_train.json").exists():
-        _run([_bin("ns-gsticker-scene"), "--output-dir", str(scene), "--resolution", str(cfg.resolution),
+        _run([console_script("ns-gsticker-scene"), "--output-dir", str(scene), "--resolution", str(cfg.resolution),
               "--num-train", "100", "--num-val", "10", "--num-test", str(max(cfg.test_views, 1))], logs / "scene.log")
     else:
         print("    (exists)")
@@ -93,19 +89,19 @@ def main(cfg: DemoConfig) -> None:
     print("[2/6] Training the small nerfacto base", flush=True)
     base_run = out / "demo" / "gsticker-nerfacto-small" / "base"
     if not list((base_run / "nerfstudio_models").glob("step-*.ckpt")):
-        _run([_bin("ns-train"), "gsticker-nerfacto-small", "--machine.device-type", "cpu", "--vis", "tensorboard",
+        _run([console_script("ns-train"), "gsticker-nerfacto-small", "--machine.device-type", "cpu", "--vis", "tensorboard",
               "--output-dir", str(out), "--experiment-name", "demo", "--timestamp", "base",
               "--max-num-iterations", str(cfg.base_iterations), "--steps-per-save", "500",
               "--data", str(scene)], logs / "base.log")
     else:
         print("    (exists)")
-    base_ckpt = max((base_run / "nerfstudio_models").glob("step-*.ckpt"))
+    base_ckpt = latest_checkpoint(base_run / "nerfstudio_models")
 
     print("[3/6] Sticking the owner message onto the geometry", flush=True)
     wm_run = out / "demo" / "geometrysticker" / "watermarked"
     key_path = out / "owner-keys" / "demo.gskey"  # the secret half: outside the run's output folder
     if not key_path.exists() or not list((wm_run / "nerfstudio_models").glob("step-*.ckpt")):
-        _run([_bin("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
+        _run([console_script("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
               "--output-dir", str(out), "--experiment-name", "demo", "--timestamp", "watermarked",
               "--max-num-iterations", str(cfg.sticker_iterations), "--pipeline.owner-id", cfg.owner_id,
               "--pipeline.key-path", str(key_path), "--load-checkpoint", str(base_ckpt)], logs / "sticker.log")
@@ -143,7 +139,7 @@ def main(cfg: DemoConfig) -> None:
                        ("hue", ["hue", "--shift", "0.3"])):
         dest = out / f"recolor-{name}"
         if not list(dest.glob("**/config.yml")):
-            _run([_bin("ns-recolor"), *args, "--load-config", str(wm_run / "config.yml"), "--output-dir", str(dest),
+            _run([console_script("ns-recolor"), *args, "--load-config", str(wm_run / "config.yml"), "--output-dir", str(dest),
                   "--overwrite"], logs / f"recolor-{name}.log")
         else:
             print(f"    ({dest} exists)")
@@ -152,7 +148,7 @@ def main(cfg: DemoConfig) -> None:
     print("[6/6] ns-verify-owner: empirical null, then verdicts", flush=True)
     null_done = out / "verify" / "calibrated"
     if not null_done.exists():
-        _run([_bin("ns-verify-owner"), "calibrate", "--key", str(key_path), "--num-views", str(cfg.verify_views),
+        _run([console_script("ns-verify-owner"), "calibrate", "--key", str(key_path), "--num-views", str(cfg.verify_views),
               "--random-images", "32"], logs / "calibrate.log")
         null_done.parent.mkdir(parents=True, exist_ok=True)
         null_done.write_text("calibrated\n")
@@ -195,7 +191,7 @@ def verify_stage(out: Path, logs: Path, key_path: Path, suspects: Dict[str, Path
         for decoder, views in decoders.items():
             report_dir = out / f"{slug}-{decoder}"
             log = logs / f"verify-{slug}-{decoder}.log"
-            code = _run([_bin("ns-verify-owner"), "--load-config", str(config), "--key", str(key_path), "--decode",
+            code = _run([console_script("ns-verify-owner"), "--load-config", str(config), "--key", str(key_path), "--decode",
                          decoder, "--num-views", str(views), "--output", str(report_dir), "--no-progress"], log,
                         ok=(0, 1))
             report = json.loads((report_dir / "report.json").read_text())  # written and readable

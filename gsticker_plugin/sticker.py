@@ -247,12 +247,17 @@ class DensityWrap:
         lo, hi = self.aabb[0].to(positions), self.aabb[1].to(positions)
         return ((positions - lo) / (hi - lo)).clamp(0.0, 1.0)
 
+    def open_samples(self, sigma: Tensor) -> Tuple[Tensor, Tensor]:
+        """psi at each sample and where the gate is open (psi above the threshold of a calibrated gate): the one
+        rule the wrap, the fast path and the decoders share."""
+        psi = self.gate(sigma)
+        return psi, (psi.detach() > self.gate_threshold).squeeze(-1) & bool(self.gate.calibrated)
+
     def delta(self, sigma: Tensor, positions: Tensor, message: Optional[Tensor]) -> Tuple[Tensor, Tensor]:
         """The density added at each sample (only evaluated where the gate is open), and psi; ``message`` None:
         the folded sticker of the shared state."""
-        psi = self.gate(sigma)
+        psi, open_ = self.open_samples(sigma)
         out = torch.zeros_like(sigma)
-        open_ = (psi.detach() > self.gate_threshold).squeeze(-1)
         if open_.any():
             pos = self.normalize(positions[open_])
             m = self.sticker(pos, message) if message is not None else self.state.folded(pos)

@@ -1,4 +1,4 @@
-"""The color-branch baseline (gsticker_plugin/colormark.py): the owner's message in color instead of density.
+"""The color-branch baseline (gsticker_plugin/evaluation/baselines/colormark.py): the owner's message in color instead of density.
 
 A generic unit test of the color wrap on a stand-in field first; then real runs on the 32 px tiny scene: a
 400-step nerfacto base (fewer steps render r = g = b exactly: the small nerfacto has not learned color yet, and a
@@ -22,12 +22,12 @@ import torch
 import yaml
 from test_geometry import COMMON, MESSAGE, NERFACTO_TINY, _train  # the tiny-run recipe shared with the geometry tests
 
-from gsticker_plugin import colormark as C
 from gsticker_plugin import runs as RUNS
 from gsticker_plugin import views as VW
 from gsticker_plugin.decoders import geometric as G
 from gsticker_plugin.decoders import reference as R
 from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.evaluation.baselines import colormark as C
 from gsticker_plugin.key import OwnerKey, file_sha256
 from gsticker_plugin.sticker import DensityWrap, Gate, Sticker, WrapState
 

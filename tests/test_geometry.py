@@ -159,7 +159,7 @@ def test_jacobian_matches_finite_differences():
 def test_per_ray_jacobian_equals_forward_mode_ad(signals):
     """The closed-form message Jacobian (bilinear sticker, one backward pass per signal) is the AD one, for the
     geometric fit and the color decoder's fit; the concat sticker has none (the fit falls back to AD)."""
-    from gsticker_plugin import colormark as CM
+    from gsticker_plugin.evaluation.baselines import colormark as CM
 
     torch.manual_seed(3)
     st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)

@@ -474,7 +474,7 @@ def test_decoding_from_the_read_rays_only_equals_decoding_whole_renders(gs_runs,
     """``full_renders=False`` renders the suspect only at the rays the fit reads: those pixels equal a whole
     render's, and the decoded bits, fits and matches are the whole render's (TensoRF and vanilla-nerf refit on
     the rays of the relinearized view, which the first view may not hold); the view without depth is derived."""
-    from gsticker_plugin.colormark import decode_color_suspect
+    from gsticker_plugin.evaluation.baselines.colormark import decode_color_suspect
     from gsticker_plugin.key import OwnerKey
 
     pipeline = val_pipeline(base)

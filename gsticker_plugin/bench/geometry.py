@@ -21,15 +21,15 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
 import tyro
+
+from gsticker_plugin.machine import console_script
 
 
 @dataclass
@@ -68,11 +68,6 @@ class BenchGeometryConfig(StickerRunConfig):
     """Test views for the watermarked-vs-clean PSNR."""
 
 
-def _bin(name: str) -> str:
-    cand = Path(sys.executable).with_name(name)
-    return str(cand) if cand.exists() else (shutil.which(name) or name)
-
-
 def _run(cmd: List[str], log: Path, ok=(0,)) -> Dict[str, Any]:
     print("  $ " + " ".join(f"'{c}'" if " " in c else c for c in cmd), flush=True)
     t0 = time.time()
@@ -94,7 +89,7 @@ def train_sticker(cfg: StickerRunConfig, out: Path, base_ckpt: Path, data: List[
     if wm.with_name("watermarked.gskey").exists() and list((wm / "nerfstudio_models").glob("step-*.ckpt")):
         print("    (exists)")
         return None
-    return _run([_bin("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
+    return _run([console_script("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
                  "--output-dir", str(out), "--experiment-name", "bench", "--timestamp", "watermarked",
                  "--max-num-iterations", str(cfg.steps), "--steps-per-save", str(cfg.steps),
                  "--pipeline.owner-id", cfg.owner_id, "--pipeline.key-path", str(wm.with_name("watermarked.gskey")),
@@ -157,7 +152,7 @@ def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
         dest = out / f"recolor-{name}"
         if not list(dest.glob("**/config.yml")):
             results["stages"][f"recolor-{name}"] = _run(
-                [_bin("ns-recolor"), *args, "--load-config", str(wm / "config.yml"), "--output-dir", str(dest),
+                [console_script("ns-recolor"), *args, "--load-config", str(wm / "config.yml"), "--output-dir", str(dest),
                  "--overwrite"], logs / f"recolor-{name}.log")
         else:
             print(f"    ({dest} exists)")
@@ -179,7 +174,7 @@ def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
         jobs.append(("watermarked", suspects["watermarked"], "extractor"))
     for name, cfgp, decoder in jobs:
         rep_dir = out / "verify" / f"{name.replace(' ', '-')}-{decoder}"
-        run = _run([_bin("ns-verify-owner"), "--load-config", str(cfgp), "--key", str(key), "--decode", decoder,
+        run = _run([console_script("ns-verify-owner"), "--load-config", str(cfgp), "--key", str(key), "--decode", decoder,
                     "--num-views", str(cfg.num_views), "--output", str(rep_dir), "--no-progress", *data],
                    logs / f"verify-{name.replace(' ', '-')}-{decoder}.log", ok=(0, 1))
         rep = json.loads((rep_dir / "report.json").read_text())

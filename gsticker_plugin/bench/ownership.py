@@ -22,6 +22,8 @@ from typing import Any, Dict, List, Optional
 import tyro
 
 from gsticker_plugin.bench.geometry import StickerRunConfig, psnr_watermarked_vs_clean, train_sticker
+from gsticker_plugin.machine import console_script
+from gsticker_plugin.runs import checkpoint_step, latest_checkpoint
 
 
 @dataclass
@@ -83,7 +85,7 @@ def verify_run(cfg: BenchOwnershipConfig, name: str, config: Path, key: Path, ou
 
 def train_nulls(cfg: BenchOwnershipConfig, out: Path, logs: Path) -> List[Dict[str, Any]]:
     """The null models to train: ``[{name, config, data}]`` (each trained once, skipped when its checkpoint exists)."""
-    from gsticker_plugin.bench.geometry import _bin, _run
+    from gsticker_plugin.bench.geometry import _run
 
     nulls = out / "nulls"
     jobs = []
@@ -96,7 +98,7 @@ def train_nulls(cfg: BenchOwnershipConfig, out: Path, logs: Path) -> List[Dict[s
     if cfg.other_scene:
         scene = nulls / "scene"
         if not (scene / "transforms_train.json").is_file():
-            _run([_bin("ns-gsticker-scene"), "--output-dir", str(scene), "--resolution", "100", "--num-train", "100",
+            _run([console_script("ns-gsticker-scene"), "--output-dir", str(scene), "--resolution", "100", "--num-train", "100",
                   "--num-val", "10", "--num-test", "20"], logs / "null-scene.log")
         jobs.append(("scene", scene, []))
     found = []
@@ -104,11 +106,11 @@ def train_nulls(cfg: BenchOwnershipConfig, out: Path, logs: Path) -> List[Dict[s
         run = nulls / name / cfg.null_preset / "base"
         if not list((run / "nerfstudio_models").glob("step-*.ckpt")):
             print(f"    training null model {name} ({cfg.null_steps} steps)", flush=True)
-            _run([_bin("ns-train"), cfg.null_preset, "--machine.device-type", "cpu", "--vis", "tensorboard", *extra,
+            _run([console_script("ns-train"), cfg.null_preset, "--machine.device-type", "cpu", "--vis", "tensorboard", *extra,
                   "--output-dir", str(nulls), "--experiment-name", name, "--timestamp", "base",
                   "--max-num-iterations", str(cfg.null_steps), "--steps-per-save", str(cfg.null_steps),
                   "--data", str(data)], logs / f"null-{name}.log")
-        steps = 1 + max(int(c.stem.split("-")[1]) for c in (run / "nerfstudio_models").glob("step-*.ckpt"))
+        steps = 1 + checkpoint_step(latest_checkpoint(run / "nerfstudio_models"))
         found.append({"name": f"{name} ({cfg.null_preset}, {steps} steps)", "config": run / "config.yml",
                       "data": data})
     return found

@@ -17,12 +17,9 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import datetime
 import importlib.metadata
 import json
 import math
-import os
-import platform
 import random
 import shlex
 import sys
@@ -35,6 +32,7 @@ import numpy as np
 import torch
 import tyro
 
+from gsticker_plugin.machine import load_average, machine_info
 from gsticker_plugin.runs import final_rgb
 
 DEFAULT_PRESETS = ("gsticker-nerfacto-small", "gsticker-tensorf-small")
@@ -254,47 +252,6 @@ def evaluate(config_path: Path, checkpoint: Path, data: Path, num_views: int) ->
 
 
 # ----------------------------------------------------------------------------- report
-
-
-def load_average() -> Optional[List[float]]:
-    """1, 5 and 15 minute load averages (other work on the machine skews the timings)."""
-    try:
-        return [float(x) for x in Path("/proc/loadavg").read_text().split()[:3]]
-    except (OSError, ValueError):
-        return None
-
-
-def machine_info() -> Dict[str, Any]:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.lower().startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    try:
-        nproc = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        nproc = os.cpu_count() or 0
-
-    def version(name: str) -> str:
-        try:
-            return importlib.metadata.version(name)
-        except importlib.metadata.PackageNotFoundError:
-            return "?"
-
-    return {
-        "nproc": nproc,
-        "cpu": cpu,
-        "torch": torch.__version__,
-        "torch_threads": torch.get_num_threads(),
-        "nerfstudio": version("nerfstudio"),
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "load_average_at_start": load_average(),
-    }
 
 
 def _fmt_psnr(value: float) -> str:

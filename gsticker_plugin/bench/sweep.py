@@ -33,9 +33,10 @@ from typing import Any, Dict, List, Optional, Tuple
 import torch
 import tyro
 
-from gsticker_plugin.bench.geometry import _bin, _run
+from gsticker_plugin.bench.geometry import _run
 from gsticker_plugin.decoders.geometric import decode_suspect
 from gsticker_plugin.decoders.reference import load_base_reference
+from gsticker_plugin.machine import console_script
 from gsticker_plugin.runs import load_run
 
 # name -> (ns-train geometrysticker overrides, dataset suffix replacement or None)
@@ -152,7 +153,7 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
     wall = None
     if not (key_path.is_file() and final.is_file()):
         t0 = time.time()
-        _run([_bin("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
+        _run([console_script("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
               "--output-dir", str(out), "--experiment-name", name, "--timestamp", "watermarked",
               "--max-num-iterations", str(cfg.steps), "--steps-per-save", str(cfg.save_every),
               "--save-only-latest-checkpoint", "False", "--pipeline.owner-id", cfg.owner_id,
@@ -289,7 +290,7 @@ def chart(rows: List[Dict[str, Any]], path: Path) -> None:
 
 
 def main(cfg: SweepConfig) -> List[Dict[str, Any]]:
-    from gsticker_plugin.evaluation.runner import machine_info
+    from gsticker_plugin.machine import machine_info
 
     unknown = [v for v in cfg.variants if v not in VARIANTS]
     if unknown:

@@ -213,8 +213,7 @@ def reference_view(ref: BaseReference, name: str, camera, use_depth: bool,
     h, w = view.hw
     wrap = model.final_wrap
     density = view.density.float()  # [A S 1]
-    psi = wrap.gate(density.to(model.device)).cpu()
-    open_ = (psi > wrap.gate_threshold).squeeze(-1) & bool(wrap.gate.calibrated)  # the wrap's own rule
+    psi, open_ = (t.cpu() for t in wrap.open_samples(density.to(model.device)))
     keep = open_.any(dim=-1)
     rays = view.active[keep]
     density, open_, psi = density[keep], open_[keep], psi[keep]

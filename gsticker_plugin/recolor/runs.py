@@ -23,7 +23,7 @@ from torch import Tensor
 from gsticker_plugin import runs
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.model import shareable_state
-from gsticker_plugin.runs import copy_datamanager
+from gsticker_plugin.runs import copy_datamanager, latest_checkpoint
 
 # ---------------------------------------------------------------------------------------------- paths
 
@@ -39,11 +39,10 @@ def check_input_config(load_config: Path) -> Tuple[Any, Path, Path]:
     if not isinstance(run_cfg, TrainerConfig):
         raise GStickerError(f"{p} is not a Nerfstudio run config; pass a trained run's RUN/config.yml")
     run_dir = p.resolve().parent
-    ckpts = sorted((run_dir / "nerfstudio_models").glob("step-*.ckpt"))
-    if not ckpts:
+    ckpt = latest_checkpoint(run_dir / "nerfstudio_models")
+    if ckpt is None:
         raise GStickerError(f"no checkpoint in {run_dir / 'nerfstudio_models'}; point --load-config at the config.yml "
                             "of a trained run (with its nerfstudio_models/step-N.ckpt beside it)")
-    ckpt = max(ckpts, key=lambda c: int(c.stem.split("-")[1]))
     return run_cfg, run_dir, ckpt
 
 

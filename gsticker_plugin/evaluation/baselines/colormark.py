@@ -224,7 +224,7 @@ def color_mark_model(model) -> ColorMarkModel:
     found = next((m for m in iter_models(model) if isinstance(m, ColorMarkModel)), None)
     if found is None:
         raise GStickerError(f"{type(model).__name__} carries no color mark; load a run written by "
-                            "gsticker_plugin.colormark.write_color_marked_run")
+                            "gsticker_plugin.evaluation.baselines.colormark.write_color_marked_run")
     return found
 
 

@@ -1,0 +1,1 @@
+"""Baselines the evaluation compares the sticker with (the colour-branch mark)."""

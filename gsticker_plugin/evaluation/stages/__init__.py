@@ -1,0 +1,1 @@
+"""One module per evaluation stage, each with ``run(ws: Workspace) -> dict`` (see evaluation/runner.py)."""
