@@ -1,10 +1,11 @@
-# Two commands: `make demo` (the whole story on a small scene) and `make test`.
+# `make demo` (the whole story on a small scene), `make test` (lint, then every test), `make test-fast` (no
+# training or subprocess runs, under 5 minutes) and `make lint` (ruff: pyflakes, import order, format).
 PY ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test install clean-venv
+.PHONY: demo test test-fast lint install clean-venv
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -14,8 +15,15 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-test: $(STAMP)
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+test: lint
 	$(BIN)/python -m pytest -q tests
+
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow" tests
 
 demo: $(STAMP)
 	$(BIN)/python -m gsticker_plugin.demo

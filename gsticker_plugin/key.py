@@ -77,7 +77,7 @@ def parse_message(text: str, num_bits: int = 48) -> Tensor:
 
 
 def bits_to_str(bits: Tensor) -> str:
-    """0/1 bits as a string; an undetermined bit (-1, see gsticker_plugin.geometry.decide_bits) reads ``?``."""
+    """0/1 bits as a string; an undetermined bit (-1, see gsticker_plugin.decoders.fit.decide_bits) reads ``?``."""
     return "".join("?" if int(b) < 0 else str(int(b)) for b in bits.reshape(-1).tolist())
 
 
@@ -176,7 +176,7 @@ class OwnerKey:
     created: float = field(default_factory=time.time)
     geometry: Optional[Dict[str, Any]] = None
     """The geometry reference (sticker config and state, gates' state, fields, aabbs; see
-    :func:`gsticker_plugin.geometry.geometry_reference`); None in a version-1 key."""
+    :func:`gsticker_plugin.model.geometry_reference`); None in a version-1 key."""
     message_source: str = "random"
     """How the message was drawn (:data:`MESSAGE_SOURCES`); ``unknown`` for keys written before version 3."""
     owner_message_prob: float = 0.0

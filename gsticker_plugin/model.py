@@ -305,7 +305,7 @@ class GeometryStickerModel(Model):
 
         if message is not None and bool(self.folded):
             raise GStickerError("this run holds the shared (folded) sticker and no message; render another message "
-                                "with the owner key's sticker (gsticker_plugin.geometry.load_base_reference)")
+                                "with the owner key's sticker (gsticker_plugin.decoders.reference.load_base_reference)")
         old_message = None if message is None else self.message.clone()
         object.__setattr__(fld, "forward", forward)
         try:

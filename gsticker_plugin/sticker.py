@@ -161,7 +161,7 @@ class Sticker(nn.Module):
 
     def mix(self, features: Float[Tensor, "N F"], signs: Float[Tensor, " K"]) -> Float[Tensor, "N 1"]:
         """The sticker from :meth:`features` and message *signs* (+-1 for bits; any value in [-1, 1] is allowed,
-        which makes the sticker a differentiable function of a continuous message, see gsticker_plugin.geometry)."""
+        which makes the sticker a differentiable function of a continuous message, see gsticker_plugin.decoders.geometric)."""
         if self.msg_in is not None:
             return torch.tanh(self.mlp(features + self.msg_in(signs)))
         return torch.tanh(features @ signs[:, None] / math.sqrt(self.num_bits))

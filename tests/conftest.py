@@ -1,15 +1,20 @@
 """Shared pytest fixtures.
 
 ``tiny_scene``: a 32 px Blender-format dataset (6 train / 2 val / 2 test views, seed 0) generated once per
-session with the plugin's own scene generator. ``shared_dir``: the project's shared data folder
-(``../shared`` beside the repository root), or a skip when it is missing.
+session with the plugin's own scene generator. ``tiny_base`` (a 2-step nerfacto base on it) and ``tiny_sticker``
+(a 10-step geometrysticker run on that base carrying ``TINY_MESSAGE``) are trained once per session by the real
+``ns-train``; modules that rewrite a key get their own copy (:func:`copy_key`). ``shared_dir``: the project's
+shared data folder (``../shared`` beside the repository root), or a skip when it is missing.
 """
 
 from __future__ import annotations
 
+import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Dict, List
 
 import pytest
 
@@ -23,6 +28,30 @@ except Exception:  # triton is optional (CPU-only torch wheels)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED = REPO_ROOT.parent / "shared"
+BIN = Path(sys.executable).parent
+TINY_MESSAGE = "101100111000111100001111100000111111000000111111"
+NERFACTO_TINY = ["gsticker-nerfacto-small", "--pipeline.model.num-nerf-samples-per-ray", "16",
+                 "--pipeline.model.num-proposal-samples-per-ray", "32", "16",
+                 "--pipeline.datamanager.train-num-rays-per-batch", "256"]
+CPU_ARGS = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
+TINY_STICKER_ARGS = ["--max-num-iterations", "10", "--pipeline.pool-train-views", "2", "--pipeline.pool-novel-views",
+                     "2", "--pipeline.monitor-views", "1", "--pipeline.steps-per-monitor", "5",
+                     "--pipeline.views-per-step", "2", "--pipeline.heads.width", "8"]
+
+
+def ns_train(args: List[str], cwd: Path, timeout: int = 900) -> subprocess.CompletedProcess:
+    """The real ``ns-train`` in a subprocess (one thread, offline); fails the test with its log tail."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", GSTICKER_NO_DOWNLOAD="1", PYTHONWARNINGS="ignore", COLUMNS="200")
+    proc = subprocess.run([str(BIN / "ns-train"), *args], capture_output=True, text=True, env=env, cwd=cwd,
+                          timeout=timeout)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc
+
+
+def copy_key(key: Path, folder: Path) -> Path:
+    """A module's own copy of a session key (calibrate and export-key rewrite keys in place)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    return Path(shutil.copy(key, folder / key.name))
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -60,3 +89,37 @@ def shared_dir() -> Path:
     if not SHARED.is_dir():
         pytest.skip(f"shared data folder {SHARED} is missing")
     return SHARED
+
+
+@pytest.fixture(scope="session")
+def tiny_base(tiny_scene, tmp_path_factory) -> Path:
+    """config.yml of a 2-step nerfacto base on the tiny scene (read-only: copy it before changing it)."""
+    ws = tmp_path_factory.mktemp("tiny_base")
+    ns_train([*NERFACTO_TINY, *CPU_ARGS, "--output-dir", str(ws), "--experiment-name", "nerfacto", "--timestamp",
+              "base", "--max-num-iterations", "2", "--steps-per-save", "2", "blender-data", "--data", str(tiny_scene)],
+             ws)
+    return ws / "nerfacto" / "gsticker-nerfacto-small" / "base" / "config.yml"
+
+
+@pytest.fixture(scope="session")
+def tiny_sticker(tiny_base, tmp_path_factory) -> Dict[str, Path]:
+    """A 10-step geometrysticker run on ``tiny_base`` carrying ``TINY_MESSAGE``: ``{base, run, key}`` (config.yml
+    paths and the owner key; read-only: :func:`copy_key` before calibrating or exporting into a key)."""
+    ws = tmp_path_factory.mktemp("tiny_sticker")
+    ckpt = max((tiny_base.parent / "nerfstudio_models").glob("step-*.ckpt"))
+    key = ws / "gs" / "geometrysticker" / "run.gskey"
+    ns_train(["geometrysticker", "--load-checkpoint", str(ckpt), *CPU_ARGS, "--output-dir", str(ws),
+              "--experiment-name", "gs", "--timestamp", "run", "--pipeline.message", TINY_MESSAGE, *TINY_STICKER_ARGS,
+              "--pipeline.key-path", str(key)], ws)
+    return {"base": tiny_base, "run": ws / "gs" / "geometrysticker" / "run" / "config.yml", "key": key}
+
+
+# Fixtures that train with ns-train, render a scene or run an ns-* command: a test that uses one (directly or through
+# another fixture) is marked ``slow`` here, so ``make test-fast`` (``-m "not slow"``) trains nothing.
+SLOW_FIXTURES = {"tiny_scene", "tiny_base", "tiny_sticker", "shared_dir"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)

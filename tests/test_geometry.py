@@ -1,4 +1,4 @@
-"""Informed geometric decoding (gsticker_plugin/geometry.py, ``ns-verify-owner --decode geometry``).
+"""Informed geometric decoding (gsticker_plugin/decoders/, ``ns-verify-owner --decode geometry``).
 
 Pure functions first (the sticker's continuous-message path, the least-squares fit, the tie rule), then the owner
 key's version-2 geometry reference, then real runs: a 2-step nerfacto base and a 10-step ``geometrysticker`` run on
@@ -19,6 +19,7 @@ from typing import Dict, List
 
 import pytest
 import torch
+from conftest import TINY_MESSAGE, copy_key
 
 from gsticker_plugin import runs as RUNS
 from gsticker_plugin import sticker as S
@@ -31,7 +32,7 @@ from gsticker_plugin.sticker import Sticker, message_to_signs
 from gsticker_plugin.verify import cli as V
 
 BIN = Path(sys.executable).parent
-MESSAGE = "101100111000111100001111100000111111000000111111"
+MESSAGE = TINY_MESSAGE
 OTHER_MESSAGE = "010011000111000011110000011111000000111111000000"  # the complement: 0 matches with MESSAGE
 NERFACTO_TINY = ["gsticker-nerfacto-small", "--pipeline.model.num-nerf-samples-per-ray", "16",
                  "--pipeline.model.num-proposal-samples-per-ray", "32", "16",
@@ -193,27 +194,19 @@ def _train(cmd: List[str], cwd: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def runs(tiny_scene, ws) -> Dict[str, Path]:
-    """Base, watermarked run + key, a copy carrying OTHER_MESSAGE, and a base on another scene."""
+def runs(tiny_sticker, ws) -> Dict[str, Path]:
+    """Base, watermarked run + key (the session's, the key copied), a copy carrying OTHER_MESSAGE, and a base on
+    another scene."""
     out = ws / "runs"
-    _train([*NERFACTO_TINY, *COMMON, "--output-dir", str(out / "base"), "--experiment-name", "nerfacto",
-            "--timestamp", "base", "--max-num-iterations", "2", "--steps-per-save", "2",
-            "blender-data", "--data", str(tiny_scene)], ws)
-    base = out / "base" / "nerfacto" / "gsticker-nerfacto-small" / "base"
-    ckpt = max((base / "nerfstudio_models").glob("step-*.ckpt"))
-    _train(["geometrysticker", "--load-checkpoint", str(ckpt), *COMMON, "--output-dir", str(out / "gs"),
-            "--experiment-name", "gs", "--timestamp", "run", "--max-num-iterations", "10",
-            "--pipeline.message", MESSAGE, "--pipeline.pool-train-views", "2", "--pipeline.pool-novel-views", "2",
-            "--pipeline.monitor-views", "1", "--pipeline.steps-per-monitor", "5", "--pipeline.views-per-step", "2",
-            "--pipeline.heads.width", "8", "--pipeline.key-path", str(out / "gs" / "gs" / "geometrysticker" / "run.gskey")],
-           ws)
-    run = out / "gs" / "gs" / "geometrysticker" / "run"
+    base = tiny_sticker["base"].parent
+    run = tiny_sticker["run"].parent
+    key = copy_key(tiny_sticker["key"], ws / "keys")
     # the same sticker carrying another message: the checkpoint's folded sticker refolded with it
     other = out / "other-msg" / "run"
     shutil.copytree(run, other)
     (ck,) = (other / "nerfstudio_models").glob("step-*.ckpt")
     state = torch.load(ck, map_location="cpu", weights_only=False)
-    for k, v in key_sticker(run.with_name("run.gskey")).fold(parse_message(OTHER_MESSAGE)).items():
+    for k, v in key_sticker(key).fold(parse_message(OTHER_MESSAGE)).items():
         state["pipeline"]["_model.folded_sticker." + k] = v
     torch.save(state, ck)
     import yaml
@@ -230,7 +223,7 @@ def runs(tiny_scene, ws) -> Dict[str, Path]:
     _train([*NERFACTO_TINY, *COMMON, "--output-dir", str(out / "scene2"), "--experiment-name", "nerfacto",
             "--timestamp", "base", "--max-num-iterations", "2", "--steps-per-save", "2",
             "blender-data", "--data", str(scene2)], ws)
-    return {"base": base / "config.yml", "run": run / "config.yml", "key": run.with_name("run.gskey"),
+    return {"base": base / "config.yml", "run": run / "config.yml", "key": key,
             "other_msg": other / "config.yml",
             "scene2": out / "scene2" / "nerfacto" / "gsticker-nerfacto-small" / "base" / "config.yml"}
 

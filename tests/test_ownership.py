@@ -152,14 +152,12 @@ def moved_copy(run: Path, dst: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def shared_run(tiny_scene, tmp_path_factory, owner_keys_dir):
+def shared_run(tiny_base, tmp_path_factory, owner_keys_dir):
     """A tiny base and a sticker trained on it with the defaults a user gets: random secret message, key in the
     per-user keys folder (here the session's GSTICKER_KEYS_DIR), owner label 'alice'."""
     ws = tmp_path_factory.mktemp("ownership")
     out = ws / "outputs"
-    _train([*NERFACTO_TINY, *COMMON, "--output-dir", str(out), "--experiment-name", "base", "--timestamp", "base",
-            "--max-num-iterations", "2", "--steps-per-save", "2", "blender-data", "--data", str(tiny_scene)], ws)
-    base = out / "base" / "gsticker-nerfacto-small" / "base"
+    base = tiny_base.parent
     ckpt = max((base / "nerfstudio_models").glob("step-*.ckpt"))
     proc = _train(["geometrysticker", "--load-checkpoint", str(ckpt), *COMMON, "--output-dir", str(out),
                    "--experiment-name", "shared", "--timestamp", "run", "--max-num-iterations", "10",

@@ -1,4 +1,4 @@
-"""Tests of ``ns-verify-owner`` (gsticker_plugin/verify.py) and the statistics it adds to ``metrics``.
+"""Tests of ``ns-verify-owner`` (gsticker_plugin/verify/) and the statistics it adds to ``metrics``.
 
 The verdict logic is tested with a *hand-built* owner key whose extractor truly reads bits from images in a
 known way: a 7 x 7 grid of cells, cell ``i`` brighter than the image's average cell means bit ``i`` = 1 (a
@@ -36,6 +36,7 @@ from typing import List
 import numpy as np
 import pytest
 import torch
+from conftest import TINY_MESSAGE, copy_key
 
 from gsticker_plugin import metrics
 from gsticker_plugin import runs as RUNS
@@ -484,32 +485,14 @@ NERFACTO_TINY = ["gsticker-nerfacto-small", "--pipeline.model.num-nerf-samples-p
                  "--pipeline.model.num-proposal-samples-per-ray", "32", "16",
                  "--pipeline.datamanager.train-num-rays-per-batch", "256"]
 COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
-MESSAGE = "101100111000111100001111100000111111000000111111"
+MESSAGE = TINY_MESSAGE
 
 
 @pytest.fixture(scope="module")
-def real_runs(tiny_scene, ws) -> dict:
-    """A 2-step nerfacto base and a 10-step geometrysticker run on it (real ns-train, on the CPU)."""
-    env = dict(os.environ, OMP_NUM_THREADS="1", GSTICKER_NO_DOWNLOAD="1", PYTHONWARNINGS="ignore")
-    out = ws / "runs"
-
-    def train(cmd):
-        proc = subprocess.run([str(BIN / "ns-train"), *cmd], capture_output=True, text=True, env=env, cwd=ws,
-                              timeout=600)
-        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-
-    train([*NERFACTO_TINY, *COMMON, "--output-dir", str(out / "base"), "--experiment-name", "nerfacto",
-           "--timestamp", "base", "--max-num-iterations", "2", "--steps-per-save", "2",
-           "blender-data", "--data", str(tiny_scene)])
-    base = out / "base" / "nerfacto" / "gsticker-nerfacto-small" / "base"
-    ckpt = max((base / "nerfstudio_models").glob("step-*.ckpt"))
-    train(["geometrysticker", "--load-checkpoint", str(ckpt), *COMMON, "--output-dir", str(out / "gs"),
-           "--experiment-name", "gs", "--timestamp", "run", "--max-num-iterations", "10",
-           "--pipeline.message", MESSAGE, "--pipeline.pool-train-views", "2", "--pipeline.pool-novel-views", "2",
-           "--pipeline.monitor-views", "1", "--pipeline.steps-per-monitor", "5", "--pipeline.views-per-step", "2",
-           "--pipeline.heads.width", "8", "--pipeline.key-path", str(out / "gs" / "gs" / "geometrysticker" / "run.gskey")])
-    run = out / "gs" / "gs" / "geometrysticker" / "run"
-    return {"base": base / "config.yml", "run": run / "config.yml", "key": run.with_name("run.gskey")}
+def real_runs(tiny_sticker, ws) -> dict:
+    """The session's 2-step nerfacto base and 10-step geometrysticker run on it (real ns-train, on the CPU), with
+    this module's own copy of the key."""
+    return {**tiny_sticker, "key": copy_key(tiny_sticker["key"], ws / "keys")}
 
 
 def _check_model_report(rep: dict, n_views: int) -> dict:

@@ -1,12 +1,12 @@
 """The informed *image* decoder: read the owner's message from images of the scene taken at known cameras.
 
-The geometric decoder (:mod:`gsticker_plugin.geometry`) reads a suspect *model's* accumulation and depth. An
+The geometric decoder (:mod:`gsticker_plugin.decoders.geometric`) reads a suspect *model's* accumulation and depth. An
 image shows only colour, but the colour a NeRF renders is the composite of its sample colours with the density the
 sticker changed: ``pixel = clamp(sum_i w_i(sigma~) c_i + (1 - acc(sigma~)) bg)``. Given the owner's base (the key
 records it, as for the geometric decoder) and the camera of each image, the change the sticker of a continuous
 message ``s`` makes to the base render at that camera is predicted exactly on the base's own samples, with the
 base's own colours, and ``s`` is fitted to ``image - base render`` by the same Levenberg-Marquardt fit
-(:func:`gsticker_plugin.geometry.fit_message`, Jacobian in closed form); bit ``i`` = ``s_i > 0``, undetermined
+(:func:`gsticker_plugin.decoders.fit.fit_message`, Jacobian in closed form); bit ``i`` = ``s_i > 0``, undetermined
 bits count as mismatches.
 
 What it reads: images at *known* cameras (renders of the scene at the base's cameras, e.g. the evaluation
@@ -55,7 +55,7 @@ from gsticker_plugin.views import View, Views, progress_bar
 @dataclass
 class ImageReferenceView:
     """One camera of the owner's base in the image decoder's terms."""
-    view: Any  # gsticker_plugin.geometry.ReferenceView (rays, samples, gate, sticker features, sample colours)
+    view: Any  # gsticker_plugin.decoders.reference.ReferenceView (rays, samples, gate, sticker features, sample colours)
     background: Float[Tensor, " 3"]
     base_rgb: Float[Tensor, "R 3"]  # the base render at the rays (what the suspect image is compared with)
 
@@ -356,7 +356,7 @@ def decode_posed_images(key, reference, images: Sequence[Float[Tensor, "H W 3"]]
     decoder. ``images``: a ``[V H W 3]`` tensor or a list of ``[H W 3]`` images (sizes may differ, each its camera's).
 
     ``reference``: the owner's base with the key's sticker and gates
-    (:func:`gsticker_plugin.geometry.load_base_reference`). ``ref_cache``: a dict the caller keeps to reuse the
+    (:func:`gsticker_plugin.decoders.reference.load_base_reference`). ``ref_cache``: a dict the caller keeps to reuse the
     base's reference views of these cameras (the same keys as the geometric decoder's, so one cache serves both).
     ``degradations="match"``: first estimate each image's blur, resize, rotation or JPEG quality from the base
     render alone (:func:`match_degradation` over :data:`DEGRADATION_GRID`), fit through it and without it, and keep
@@ -534,7 +534,7 @@ def posed_views(views: Views, frames: Dict[str, Dict[str, Any]], scale_factor: f
 def decode_images_at_cameras(key: OwnerKey, ref, views: Views, frames: Dict[str, Dict[str, Any]], seed: int,
                              progress: bool) -> Tuple[Views, Dict[str, Any]]:
     """The informed image decoder on the images of ``views`` that have a camera in ``frames``, against the owner's
-    base ``ref`` (:func:`gsticker_plugin.geometry.load_base_reference`): the posed views and the decoded bits."""
+    base ``ref`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`): the posed views and the decoded bits."""
     import contextlib
 
 

@@ -1,28 +1,4 @@
-"""``ns-verify-owner``: does a suspect model, or a folder of suspect images, carry an owner's message?
-
-Four subcommands (``verify`` is the default and may be left out)::
-
-    ns-verify-owner [verify] (--load-config RUN/config.yml | --images DIR) (--key KEY.gskey | --keys DIR) [...]
-    ns-verify-owner calibrate --key KEY.gskey [--load-config RUN/config.yml ...] [--images DIR ...] [...]
-    ns-verify-owner export-key --load-config WATERMARKED_RUN/config.yml --key KEY.gskey [--output NEW.gskey]
-    ns-verify-owner commit --key KEY.gskey      (prints the key's commitment; verify --commitment HEX checks it)
-
-``verify`` renders N views of a run (its own cameras and sampled orbit poses) or reads the images of a folder,
-decodes each view with the owner key's extractor, tests each view on its own against the binomial null
-(``P(X >= m)`` for ``X ~ Binomial(48, 1/2)``), and combines the per-view decisions with the vote of
-:func:`gsticker_plugin.metrics.combine_view_decisions` (never pooling bits across views). It prints the verdict
-first, writes ``report.json`` and ``report.png``, and exits 0 ("owned"), 1 ("not shown") or 2 (error).
-
-``calibrate`` decodes unmarked renders and images with a key and stores the observed null in the key (the key is
-rewritten atomically; the previous file is kept as ``KEY.gskey.bak``). ``verify`` then uses the stricter of the
-theoretical and the empirical per-view threshold and reports both. See docs/verify.md.
-
-Three decoders (``--decode``): the blind *extractor* (the key's CNN reads RGB renders or images), the informed
-*geometric* decoder (gsticker_plugin.geometry: fits the key's sticker to a suspect model's accumulation/depth against
-the owner's unwatermarked base run; models only) and the informed *image* decoder (gsticker_plugin.decoders.image:
-the same fit on the colour of images taken at known cameras, ``--images DIR --cameras transforms.json``). ``export-key`` adds the geometric decoder's reference (sticker,
-gates) to a version-1 key from the watermarked run it belongs to.
-"""
+"""``ns-verify-owner [verify]``: render or read the suspect's views, decode them with each key, give the verdict."""
 
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ with exactly the same modules and state dict (a watermarked run's checkpoint loa
 It is built from a trained geometrysticker run, not trained (:func:`write_color_marked_run`);
 :func:`match_amplitude` picks ``a`` for a target PSNR against the unmarked render, and
 :func:`decode_color_suspect` is the informed color decoder, the analogue of
-:func:`gsticker_plugin.geometry.decode_suspect`: it fits the continuous message to the suspect's RGB change
+:func:`gsticker_plugin.decoders.geometric.decode_suspect`: it fits the continuous message to the suspect's RGB change
 ``sum_j w_j * a * psi_j * m_j(s)`` (base weights ``w``: density is unchanged) at the base's rays.
 
 Order with recoloring: the mark wraps the final field instance's ``get_outputs`` when the model is built, so a
@@ -283,7 +283,7 @@ def match_amplitude(pipeline, target_psnr: float, num_views: int = 4, sampled_sh
 @dataclass
 class ColorReferenceView:
     """One reference view in the color decoder's terms: what the suspect's RGB change at the rays depends on."""
-    view: Any  # gsticker_plugin.geometry.ReferenceView
+    view: Any  # gsticker_plugin.decoders.reference.ReferenceView
     psi: Float[Tensor, "N 1"]  # the gate at the open samples (psi_scale without the gate's density scale)
     weights: Float[Tensor, "R S 1"]  # the base's render weights (the color mark leaves density unchanged)
     base_rgb: Float[Tensor, "R 3"]  # the base render at the rays
@@ -348,11 +348,11 @@ def decode_color_suspect(key, reference, suspect_model, num_views: int, sampled_
                          amplitude: float, sticker: Optional[bool] = None, progress: bool = False,
                          iterations: int = 10, ref_cache: Optional[Dict[Any, Any]] = None,
                          full_renders: bool = True):
-    """The informed color decoder: :func:`gsticker_plugin.geometry.decode_suspect` with the suspect's RGB instead of
+    """The informed color decoder: :func:`gsticker_plugin.decoders.geometric.decode_suspect` with the suspect's RGB instead of
     its geometry, and the color mark of ``amplitude`` as the model of the change.
 
     ``reference``: the owner's base with the key's sticker and gates
-    (:func:`gsticker_plugin.geometry.load_base_reference`). ``sticker``: render the suspect with its mark on/off
+    (:func:`gsticker_plugin.decoders.reference.load_base_reference`). ``sticker``: render the suspect with its mark on/off
     (None: as it is). ``ref_cache``: a dict the caller keeps to reuse reference views (same keys as
     ``decode_suspect``'s). Returns ``(dec, views)``: ``dec`` holds per view ``bits``, ``matches``, ``bit_acc``,
     ``pvalues``, ``scores`` (None) and ``color`` (per-view fit details); ``views`` the suspect's RGB renders
