@@ -20,7 +20,9 @@ import socket
 import warnings
 from typing import Dict
 
+import numpy as np
 import torch
+import torchvision
 
 _PATCHED = False
 # net_type -> torchvision factory name, as torchmetrics maps it.
@@ -32,8 +34,6 @@ _warned = False
 
 def numpy_checkpoint_types() -> list:
     """The exact numpy types that Nerfstudio optimizer states pickle (scalars and their dtypes)."""
-    import numpy as np
-
     types: list = [np.dtype]
     try:  # numpy >= 2
         from numpy._core.multiarray import scalar  # type: ignore[attr-defined]
@@ -54,8 +54,6 @@ def allow_numpy_checkpoint_types() -> None:
 
 
 def _weights_file(tv_name: str):
-    import torchvision
-
     weights = getattr(torchvision.models, _WEIGHTS[tv_name]).DEFAULT
     return os.path.join(torch.hub.get_dir(), "checkpoints", os.path.basename(weights.url)), weights
 

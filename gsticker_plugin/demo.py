@@ -24,6 +24,9 @@ from typing import Dict, List
 
 import tyro
 
+from gsticker_plugin import metrics
+from gsticker_plugin.evaluate import decode_images, load_pipeline, psnr_nhw3, render_split
+from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.machine import console_script
 from gsticker_plugin.runs import latest_checkpoint
 
@@ -109,10 +112,6 @@ def main(cfg: DemoConfig) -> None:
         print("    (exists)")
 
     print("[4/6] Decoding test views with the owner key", flush=True)
-    from gsticker_plugin import metrics
-    from gsticker_plugin.evaluate import decode_images, load_pipeline, psnr_nhw3, render_split
-    from gsticker_plugin.key import OwnerKey
-
     key = OwnerKey.load(key_path)
     pipe = load_pipeline(wm_run / "config.yml")
     marked = render_split(pipe, "test", cfg.test_views, sticker=True)

@@ -35,15 +35,22 @@ import os
 import shutil
 import sys
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 import torch
+import tyro
+import yaml
+from nerfstudio.cameras.rays import Frustums, RaySamples
+from nerfstudio.field_components.field_heads import FieldHeadNames
 from torch import Tensor
 
+from gsticker_plugin import runs
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.runs import final_rgb, load_run
+from gsticker_plugin.fastpath import orbit_cameras
+from gsticker_plugin.runs import final_rgb, load_run, relocate
 from gsticker_plugin.sticker import render_weights
 
 # ================================================================================================================
@@ -133,13 +140,7 @@ def fused_run_config(base_config, output_dir: Path, experiment_name: str, timest
     """The base run's TrainerConfig (its own method and model) pointed at a new run folder; nothing of the
     watermark or of the plugin in it."""
     cfg = copy.deepcopy(base_config)
-    cfg.output_dir = Path(output_dir)
-    cfg.experiment_name = experiment_name
-    cfg.timestamp = timestamp
-    cfg.load_dir = None
-    cfg.load_checkpoint = None
-    cfg.load_step = None
-    cfg.load_config = None
+    relocate(cfg, output_dir, experiment_name, cfg.method_name, timestamp)
     if data is not None:
         cfg.data = None
         cfg.pipeline.datamanager.data = Path(data)
@@ -200,8 +201,6 @@ def asdict_tensors(pool: SamplePool) -> List[Tensor]:
 def cache_view(wm_model, camera, keep_other: float, generator: torch.Generator) -> Tuple[SamplePool, Tensor]:
     """Render one camera with the watermarked model (sticker on) and cache its final samples' marked density and
     colour, and the base's density at them. Returns the pool of the kept rays and the marked render [H W 3]."""
-    from nerfstudio.field_components.field_heads import FieldHeadNames
-
     fld = wm_model.final_wrap.field
     records: List[Dict[str, Tensor]] = []
     original = fld.forward
@@ -240,8 +239,6 @@ def cache_view(wm_model, camera, keep_other: float, generator: torch.Generator) 
 
 def ray_samples_of(pool: SamplePool, device: torch.device):
     """Nerfstudio RaySamples of a pool batch (camera index 0: in eval mode nerfacto uses no appearance code)."""
-    from nerfstudio.cameras.rays import Frustums, RaySamples
-
     r, s = pool.starts.shape
     o = pool.origins.to(device)[:, None].expand(r, s, 3)
     d = pool.directions.to(device)[:, None].expand(r, s, 3)
@@ -295,8 +292,6 @@ class FuseConfig:
 
 def setup_runs(cfg: FuseConfig, device: torch.device):
     """Teacher (the watermarked run) and student (a fresh strict load of the base run it was made on)."""
-    from gsticker_plugin import runs
-
     with contextlib.redirect_stdout(sys.stderr):
         wm_config, wm_pipeline, _ = load_run(cfg.load_config, data=cfg.data, device=device)
     wm_model = wm_pipeline.model
@@ -324,8 +319,6 @@ def setup_runs(cfg: FuseConfig, device: torch.device):
 
 
 def pool_cameras(pipeline, train_views: int, orbit_views: int, seed: int) -> List[Tuple[str, Any]]:
-    from gsticker_plugin.fastpath import orbit_cameras
-
     cams = pipeline.datamanager.train_dataset.cameras
     n = len(cams)
     k = min(train_views, n)
@@ -360,8 +353,6 @@ def distill(student, pool: SamplePool, cfg: FuseConfig, background: Tensor, mu: 
             log: Optional[List[Dict[str, float]]] = None) -> Dict[str, float]:
     """Fine-tune the student's final field on the pool (student in eval mode: nerfacto then uses no appearance code,
     as when it renders)."""
-    from nerfstudio.field_components.field_heads import FieldHeadNames
-
     student.eval()
     for p in student.parameters():
         p.requires_grad_(False)
@@ -414,8 +405,6 @@ def distill(student, pool: SamplePool, cfg: FuseConfig, background: Tensor, mu: 
 
 def save_fused_run(fused_config, student_pipeline, base_state: Dict[str, Any], base_run_dir: Optional[Path] = None) -> Path:
     """Write config.yml and nerfstudio_models/step-N.ckpt (atomic) of the fused run; returns its config.yml."""
-    import yaml
-
     run_dir = Path(fused_config.get_base_dir())
     ckpt_dir = run_dir / fused_config.relative_model_dir
     ckpt_dir.mkdir(parents=True, exist_ok=True)
@@ -507,7 +496,6 @@ def main(cfg: FuseConfig) -> int:
         compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
     except Exception:  # pragma: no cover
         pass
-    import warnings
 
     warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
     try:
@@ -520,8 +508,6 @@ def main(cfg: FuseConfig) -> int:
 
 def entrypoint() -> None:
     """``ns-gsticker-export fuse ...`` (one subcommand for now)."""
-    import tyro
-
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", torch.get_num_threads())))
     args = sys.argv[1:]
     if args and args[0] == "fuse":

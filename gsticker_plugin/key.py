@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.heads import HeadConfig, Heads
 
 KEY_FORMAT = "gsticker-owner-key"
 KEY_VERSION = 3
@@ -295,8 +296,6 @@ class OwnerKey:
                    version=version)
 
     def build_heads(self):
-        from gsticker_plugin.heads import HeadConfig, Heads
-
         heads = Heads(HeadConfig(**self.heads_config), self.num_bits)
         heads.load_state_dict(self.heads_state, strict=True)
         return heads.eval()

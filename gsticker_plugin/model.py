@@ -14,6 +14,7 @@ from typing import Any, Dict, Iterator, List, Literal, Optional, Tuple, Type
 import torch
 import tyro
 from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.base_field import Field
 from nerfstudio.models.base_model import Model, ModelConfig
 from torch import Tensor, nn
@@ -283,8 +284,6 @@ class GeometryStickerModel(Model):
         wrapped density), while the recorded density and rgb are still the base's at those samples (the final
         field is evaluated a second time with the sticker off).
         """
-        from nerfstudio.field_components.field_heads import FieldHeadNames
-
         fld = self.final_wrap.field
         records: List[Dict[str, Tensor]] = []
         original_forward = fld.forward

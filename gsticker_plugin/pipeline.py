@@ -17,6 +17,7 @@ import tyro
 from nerfstudio.data.datamanagers.base_datamanager import DataManagerConfig, VanillaDataManagerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
+from rich.progress import Progress
 from torch import Tensor
 
 from gsticker_plugin import metrics
@@ -197,8 +198,6 @@ class GeometryStickerPipeline(VanillaPipeline):
     @torch.no_grad()
     def build_pool(self) -> None:
         """Calibrate the gates (unless resumed) and render the pool views once, sticker off."""
-        from rich.progress import Progress
-
         model = self.model
         cams = self.datamanager.train_dataset.cameras
         gen = torch.Generator().manual_seed(self.config.seed)

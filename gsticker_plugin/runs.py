@@ -12,6 +12,7 @@ import dataclasses
 import enum
 import importlib.util
 import re
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple
 
@@ -21,6 +22,7 @@ from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConf
 from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManager
 from nerfstudio.engine.trainer import TrainerConfig
 
+from gsticker_plugin.compat import allow_numpy_checkpoint_types
 from gsticker_plugin.errors import GStickerError
 
 
@@ -53,6 +55,17 @@ def latest_checkpoint(folder: Path) -> Optional[Path]:
     return max(numbered)[1] if numbered else None
 
 
+def relocate(config, output_dir: Path, experiment_name: str, method_name: str, timestamp: str):
+    """Point a run's TrainerConfig at ``output_dir/experiment/method/timestamp`` (Nerfstudio's layout), loading
+    nothing: a new run. Returns that folder."""
+    config.output_dir = Path(output_dir)
+    config.experiment_name = experiment_name
+    config.method_name = method_name
+    config.timestamp = timestamp
+    config.load_dir = config.load_checkpoint = config.load_step = config.load_config = None
+    return Path(output_dir) / experiment_name / method_name / timestamp
+
+
 def run_config_path(checkpoint: Path) -> Path:
     cfg = checkpoint.resolve().parent.parent / "config.yml"
     if not cfg.is_file():
@@ -69,8 +82,6 @@ PATH_CLASSES = ("pathlib.Path", "pathlib.PosixPath", "pathlib.WindowsPath", "pat
 def method_packages() -> Tuple[str, ...]:
     """Top-level packages of Nerfstudio's own methods, gsticker and every installed ``nerfstudio.method_configs``
     entry point: the code a run's config.yml may name."""
-    from importlib.metadata import entry_points
-
     eps = entry_points(group="nerfstudio.method_configs")
     return tuple(sorted(set(TRUSTED_PACKAGES) | {ep.value.split(":")[0].split(".")[0] for ep in eps}))
 
@@ -150,8 +161,6 @@ def checkpoint_step(checkpoint: Path) -> int:
 
 
 def load_checkpoint_state(checkpoint: Path) -> Dict[str, Any]:
-    from gsticker_plugin.compat import allow_numpy_checkpoint_types
-
     allow_numpy_checkpoint_types()  # numpy 2 scalars in the optimizer state; not only after the plugin's host fixes ran
     try:
         state = torch.load(checkpoint, map_location="cpu")

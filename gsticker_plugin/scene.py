@@ -23,6 +23,7 @@ from typing import Dict, List, Literal, Optional, Sequence, Tuple
 import numpy as np
 import tyro
 from jaxtyping import Float, Int, UInt8
+from tqdm import tqdm
 
 CAMERA_RADIUS = 4.0
 """Distance of every camera from the origin."""
@@ -381,8 +382,6 @@ def _write_image(path: Path, spec, pixels: np.ndarray) -> None:
 
 def write_dataset(parts: Sequence[Part], folder: Path, config: SceneConfig, progress: bool = True) -> None:
     """Render every split into ``folder`` (which must exist): PNGs, depth EXRs and transforms_*.json."""
-    from tqdm import tqdm
-
     counts = {"train": config.num_train, "val": config.num_val, "test": config.num_test}
     poses = split_poses(config.seed, counts)
     plotter = make_plotter(parts, config.resolution * config.supersample)

@@ -10,9 +10,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
+import numpy as np
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
+from gsticker_plugin.attacks import apply_attacks, parse_attack_spec
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import orbit_cameras
 from gsticker_plugin.runs import final_rgb, load_run
@@ -41,7 +44,6 @@ class SkipImage(Exception):
 def progress_bar(iterable, desc: str, enabled: bool, total: Optional[int] = None):
     if not enabled:
         return iterable
-    from tqdm import tqdm
 
     return tqdm(iterable, desc=desc, total=total, leave=False, file=sys.stderr)
 
@@ -53,7 +55,6 @@ def read_image(path: Path, max_side: int = 400, min_side: int = 16, max_pixels: 
     float (HDR) values are clamped to [0, 1]. Images with a longer side above ``max_side`` are reduced by an
     integer area average while being read in strips (memory stays bounded for any size), then resized exactly.
     """
-    import numpy as np
     import OpenImageIO as oiio
 
     inp = oiio.ImageInput.open(str(path))
@@ -251,7 +252,6 @@ def model_views(config_path: Path, num_views: int, sampled_share: float, seed: i
 def apply_attack(views: Views, spec: str, seed: int) -> None:
     if not spec.strip():
         return
-    from gsticker_plugin.attacks import apply_attacks, parse_attack_spec
 
     try:
         steps = parse_attack_spec(spec)

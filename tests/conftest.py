@@ -13,8 +13,9 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Sequence
 
 import pytest
 
@@ -39,10 +40,55 @@ TINY_STICKER_ARGS = ["--max-num-iterations", "10", "--pipeline.pool-train-views"
                      "--pipeline.views-per-step", "2", "--pipeline.heads.width", "8"]
 
 
+def subprocess_env(threads: int = 0, **extra: str) -> dict:
+    """The environment of an ns-* subprocess: offline LPIPS, wide logs, no warnings; ``threads``: BLAS threads."""
+    env = dict(os.environ)
+    env.update({"GSTICKER_NO_DOWNLOAD": "1", "COLUMNS": "200", "PYTHONWARNINGS": "ignore"})
+    if threads:
+        env.update({"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)})
+    env.update(extra)
+    return env
+
+
+def console_script(name: str) -> Path:
+    """The console script ``name`` installed beside this Python (fails the test when it is missing)."""
+    path = BIN / name
+    if not path.exists():
+        pytest.fail(f"console script {name} is not installed next to {sys.executable} (pip install -e .)")
+    return path
+
+
+def run_parallel(commands: Sequence[Sequence[str]], cwd: Path, timeout: float = 600) -> List[subprocess.CompletedProcess]:
+    """Run the commands concurrently (one thread each when several), wait for all; output goes to files in ``cwd``."""
+    cwd.mkdir(parents=True, exist_ok=True)
+    threads = 1 if len(commands) > 1 else 0
+    procs = []
+    t0 = time.time()
+    for i, cmd in enumerate(commands):
+        out = open(cwd / f"cmd{i}.stdout", "w+")
+        err = open(cwd / f"cmd{i}.stderr", "w+")
+        procs.append((cmd, subprocess.Popen(list(cmd), stdout=out, stderr=err, cwd=cwd, env=subprocess_env(threads)),
+                      out, err))
+    deadline = time.time() + timeout
+    results = []
+    for cmd, proc, out, err in procs:
+        try:
+            proc.wait(timeout=max(1.0, deadline - time.time()))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        out.seek(0)
+        err.seek(0)
+        results.append(subprocess.CompletedProcess(list(cmd), proc.returncode, out.read(), err.read()))
+        print(f"{time.time() - t0:6.1f} s  {' '.join(str(c) for c in cmd[1:3])}")
+        out.close()
+        err.close()
+    return results
+
+
 def ns_train(args: List[str], cwd: Path, timeout: int = 900) -> subprocess.CompletedProcess:
     """The real ``ns-train`` in a subprocess (one thread, offline); fails the test with its log tail."""
-    env = dict(os.environ, OMP_NUM_THREADS="1", GSTICKER_NO_DOWNLOAD="1", PYTHONWARNINGS="ignore", COLUMNS="200")
-    proc = subprocess.run([str(BIN / "ns-train"), *args], capture_output=True, text=True, env=env, cwd=cwd,
+    proc = subprocess.run([str(BIN / "ns-train"), *args], capture_output=True, text=True, env=subprocess_env(1), cwd=cwd,
                           timeout=timeout)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return proc
@@ -123,3 +169,24 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.slow)
+
+
+def synthetic_reference_view(st, r: int = 600, s: int = 24, seed: int = 0, with_rgb: bool = False):
+    """A random reference view of ``r`` rays x ``s`` samples for sticker ``st`` (both signals; with ``with_rgb``
+    also random sample colours, drawn last from the same generator)."""
+    import torch
+
+    from gsticker_plugin.decoders.reference import ReferenceView
+
+    g = torch.Generator().manual_seed(seed)
+    dens = torch.rand(r, s, 1, generator=g) * 5 * (torch.rand(r, s, 1, generator=g) > 0.6)
+    psi = torch.sigmoid((dens - 2.5) * 4).reshape(-1, 1)
+    open_index = (psi[:, 0] > 1e-3).nonzero().squeeze(-1)
+    pos = torch.rand(r * s, 3, generator=g)
+    rgb = torch.rand(r, s, 3, generator=g) if with_rgb else None
+    with torch.no_grad():
+        feats = st.features(pos[open_index])
+    return ReferenceView(name="v", hw=(1, r), rays=torch.arange(r), density=dens, deltas=torch.full((r, s, 1), 0.1),
+                         steps=torch.linspace(2, 6, s).expand(r, s)[..., None].clone(), open_index=open_index,
+                         psi_scale=psi[open_index] * 2.0, features=feats, base_signal=torch.zeros(2, r),
+                         depth_scale=4.0, signals=("accumulation", "expected_depth"), rgb=rgb)

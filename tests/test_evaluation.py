@@ -11,37 +11,24 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from conftest import console_script, subprocess_env
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SMOKE = REPO_ROOT / "method_configs" / "eval" / "smoke.yaml"
 BIN = Path(sys.executable).parent
 
 
-def _env() -> dict:
-    env = dict(os.environ)
-    env.update({"GSTICKER_NO_DOWNLOAD": "1", "COLUMNS": "200", "PYTHONWARNINGS": "ignore"})
-    return env
-
-
-def _script(name: str) -> str:
-    path = BIN / name
-    if not path.exists():
-        pytest.fail(f"console script {name} is not installed next to {sys.executable} (pip install -e .)")
-    return str(path)
-
-
 @pytest.fixture(scope="module")
 def smoke(tiny_scene: Path, tmp_path_factory) -> dict:
     out = tmp_path_factory.mktemp("eval") / "smoke"
-    cmd = [_script("ns-gsticker-eval"), "--config", str(SMOKE), "--output-dir", str(out), "--data", str(tiny_scene),
+    cmd = [str(console_script("ns-gsticker-eval")), "--config", str(SMOKE), "--output-dir", str(out), "--data", str(tiny_scene),
            "--no-progress"]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=840, env=_env(), cwd=REPO_ROOT)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=840, env=subprocess_env(), cwd=REPO_ROOT)
     assert proc.returncode == 0, f"exit {proc.returncode}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
     return {"out": out, "stdout": proc.stdout, "cmd": cmd, "results": json.loads((out / "results.json").read_text())}
 
@@ -231,7 +218,7 @@ def test_tables_have_every_row(smoke):
 
 @pytest.mark.slow
 def test_resume_skips_finished_stages(smoke):
-    proc = subprocess.run(smoke["cmd"], capture_output=True, text=True, timeout=300, env=_env(), cwd=REPO_ROOT)
+    proc = subprocess.run(smoke["cmd"], capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=REPO_ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.count("done earlier") == 13, proc.stdout
     assert "$ " not in proc.stdout  # nothing trained, generated or recolored again

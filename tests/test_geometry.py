@@ -19,7 +19,7 @@ from typing import Dict, List
 
 import pytest
 import torch
-from conftest import TINY_MESSAGE, copy_key
+from conftest import TINY_MESSAGE, copy_key, synthetic_reference_view
 
 from gsticker_plugin import runs as RUNS
 from gsticker_plugin import sticker as S
@@ -111,18 +111,7 @@ def test_sticker_mix_is_forward_for_bits(kind):
 
 
 def _synthetic_view(st: Sticker, r: int = 600, s: int = 24, seed: int = 0) -> R.ReferenceView:
-    g = torch.Generator().manual_seed(seed)
-    dens = torch.rand(r, s, 1, generator=g) * 5 * (torch.rand(r, s, 1, generator=g) > 0.6)
-    psi = torch.sigmoid((dens - 2.5) * 4).reshape(-1, 1)
-    open_index = (psi[:, 0] > 1e-3).nonzero().squeeze(-1)
-    pos = torch.rand(r * s, 3, generator=g)
-    with torch.no_grad():
-        feats = st.features(pos[open_index])
-    return R.ReferenceView(name="v", hw=(1, r), rays=torch.arange(r), density=dens,
-                           deltas=torch.full((r, s, 1), 0.1),
-                           steps=torch.linspace(2, 6, s).expand(r, s)[..., None].clone(), open_index=open_index,
-                           psi_scale=psi[open_index] * 2.0, features=feats, base_signal=torch.zeros(2, r),
-                           depth_scale=4.0, signals=("accumulation", "expected_depth"))
+    return synthetic_reference_view(st, r, s, seed)
 
 
 def test_fit_recovers_the_message_and_a_zero_residual_reads_no_match():

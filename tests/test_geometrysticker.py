@@ -17,16 +17,15 @@ bad input stops ``ns-train`` before training with one line ``error: ...`` and ex
 from __future__ import annotations
 
 import math
-import os
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
-from typing import Dict, List, Sequence
+from typing import Dict, List
 
 import pytest
 import torch
+from conftest import console_script, run_parallel, subprocess_env
 
 from gsticker_plugin.decoders import geometric as G
 from gsticker_plugin.decoders import reference as R
@@ -84,48 +83,6 @@ COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
 # ---------------------------------------------------------------------------------------------- helpers
 
 
-def _env(threads: int = 0) -> dict:
-    env = dict(os.environ)
-    env.update({"GSTICKER_NO_DOWNLOAD": "1", "COLUMNS": "200", "PYTHONWARNINGS": "ignore"})
-    if threads:
-        env.update({"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)})
-    return env
-
-
-def _script(name: str) -> str:
-    path = BIN / name
-    if not path.exists():
-        pytest.fail(f"console script {name} is not installed next to {sys.executable} (pip install -e .)")
-    return str(path)
-
-
-def run_parallel(commands: Sequence[Sequence[str]], cwd: Path, timeout: float = 600) -> List[subprocess.CompletedProcess]:
-    """Run the commands concurrently (one thread each), wait for all; output goes to log files in ``cwd``."""
-    cwd.mkdir(parents=True, exist_ok=True)
-    threads = 1 if len(commands) > 1 else 0
-    procs = []
-    t0 = time.time()
-    for i, cmd in enumerate(commands):
-        out = open(cwd / f"cmd{i}.stdout", "w+")
-        err = open(cwd / f"cmd{i}.stderr", "w+")
-        procs.append((cmd, subprocess.Popen(list(cmd), stdout=out, stderr=err, cwd=cwd, env=_env(threads)), out, err))
-    deadline = time.time() + timeout
-    results = []
-    for cmd, proc, out, err in procs:
-        try:
-            proc.wait(timeout=max(1.0, deadline - time.time()))
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        out.seek(0)
-        err.seek(0)
-        results.append(subprocess.CompletedProcess(list(cmd), proc.returncode, out.read(), err.read()))
-        print(f"{time.time() - t0:6.1f} s  {' '.join(str(c) for c in cmd[1:3])}")
-        out.close()
-        err.close()
-    return results
-
-
 def ckpt_of(run_dir: Path) -> Path:
     ckpts = sorted((run_dir / "nerfstudio_models").glob("step-*.ckpt"))
     assert ckpts, f"no checkpoint in {run_dir}"
@@ -146,7 +103,7 @@ def fail_msg(proc: subprocess.CompletedProcess) -> str:
 
 
 def gs_command(base_ckpt: Path, output_dir: Path, message: str, *extra: str) -> List[str]:
-    return [_script("ns-train"), "geometrysticker", "--load-checkpoint", str(base_ckpt), *COMMON,
+    return [str(console_script("ns-train")), "geometrysticker", "--load-checkpoint", str(base_ckpt), *COMMON,
             "--output-dir", str(output_dir), "--experiment-name", "gs", "--timestamp", "run",
             "--max-num-iterations", str(GS_STEPS), "--pipeline.message", message, *GS_FLAGS, *extra]
 
@@ -164,7 +121,7 @@ def base_runs(tiny_scene: Path, work: Path) -> Dict[str, Path]:
     """Each base trained BASE_STEPS steps by the real ``ns-train`` (the three concurrently)."""
     out = work / "bases"
     commands = [
-        [_script("ns-train"), *BASE_ARGS[b], *COMMON, "--output-dir", str(out), "--experiment-name", b,
+        [str(console_script("ns-train")), *BASE_ARGS[b], *COMMON, "--output-dir", str(out), "--experiment-name", b,
          "--timestamp", "base", "--max-num-iterations", str(BASE_STEPS), "--steps-per-save", str(BASE_STEPS),
          "blender-data", "--data", str(tiny_scene)]
         for b in BASES
@@ -690,9 +647,9 @@ def test_short_training_lowers_the_message_loss(gs_runs):
 
 def test_ns_render_dataset_renders_the_run(gs_runs, work):
     out = work / "render"
-    proc = subprocess.run([_script("ns-render"), "dataset", "--load-config", str(gs_runs["nerfacto"]["config"]),
+    proc = subprocess.run([str(console_script("ns-render")), "dataset", "--load-config", str(gs_runs["nerfacto"]["config"]),
                            "--split", "test", "--rendered-output-names", "rgb", "--output-path", str(out)],
-                          capture_output=True, text=True, timeout=300, env=_env(), cwd=work)
+                          capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=work)
     assert proc.returncode == 0, fail_msg(proc)
     images = sorted(out.rglob("*.jpg")) + sorted(out.rglob("*.png"))
     assert len(images) == 2, sorted(out.rglob("*"))
@@ -709,12 +666,12 @@ def test_resume_continues_from_the_saved_step(gs_runs, work):
     shutil.copy2(run["key"], copy_key)
     out = work / "resumed"
     # Shapes (heads width, sticker size) come from the run being resumed: no need to repeat them.
-    cmd = [_script("ns-train"), "geometrysticker", "--load-dir", str(copy_dir / "nerfstudio_models"), *COMMON,
+    cmd = [str(console_script("ns-train")), "geometrysticker", "--load-dir", str(copy_dir / "nerfstudio_models"), *COMMON,
            "--output-dir", str(out), "--experiment-name", "gs", "--timestamp", "resumed",
            "--max-num-iterations", "3", "--pipeline.key-path", str(copy_key),
            "--pipeline.pool-train-views", "2", "--pipeline.pool-novel-views", "2", "--pipeline.monitor-views", "1",
            "--pipeline.views-per-step", "2", "--pipeline.pool-cache", str(work / "pool-nerfacto.pt")]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=400, env=_env(), cwd=work)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=400, env=subprocess_env(), cwd=work)
     assert proc.returncode == 0, fail_msg(proc)
     assert "pool reused" in proc.stdout  # same base, cameras, sizes and gate: the cached pool
     saved = GS_STEPS - 1
@@ -804,6 +761,6 @@ def test_bad_input_stops_ns_train_before_training_with_one_line_error(bad_inputs
 def test_bad_input_through_the_ns_train_console_script(bad_inputs, work):
     """The same, once, through the real console script: exit status 2 and one line on stderr."""
     case = "message"
-    proc = subprocess.run([_script("ns-train"), *_bad_args(case, bad_inputs)], capture_output=True, text=True,
-                          timeout=300, env=_env(), cwd=work)
+    proc = subprocess.run([str(console_script("ns-train")), *_bad_args(case, bad_inputs)], capture_output=True, text=True,
+                          timeout=300, env=subprocess_env(), cwd=work)
     _check_one_line_error(case, proc.returncode, proc.stdout, proc.stderr, bad_inputs["dir"] / "out" / case)

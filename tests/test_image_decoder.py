@@ -1,15 +1,17 @@
-"""The informed image decoder (gsticker_plugin/image_decoder.py) on small tensors: the predicted colour change,
+"""The informed image decoder (gsticker_plugin/decoders/image.py) on small tensors: the predicted colour change,
 its closed-form Jacobian, the fit on 8-bit images, and the null (an image that is the base render decodes to coin
 flips). The same decoder on real tiny runs is tested in tests/test_geometry.py."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
+from conftest import synthetic_reference_view
 
 from gsticker_plugin.decoders import fit as FIT
 from gsticker_plugin.decoders import image as I
-from gsticker_plugin.decoders import reference as R
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import parse_message
 from gsticker_plugin.sticker import Sticker, composite, message_to_signs
@@ -18,21 +20,11 @@ MESSAGE = "101100111000111100001111100000111111000000111111"
 
 
 def _view(st: Sticker, r: int = 600, s: int = 24, seed: int = 0) -> I.ImageReferenceView:
-    g = torch.Generator().manual_seed(seed)
-    dens = torch.rand(r, s, 1, generator=g) * 5 * (torch.rand(r, s, 1, generator=g) > 0.6)
-    psi = torch.sigmoid((dens - 2.5) * 4).reshape(-1, 1)
-    open_index = (psi[:, 0] > 1e-3).nonzero().squeeze(-1)
-    pos = torch.rand(r * s, 3, generator=g)
-    rgb = torch.rand(r, s, 3, generator=g)
-    deltas = torch.full((r, s, 1), 0.1)
+    base = synthetic_reference_view(st, r, s, seed, with_rgb=True)
     bg = torch.ones(3)
-    with torch.no_grad():
-        feats = st.features(pos[open_index])
-    image = composite(dens, rgb, deltas, bg)[0].clamp(0, 1)  # [R 3]: the base render at the rays
-    view = R.ReferenceView(name="v", hw=(1, r), rays=torch.arange(r), density=dens, deltas=deltas,
-                           steps=torch.linspace(2, 6, s).expand(r, s)[..., None].clone(), open_index=open_index,
-                           psi_scale=psi[open_index] * 2.0, features=feats, base_signal=torch.zeros(1, r),
-                           depth_scale=4.0, signals=("accumulation",), image=image.T.reshape(3, 1, r), rgb=rgb)
+    image = composite(base.density, base.rgb, base.deltas, bg)[0].clamp(0, 1)  # [R 3]: the base render at the rays
+    view = dataclasses.replace(base, base_signal=torch.zeros(1, r), signals=("accumulation",),
+                               image=image.T.reshape(3, 1, r))
     return I.image_reference(view, bg)
 
 

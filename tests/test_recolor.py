@@ -16,15 +16,14 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
-import time
 from pathlib import Path
-from typing import Dict, List, Sequence
+from typing import Dict, List
 
 import pytest
 import torch
+from conftest import console_script, run_parallel, subprocess_env
 
 from gsticker_plugin.errors import GStickerError
 
@@ -45,43 +44,6 @@ BASE_ARGS: Dict[str, List[str]] = {
                      "--steps-per-save", "2"],
 }
 BASES = ("tensorf", "nerfacto", "vanilla-nerf")
-
-
-def _env(threads: int = 0) -> dict:
-    env = dict(os.environ)
-    env.update({"GSTICKER_NO_DOWNLOAD": "1", "COLUMNS": "200", "PYTHONWARNINGS": "ignore"})
-    if threads:
-        env.update({"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)})
-    return env
-
-
-def _script(name: str) -> str:
-    path = BIN / name
-    if not path.exists():
-        pytest.fail(f"console script {name} is not installed next to {sys.executable} (pip install -e .)")
-    return str(path)
-
-
-def _run_parallel(commands: Sequence[Sequence[str]], cwd: Path, timeout: float = 400) -> List[subprocess.CompletedProcess]:
-    cwd.mkdir(parents=True, exist_ok=True)
-    procs = []
-    for i, cmd in enumerate(commands):
-        out, err = open(cwd / f"cmd{i}.out", "w+"), open(cwd / f"cmd{i}.err", "w+")
-        procs.append((cmd, subprocess.Popen(list(cmd), stdout=out, stderr=err, cwd=cwd, env=_env(1)), out, err))
-    deadline = time.time() + timeout
-    results = []
-    for cmd, proc, out, err in procs:
-        try:
-            proc.wait(timeout=max(1.0, deadline - time.time()))
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        out.seek(0)
-        err.seek(0)
-        results.append(subprocess.CompletedProcess(list(cmd), proc.returncode, out.read(), err.read()))
-        out.close()
-        err.close()
-    return results
 
 
 def _fail(proc) -> str:
@@ -117,19 +79,19 @@ def work(tmp_path_factory) -> Path:
 def runs(tiny_scene: Path, work: Path) -> Dict[str, Path]:
     """{base: RUN/config.yml} for the three bases, and "gs": a geometrysticker run on the TensoRF."""
     out = work / "bases"
-    cmds = [[_script("ns-train"), *BASE_ARGS[b], *COMMON, "--output-dir", str(out), "--experiment-name", b,
+    cmds = [[str(console_script("ns-train")), *BASE_ARGS[b], *COMMON, "--output-dir", str(out), "--experiment-name", b,
              "--timestamp", "base", "blender-data", "--data", str(tiny_scene)] for b in BASES]
     found: Dict[str, Path] = {}
-    for b, proc in zip(BASES, _run_parallel(cmds, work / "logs")):
+    for b, proc in zip(BASES, run_parallel(cmds, work / "logs")):
         assert proc.returncode == 0, f"ns-train {b}: {_fail(proc)}"
         (found[b],) = list((out / b).glob("*/base/config.yml"))
     ckpt = sorted((found["tensorf"].parent / "nerfstudio_models").glob("*.ckpt"))[-1]
-    gs = [_script("ns-train"), "geometrysticker", "--load-checkpoint", str(ckpt), *COMMON, "--output-dir",
+    gs = [str(console_script("ns-train")), "geometrysticker", "--load-checkpoint", str(ckpt), *COMMON, "--output-dir",
           str(work / "gs"), "--experiment-name", "gs", "--timestamp", "run", "--max-num-iterations", "3",
           "--pipeline.message", MESSAGE, "--pipeline.pool-train-views", "2", "--pipeline.pool-novel-views", "2",
           "--pipeline.monitor-views", "1", "--pipeline.steps-per-monitor", "5", "--pipeline.views-per-step", "2",
           "--pipeline.heads.width", "8"]
-    (proc,) = _run_parallel([gs], work / "logs-gs")
+    (proc,) = run_parallel([gs], work / "logs-gs")
     assert proc.returncode == 0, f"ns-train geometrysticker: {_fail(proc)}"
     found["gs"] = work / "gs" / "gs" / "geometrysticker" / "run" / "config.yml"
     return found
@@ -395,9 +357,9 @@ def test_image_level_hue_jitter_writes_jittered_renders(runs, work):
 
 def test_ns_render_renders_a_recolored_run(palette_edit, work):
     out = work / "render"
-    proc = subprocess.run([_script("ns-render"), "dataset", "--load-config", str(palette_edit["tensorf"]), "--split",
+    proc = subprocess.run([str(console_script("ns-render")), "dataset", "--load-config", str(palette_edit["tensorf"]), "--split",
                            "test", "--rendered-output-names", "rgb", "--output-path", str(out)],
-                          capture_output=True, text=True, timeout=300, env=_env(), cwd=work)
+                          capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=work)
     assert proc.returncode == 0, _fail(proc)
     assert len(sorted(out.rglob("*.jpg")) + sorted(out.rglob("*.png"))) == 2
 
@@ -553,9 +515,9 @@ def test_model_without_color_output_is_refused():
 
 
 def test_bad_input_through_the_console_script(runs, work):
-    proc = subprocess.run([_script("ns-recolor"), "palette", "--load-config", str(runs["tensorf"]), "--output-dir",
+    proc = subprocess.run([str(console_script("ns-recolor")), "palette", "--load-config", str(runs["tensorf"]), "--output-dir",
                            str(work / "bad-script"), "--set", "0=notacolor"], capture_output=True, text=True,
-                          timeout=300, env=_env(), cwd=work)
+                          timeout=300, env=subprocess_env(), cwd=work)
     assert proc.returncode == 2, _fail(proc)
     errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
     assert len(errors) == 1 and "unknown color name" in errors[0], _fail(proc)

@@ -7,37 +7,22 @@ subprocess, so what is tested is what a user's shell runs.
 from __future__ import annotations
 
 import importlib.metadata
-import os
 import re
 import subprocess
 import sys
 import textwrap
 from pathlib import Path
 
-import pytest
+from conftest import console_script, subprocess_env
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 METHODS = ("geometrysticker", "gsticker-nerfacto-small", "gsticker-tensorf-small", "gsticker-vanilla-nerf-small")
 
 
-def _env(**extra: str) -> dict:
-    env = dict(os.environ)
-    env.update({"GSTICKER_NO_DOWNLOAD": "1", "COLUMNS": "200", "PYTHONWARNINGS": "ignore"})
-    env.update(extra)
-    return env
-
-
-def _script(name: str) -> Path:
-    path = BIN / name
-    if not path.exists():
-        pytest.fail(f"console script {name} is not installed next to {sys.executable} (pip install -e .)")
-    return path
-
-
 def test_ns_train_help_lists_plugin_methods():
-    proc = subprocess.run([str(_script("ns-train")), "--help"], capture_output=True, text=True, timeout=300,
-                          env=_env(), cwd=REPO_ROOT)
+    proc = subprocess.run([str(console_script("ns-train")), "--help"], capture_output=True, text=True, timeout=300,
+                          env=subprocess_env(), cwd=REPO_ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     # The usage line's subcommand choices name every registered method exactly.
     choices = set()
@@ -78,8 +63,8 @@ def test_presets_are_cpu_sized_blender_recipes():
 
 
 def test_ns_gsticker_scene_help():
-    proc = subprocess.run([str(_script("ns-gsticker-scene")), "--help"], capture_output=True, text=True, timeout=120,
-                          env=_env())
+    proc = subprocess.run([str(console_script("ns-gsticker-scene")), "--help"], capture_output=True, text=True, timeout=120,
+                          env=subprocess_env())
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "--output-dir" in proc.stdout and "--resolution" in proc.stdout
 
@@ -111,7 +96,7 @@ def test_importing_method_configs_needs_no_cuda_and_no_network():
         """
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                          env=_env(CUDA_VISIBLE_DEVICES=""), cwd=REPO_ROOT)
+                          env=subprocess_env(0, CUDA_VISIBLE_DEVICES=""), cwd=REPO_ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     host, plugin = (float(x) for x in proc.stdout.split()[1::2])
     # Beyond the host's own imports, the plugin's configs cost seconds at most (a loaded 2-core box included).

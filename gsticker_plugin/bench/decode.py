@@ -18,6 +18,7 @@ import json
 import platform
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Optional
@@ -25,8 +26,11 @@ from typing import Any, Dict, List, Optional
 import torch
 import tyro
 
+from gsticker_plugin import compat
 from gsticker_plugin.decoders.geometric import decode_suspect
 from gsticker_plugin.decoders.reference import load_base_reference
+from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.runs import load_run
 
 
@@ -49,14 +53,8 @@ class BenchDecodeConfig:
     """Markdown table; the JSON goes beside it."""
 
 def main(cfg: BenchDecodeConfig) -> Dict[str, Any]:
-    import warnings
-
-    from gsticker_plugin import compat
 
     compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
-    from gsticker_plugin.errors import GStickerError
-    from gsticker_plugin.key import OwnerKey
-
     warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
     if cfg.repeats < 1 or cfg.num_views < 1:
         raise GStickerError("--repeats and --num-views must be at least 1")
@@ -116,8 +114,6 @@ def main(cfg: BenchDecodeConfig) -> Dict[str, Any]:
 
 
 def entrypoint() -> None:
-    from gsticker_plugin.errors import GStickerError
-
     cfg = tyro.cli(BenchDecodeConfig)
     try:
         main(cfg)

@@ -21,6 +21,7 @@ import platform
 import subprocess
 import sys
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional
@@ -28,7 +29,8 @@ from typing import Any, Dict, List, Optional
 import torch
 import tyro
 
-from gsticker_plugin.fuse import FuseConfig
+from gsticker_plugin import compat
+from gsticker_plugin.fuse import FuseConfig, eval_cameras, fuse, psnr
 from gsticker_plugin.runs import final_rgb, load_run
 
 
@@ -78,8 +80,6 @@ def verify(config: Path, key: Path, out: Path, num_views: int, data: Optional[Pa
 
 @torch.no_grad()
 def psnr_table(wm_config: Path, fused_config: Path, data: Optional[Path], num: int) -> Dict[str, float]:
-    from gsticker_plugin.fuse import eval_cameras, psnr
-
     dev = torch.device("cpu")
     with contextlib.redirect_stdout(sys.stderr):
         _, wm_pipe, _ = load_run(wm_config, data=data, device=dev)
@@ -182,12 +182,8 @@ def conclusion(res: Dict[str, Any]) -> str:
 
 
 def main(cfg: BenchFuseConfig) -> Dict[str, Any]:
-    import warnings
-
-    from gsticker_plugin import compat
 
     compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
-    from gsticker_plugin.fuse import fuse
 
     warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
     fcfg = cfg.fuse

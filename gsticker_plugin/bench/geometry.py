@@ -25,10 +25,11 @@ import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import tyro
 
+from gsticker_plugin.evaluate import load_pipeline, psnr_nhw3, render_split
 from gsticker_plugin.machine import console_script
 
 
@@ -50,6 +51,15 @@ class StickerRunConfig:
     """Training and novel views each in the sticker's fast-path pool."""
     owner_id: str = "bench-owner"
     """Owner ID of the message."""
+
+    def layout(self) -> Tuple[Path, Path, List[str], Path, Path]:
+        """(output folder, its logs folder (made), the --data arguments, base checkpoint, base config.yml)."""
+        out = self.output_dir.resolve()
+        logs = out / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        data = ["--data", str(Path(self.data).resolve())] if self.data is not None else []
+        base_ckpt = Path(self.load_checkpoint).resolve()
+        return out, logs, data, base_ckpt, base_ckpt.parent.parent / "config.yml"
 
 
 @dataclass
@@ -110,8 +120,6 @@ def psnr_watermarked_vs_clean(config: Path, views: int) -> Dict[str, float]:
     """Mean PSNR over the first ``views`` test views: sticker on vs off of the same run (for a recolored run of a
     watermarked one: the edit on the watermarked model vs the same edit on the unwatermarked base), and each of them
     against the ground truth."""
-    from gsticker_plugin.evaluate import load_pipeline, psnr_nhw3, render_split
-
     pipe = load_pipeline(config)
     on = render_split(pipe, "test", views, sticker=True, progress=False)
     off = render_split(pipe, "test", views, sticker=False, progress=False)
@@ -121,13 +129,8 @@ def psnr_watermarked_vs_clean(config: Path, views: int) -> Dict[str, float]:
 
 
 def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
-    out = cfg.output_dir.resolve()
-    logs = out / "logs"
-    logs.mkdir(parents=True, exist_ok=True)
-    data = ["--data", str(Path(cfg.data).resolve())] if cfg.data is not None else []
+    out, logs, data, base_ckpt, base_config = cfg.layout()
     results: Dict[str, Any] = {"config": {k: str(v) for k, v in vars(cfg).items()}, "stages": {}}
-    base_ckpt = Path(cfg.load_checkpoint).resolve()
-    base_config = base_ckpt.parent.parent / "config.yml"
     wm = out / "bench" / "geometrysticker" / "watermarked"
     key = wm.with_name("watermarked.gskey")
 

@@ -21,9 +21,11 @@ from typing import Any, Dict, List, Optional
 
 import tyro
 
-from gsticker_plugin.bench.geometry import StickerRunConfig, psnr_watermarked_vs_clean, train_sticker
+from gsticker_plugin.bench.geometry import StickerRunConfig, _run, psnr_watermarked_vs_clean, train_sticker
+from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.machine import console_script
 from gsticker_plugin.runs import checkpoint_step, latest_checkpoint
+from gsticker_plugin.verify import cli as V
 
 
 @dataclass
@@ -57,8 +59,6 @@ class BenchOwnershipConfig(StickerRunConfig):
 def verify_run(cfg: BenchOwnershipConfig, name: str, config: Path, key: Path, out: Path,
                data: Optional[Path]) -> Dict[str, Any]:
     """``ns-verify-owner --decode geometry`` of one run (in this process); its report's numbers."""
-    from gsticker_plugin.verify import cli as V
-
     report_dir = out / "reports" / name
     if not (report_dir / "report.json").is_file():
         argv = ["--load-config", str(config), "--key", str(key), "--decode", "geometry", "--num-views",
@@ -85,8 +85,6 @@ def verify_run(cfg: BenchOwnershipConfig, name: str, config: Path, key: Path, ou
 
 def train_nulls(cfg: BenchOwnershipConfig, out: Path, logs: Path) -> List[Dict[str, Any]]:
     """The null models to train: ``[{name, config, data}]`` (each trained once, skipped when its checkpoint exists)."""
-    from gsticker_plugin.bench.geometry import _run
-
     nulls = out / "nulls"
     jobs = []
     if cfg.null_seeds:
@@ -144,14 +142,7 @@ def page(res: Dict[str, Any]) -> str:
 
 
 def main(cfg: BenchOwnershipConfig) -> Dict[str, Any]:
-    from gsticker_plugin.key import OwnerKey
-
-    out = cfg.output_dir.resolve()
-    logs = out / "logs"
-    logs.mkdir(parents=True, exist_ok=True)
-    data = ["--data", str(Path(cfg.data).resolve())] if cfg.data is not None else []
-    base_ckpt = Path(cfg.load_checkpoint).resolve()
-    base_config = base_ckpt.parent.parent / "config.yml"
+    out, logs, data, base_ckpt, base_config = cfg.layout()
     if len(cfg.null_data) not in (0, len(cfg.nulls)):
         raise SystemExit("--null-data needs one folder per --nulls run (or none)")
     print("[1/4] null models", flush=True)

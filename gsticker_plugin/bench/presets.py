@@ -31,7 +31,10 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 import torch
 import tyro
+import yaml
+from nerfstudio.utils import profiler, writer
 
+from gsticker_plugin import compat
 from gsticker_plugin.machine import load_average, machine_info
 from gsticker_plugin.runs import final_rgb
 
@@ -87,8 +90,6 @@ def log(message: str) -> None:
 
 def method_config(name: str):
     """The ``TrainerConfig`` registered under ``name`` (a fresh deep copy)."""
-    from gsticker_plugin import compat
-
     compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
 
     for ep in importlib.metadata.entry_points(group="nerfstudio.method_configs"):
@@ -143,8 +144,6 @@ def validate(bench: BenchConfig) -> Path:
 
 def _reset_nerfstudio_globals() -> None:
     """Nerfstudio keeps its event writers and profiler in module globals; start each run clean."""
-    from nerfstudio.utils import profiler, writer
-
     for w in writer.EVENT_WRITERS:
         tb = getattr(w, "tb_writer", None)
         if tb is not None:
@@ -193,9 +192,6 @@ def count_parameters(model: torch.nn.Module) -> int:
 
 def load_pipeline(config_path: Path, checkpoint: Path, data: Path):
     """Like ``eval_setup``: the saved config, the pipeline on the CPU with the test split, the checkpoint."""
-    import yaml
-
-    from gsticker_plugin import compat
 
     compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
 

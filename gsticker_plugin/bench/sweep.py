@@ -33,11 +33,16 @@ from typing import Any, Dict, List, Optional, Tuple
 import torch
 import tyro
 
+from gsticker_plugin import metrics, runs
 from gsticker_plugin.bench.geometry import _run
 from gsticker_plugin.decoders.geometric import decode_suspect
 from gsticker_plugin.decoders.reference import load_base_reference
-from gsticker_plugin.machine import console_script
+from gsticker_plugin.evaluate import psnr_nhw3, render_split
+from gsticker_plugin.key import OwnerKey
+from gsticker_plugin.machine import console_script, machine_info
+from gsticker_plugin.model import geometry_reference
 from gsticker_plugin.runs import load_run
+from gsticker_plugin.trainer import step_key_path
 
 # name -> (ns-train geometrysticker overrides, dataset suffix replacement or None)
 VARIANTS: Dict[str, Tuple[List[str], Optional[str]]] = {
@@ -111,9 +116,6 @@ def train_seconds(log: Path) -> Tuple[Optional[float], Dict[int, float]]:
 def decode_checkpoint(pipeline, key, base_config: Path, data: Optional[Path], num_views: int, psnr_views: int,
                       threshold: int) -> Dict[str, Any]:
     """Geometric bit accuracy (the checkpoint's own sticker as the reference) and PSNR on/off, at the loaded state."""
-    from gsticker_plugin.evaluate import psnr_nhw3, render_split
-    from gsticker_plugin.model import geometry_reference
-
     model = pipeline.model
     ref_key = SimpleNamespace(geometry=geometry_reference(model), message=key.message, base=key.base,
                               num_bits=key.num_bits)
@@ -131,10 +133,6 @@ def decode_checkpoint(pipeline, key, base_config: Path, data: Optional[Path], nu
 
 
 def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
-    from gsticker_plugin import metrics, runs
-    from gsticker_plugin.key import OwnerKey
-    from gsticker_plugin.trainer import step_key_path
-
     overrides, res = VARIANTS[name]
     data = cfg.data
     if res is not None:
@@ -290,8 +288,6 @@ def chart(rows: List[Dict[str, Any]], path: Path) -> None:
 
 
 def main(cfg: SweepConfig) -> List[Dict[str, Any]]:
-    from gsticker_plugin.machine import machine_info
-
     unknown = [v for v in cfg.variants if v not in VARIANTS]
     if unknown:
         raise SystemExit(f"unknown variant(s) {unknown}; use some of {', '.join(VARIANTS)}")

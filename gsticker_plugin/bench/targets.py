@@ -23,6 +23,7 @@ import json
 import platform
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Optional
@@ -30,9 +31,12 @@ from typing import Any, Dict, List, Optional
 import torch
 import tyro
 
+from gsticker_plugin import compat, metrics
 from gsticker_plugin.bench.geometry import StickerRunConfig, train_sticker
 from gsticker_plugin.decoders.geometric import decode_suspect
 from gsticker_plugin.decoders.reference import load_base_reference
+from gsticker_plugin.evaluate import psnr_nhw3
+from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.runs import load_run
 from gsticker_plugin.views import progress_bar
 
@@ -60,20 +64,9 @@ PER_VIEW_FPR = 1e-6  # the per-view false-positive rate of the threshold (ns-ver
 
 
 def main(cfg: BenchTargetsConfig) -> Dict[str, Any]:
-    import warnings
-
-    from gsticker_plugin import compat
 
     compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
-    from gsticker_plugin.evaluate import psnr_nhw3
-    from gsticker_plugin.key import OwnerKey
-
-    out = cfg.output_dir.resolve()
-    logs = out / "logs"
-    logs.mkdir(parents=True, exist_ok=True)
-    data = ["--data", str(Path(cfg.data).resolve())] if cfg.data is not None else []
-    base_ckpt = Path(cfg.load_checkpoint).resolve()
-    base_config = base_ckpt.parent.parent / "config.yml"
+    out, logs, data, base_ckpt, base_config = cfg.layout()
     wm = out / "bench" / "geometrysticker" / "watermarked"
     key_path = wm.with_name("watermarked.gskey")
     res_path = out / "results.json"
@@ -153,8 +146,6 @@ def main(cfg: BenchTargetsConfig) -> Dict[str, Any]:
 
 def summarize(rows: List[Dict[str, Any]], num_bits: int, train: Optional[Dict[str, Any]], split_size: int) -> Dict[str, Any]:
     """Totals over the decoded views and each target met or not (training time: None when not trained here)."""
-    from gsticker_plugin import metrics
-
     matches = [r["matches"] for r in rows]
     n = len(rows)
     mean = lambda k: sum(r[k] for r in rows) / max(1, n)  # noqa: E731

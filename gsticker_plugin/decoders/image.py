@@ -27,14 +27,21 @@ be read. :func:`gsticker_plugin.verify` keeps the blind extractor for those.
 
 from __future__ import annotations
 
+import contextlib
+import json
+import math
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
 from jaxtyping import Float, Int
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
 from torch import Tensor
 
+from gsticker_plugin.attacks import ATTACKS, gaussian_blur, resize, rotate
 from gsticker_plugin.decoders.fit import (
     fit_and_decide,
     fit_message,
@@ -206,15 +213,11 @@ class Degradation:
 
     def apply(self, x: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B 3 H W"]:
         """The attack itself (clamped, rotation's white fill): what it does to the base render."""
-        from gsticker_plugin.attacks import ATTACKS
-
         return x if self.name == "none" else ATTACKS[self.name](x, self.strength)
 
     def linear(self, x: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B 3 H W"]:
         """The attack's linear part, unclamped: what it does to a small change of the image (rotation's fill is
         0; for JPEG the identity: the fit reads its luma, which the codec keeps whole before quantizing)."""
-        from gsticker_plugin.attacks import gaussian_blur, resize, rotate
-
         if self.name == "none":
             return x
         if self.name == "blur":
@@ -409,9 +412,6 @@ def read_cameras_file(path) -> Dict[str, Dict[str, Any]]:
     ``file_path`` and a 4x4 OpenGL camera-to-world ``transform_matrix``; nerfstudio's intrinsics ``fl_x, fl_y, cx,
     cy, w, h`` are read too, at the top level or per frame). Returns ``{frame name: {"c2w": [4 4], "intrinsics":
     {...}}}``, named by :func:`frame_name` of ``file_path``. One-line errors for what cannot be used."""
-    import json
-    from pathlib import Path
-
     path = Path(path)
     if not path.is_file():
         raise GStickerError(f"--cameras {path} does not exist; pass the transforms JSON of the suspect images' cameras")
@@ -463,9 +463,6 @@ def camera_for_image(frame: Dict[str, Any], height: int, width: int, scale_facto
     """A nerfstudio camera for an image of ``height x width`` px taken at ``frame`` (:func:`read_cameras_file`):
     the intrinsics scaled to the image's size, the pose put in the base run's coordinates the way nerfstudio's
     Blender dataparser does (translation times its ``scale_factor``)."""
-    import math
-
-    from nerfstudio.cameras.cameras import Cameras, CameraType
 
     intr = frame["intrinsics"]
     if "fl_x" in intr:
@@ -491,8 +488,6 @@ def base_pose_scale(reference) -> float:
     """How the owner's base run maps a transforms file's poses to its own coordinates: only Blender-format data
     (nerfstudio's ``blender-data`` dataparser: the translation times ``scale_factor``) is supported; other
     dataparsers re-orient and re-center poses with transforms a transforms file of other images does not record."""
-    from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
-
     dm = reference.pipeline.datamanager
     parser_cfg = getattr(getattr(dm, "config", None), "dataparser", None)
     if not isinstance(parser_cfg, BlenderDataParserConfig):
@@ -535,8 +530,6 @@ def decode_images_at_cameras(key: OwnerKey, ref, views: Views, frames: Dict[str,
                              progress: bool) -> Tuple[Views, Dict[str, Any]]:
     """The informed image decoder on the images of ``views`` that have a camera in ``frames``, against the owner's
     base ``ref`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`): the posed views and the decoded bits."""
-    import contextlib
-
 
     posed, cams = posed_views(views, frames, base_pose_scale(ref))
     with contextlib.redirect_stdout(sys.stderr):

@@ -18,6 +18,7 @@ from gsticker_plugin import runs
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import cache_view
 from gsticker_plugin.key import file_sha256
+from gsticker_plugin.model import GeometryStickerModelConfig
 from gsticker_plugin.runs import load_run
 from gsticker_plugin.sticker import Sticker, render_weights
 
@@ -139,8 +140,6 @@ def load_base_reference(key, key_path, base_config: Optional[Path], data: Option
                         device: torch.device) -> BaseReference:
     """Rebuild the owner's base (strictly, sha256-checked) wrapped by a GeometrySticker model with the key's
     sticker and gates. ``data``: dataset folder used when the base's recorded one does not exist here."""
-    from gsticker_plugin.model import GeometryStickerModelConfig
-
     geo = key.geometry
     if not geo:
         raise GStickerError(missing_geometry_message(key_path))

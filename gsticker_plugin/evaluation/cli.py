@@ -8,14 +8,17 @@ Every stage is skipped when its output exists; ``--redo STAGE ...`` recomputes s
 from __future__ import annotations
 
 import sys
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence, Tuple
 
 import tyro
 
+from gsticker_plugin import compat
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.evaluation.config import ALL_STAGES
+from gsticker_plugin.evaluation.config import ALL_STAGES, load_protocol
+from gsticker_plugin.evaluation.runner import Runner
 
 
 @dataclass
@@ -40,16 +43,11 @@ class EvalArgs:
 
 
 def main(args: EvalArgs) -> int:
-    import warnings
-
-    from gsticker_plugin import compat
 
     compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
-    from gsticker_plugin.evaluation.config import load_protocol
 
     # nerfstudio 1.1.5's camera indexing warns on every render with this torch: noise in a long log
     warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
-    from gsticker_plugin.evaluation.runner import Runner
 
     bad = [s for s in (*args.stages, *args.redo) if s not in ALL_STAGES]
     if bad:

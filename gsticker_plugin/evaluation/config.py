@@ -12,6 +12,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence
 
+import yaml
+
+from gsticker_plugin import attacks
 from gsticker_plugin.errors import GStickerError
 
 # The paper's numbers (Blender column; method.md). Kept here so that the tables print them beside ours.
@@ -212,8 +215,6 @@ def _build(cls, data: Any, where: str):
 
 
 def validate(p: Protocol) -> None:
-    from gsticker_plugin import attacks
-
     if (p.scene.data is None) == (p.scene.generate is None):
         raise GStickerError("scene: give exactly one of scene.data (a dataset folder) or scene.generate (settings)")
     names = [b.name for b in p.bases]
@@ -280,8 +281,6 @@ def validate(p: Protocol) -> None:
 def load_protocol(path: Path, output_dir: Optional[Path] = None, data: Optional[Path] = None,
                   sticker_seeds: Optional[Sequence[int]] = None) -> Protocol:
     """Read and check a protocol YAML; ``output_dir``/``data``/``sticker_seeds`` override the file's values."""
-    import yaml
-
     path = Path(path)
     if not path.is_file():
         raise GStickerError(f"--config {path} does not exist; pass a protocol YAML such as method_configs/eval/smoke.yaml")

@@ -295,6 +295,7 @@ def _speed(r) -> List[str]:
 
 # ---------------------------------------------------------------------------------------------- charts
 def _plt():
+    """matplotlib on the Agg backend (deferred: only the charts need it, and it is slow to import)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -302,6 +303,13 @@ def _plt():
 
     return plt
 
+
+def save_figure(fig, path: Path) -> Path:
+    """Lay out, write (100 dpi) and close a chart; returns its path."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    _plt().close(fig)
+    return path
 
 def chart_curves(r, path: Path) -> Optional[Path]:
     d = r.get("curves")
@@ -339,10 +347,7 @@ def chart_curves(r, path: Path) -> Optional[Path]:
     axes[0][0].set_ylabel("%")
     axes[0][0].legend(fontsize=7, loc="lower left")
     fig.suptitle(f"{r['protocol']['name']}: where it breaks ({len(d['seeds'])} seed(s); dotted: 90 % and chance)", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def bar_label(row: Dict[str, Any]) -> str:
@@ -379,10 +384,7 @@ def _finish_bars(plt, fig, ax, names: List[str], path: Path, title: str, legend_
     ax.set_ylim(0, 102)
     ax.legend(fontsize=7, loc=legend_loc)
     ax.set_title(title.replace(": ", ":\n", 1) if len(title) > 60 else title, fontsize=9)  # long names: two lines
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def chart_geometry_recolor(r, path: Path) -> Optional[Path]:
@@ -441,10 +443,7 @@ def chart_recolor_strength(r, path: Path) -> Optional[Path]:
     axes[0][0].set_ylabel("model-level bit accuracy %")
     axes[0][0].legend(fontsize=7, loc="lower left")
     fig.suptitle(f"{r['protocol']['name']}: recolor strength (dashed: verdict threshold; dotted: chance)", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def chart_purify(r, path: Path) -> Optional[Path]:
@@ -466,10 +465,7 @@ def chart_purify(r, path: Path) -> Optional[Path]:
     ax2.set_ylabel("PSNR vs GT (dB)", color="green")
     ax.legend(fontsize=7, loc="lower left")
     ax.set_title(f"{r['protocol']['name']}: model purification", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def chart_speed(r, path: Path) -> Optional[Path]:
@@ -498,10 +494,7 @@ def chart_speed(r, path: Path) -> Optional[Path]:
     ax.set_ylim(0, 102)
     ax.legend(fontsize=6)
     ax.set_title(f"{r['protocol']['name']}: speed vs accuracy", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def write_all(results: Dict[str, Any], out: Path) -> Dict[str, Any]:

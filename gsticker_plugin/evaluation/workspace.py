@@ -16,23 +16,31 @@ Layout of ``output_dir``::
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import inspect
 import json
 import math
 import os
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
 
+from gsticker_plugin import attacks, metrics
+from gsticker_plugin.attacks import apply_attacks
 from gsticker_plugin.decoders.geometric import decode_suspect
 from gsticker_plugin.decoders.image import decode_posed_images
 from gsticker_plugin.decoders.reference import load_base_reference
 from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.evaluate import decode_images
+from gsticker_plugin.evaluation.baselines.colormark import decode_color_suspect
 from gsticker_plugin.evaluation.config import Protocol
+from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.machine import console_script
 from gsticker_plugin.runs import final_rgb, latest_checkpoint, load_run
 from gsticker_plugin.views import progress_bar
@@ -61,7 +69,6 @@ class Workspace:
         for d in ("stages", "cache", "logs", "charts", "runs"):
             (self.out / d).mkdir(parents=True, exist_ok=True)
         self.timings: Dict[str, float] = {}
-        from gsticker_plugin import metrics
 
         self.threshold = metrics.min_matches_for_fpr(48, protocol.fpr)
 
@@ -140,8 +147,6 @@ class Workspace:
     @torch.no_grad()
     def render(self, pipeline, desc: str, sticker: Optional[bool] = None) -> Dict[str, Tensor]:
         """``num_views`` test views, evenly spaced over the test split: rgb and ground truth (on white), [N H W 3]."""
-        import warnings
-
         warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
         dataset = pipeline.datamanager.eval_dataset
         n = len(dataset)
@@ -160,8 +165,6 @@ class Workspace:
         return {"rgb": torch.stack(rgbs), "gt": torch.stack(gts), "indices": torch.tensor(idx)}
 
     def key(self, name: str):
-        from gsticker_plugin.key import OwnerKey
-
         return OwnerKey.load(self.key_path(name))
 
     def geo_reference(self, name: str):
@@ -192,8 +195,6 @@ class Workspace:
 
     def color_decode(self, suspect_model, amplitude: float, desc: str = "") -> Dict[str, Any]:
         """The color-branch baseline's informed decoder (primary base's key and reference)."""
-        from gsticker_plugin.evaluation.baselines.colormark import decode_color_suspect
-
         g = self.p.geometry
         ref, views = self.geo_reference(self.primary)  # the same cameras as geo_decode's: its reference views serve
         key = self.key(self.primary)
@@ -232,7 +233,6 @@ class Workspace:
         saved image files are). Image ``j`` is read as if taken at test view ``j mod num_views``: for unmarked
         images (false positives) any image of that size is a valid null, the decoder never uses the message."""
 
-        import hashlib
 
         images = as_8_bit(images_nhw3)
         digest = hashlib.sha1((images * 255.0).to(torch.uint8).numpy().tobytes()).hexdigest()
@@ -264,15 +264,11 @@ class Workspace:
 
     def decode(self, key, images_nhw3: Tensor) -> Dict[str, Any]:
         """Per-view numbers and their summary for one set of views (the blind extractor)."""
-        from gsticker_plugin.evaluate import decode_images
-
         d = decode_images(key, images_nhw3.float().clamp(0, 1))
         return self.summarize(d.matches, d.bit_acc, key.num_bits)
 
     def summarize(self, matches: Tensor, bit_acc: Tensor, num_bits: int) -> Dict[str, Any]:
         """Per-view matches -> views passing the threshold, the model-level vote and its p-value."""
-        from gsticker_plugin import metrics
-
         m = [int(x) for x in matches.tolist()]
         passing = [x >= self.threshold for x in m]
         vote = metrics.combine_view_decisions(passing, self.p.min_share)
@@ -290,8 +286,6 @@ class Workspace:
 
     @staticmethod
     def image_metrics(a: Tensor, b: Tensor, lpips=None) -> Dict[str, Any]:
-        from gsticker_plugin import metrics
-
         a4, b4 = a.permute(0, 3, 1, 2).float(), b.permute(0, 3, 1, 2).float()
         psnr = metrics.psnr(a4, b4)
         res = {"psnr": finite_or_none(psnr.mean()), "psnr_min": finite_or_none(psnr.min()),
@@ -338,8 +332,6 @@ class Workspace:
         return self.p.bases[0].name
 
     def attacked(self, wm: Tensor, clean: Tensor, spec, seed: int) -> Tensor:
-        from gsticker_plugin.attacks import apply_attacks
-
         if isinstance(spec, str) and not spec.strip():
             return wm
         g = torch.Generator().manual_seed(seed)
@@ -361,9 +353,6 @@ def over_seeds(per_seed: List[Dict[str, Any]]) -> Dict[str, Any]:
 
 def describe_spec(spec: str) -> str:
     """The exact definition of each attack of a spec, from gsticker_plugin.attacks' docstrings."""
-    import inspect
-
-    from gsticker_plugin import attacks
 
     fns = {"noise": attacks.gaussian_noise, "rotate": attacks.rotate, "crop": attacks.cropout,
            "blur": attacks.gaussian_blur, "hue": attacks.hue_shift, "jpeg": attacks.jpeg, "resize": attacks.resize}

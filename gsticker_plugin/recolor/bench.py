@@ -22,9 +22,13 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
 import torch
+import tyro
 from torch import Tensor
 
+from gsticker_plugin import compat
 from gsticker_plugin.recolor import palette as P
+from gsticker_plugin.recolor import runs
+from gsticker_plugin.recolor.model import ColorWrap, require_color_fields, unwrap
 
 
 def lch_hue_deg(rgb: Tensor) -> Tensor:
@@ -72,9 +76,6 @@ def fidelity(original: Tensor, edited: Tensor, region: Tensor, acc: Tensor, targ
 @torch.no_grad()
 def measure(config: Path, data: Optional[Path], edits: Sequence[tuple], softness: Sequence[float], views: int,
             k: Optional[int] = None, seed: int = 0) -> List[Dict[str, object]]:
-    from gsticker_plugin.recolor import runs
-    from gsticker_plugin.recolor.model import ColorWrap, require_color_fields, unwrap
-
     loaded = runs.load_run(config, data)
     model = loaded.pipeline.model
     dataset = loaded.pipeline.datamanager.train_dataset
@@ -138,9 +139,6 @@ class BenchArgs:
 
 
 def main() -> None:
-    import tyro
-
-    from gsticker_plugin import compat
 
     compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
 

@@ -12,10 +12,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Literal, Optional, Tuple, Union
 
+import numpy as np
+import torch
 import tyro
+from nerfstudio.utils.rich_utils import CONSOLE
 from typing_extensions import Annotated
 
+from gsticker_plugin.attacks import hue_shift
 from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.recolor import palette as P
+from gsticker_plugin.recolor import runs
+from gsticker_plugin.recolor.model import ColorWrap, require_color_fields, unwrap
 
 PALETTE_METHOD = "gsticker-palette"
 HUE_METHOD = "gsticker-hue"
@@ -99,8 +106,6 @@ class FinetuneArgs(PaletteEdit, _Common):
 
 
 def say(msg: str) -> None:
-    from nerfstudio.utils.rich_utils import CONSOLE
-
     CONSOLE.print(f"\\[ns-recolor] {msg}", highlight=False)
 
 
@@ -109,9 +114,6 @@ def say(msg: str) -> None:
 
 def extract_palette_of(args: PaletteEdit, model, dataset, seed: int):
     """The palette ``ns-recolor palette`` extracts for ``args`` (training images' foreground, or the model's renders)."""
-    from gsticker_plugin.recolor import palette as P
-    from gsticker_plugin.recolor import runs
-
     P.check_k(args.k)
     n = min(args.max_views, len(dataset))
     if args.source == "images":
@@ -124,23 +126,16 @@ def extract_palette_of(args: PaletteEdit, model, dataset, seed: int):
 
 
 def torch_cat(items):
-    import torch
-
     return torch.cat(items)
 
 
 def _edited(args: PaletteEdit, pal) -> List[Tuple[float, float, float]]:
-    from gsticker_plugin.recolor import palette as P
-
     edits = P.parse_edits(args.set_, args.palette, pal.k)
     src = [tuple(c) for c in pal.rgb.tolist()]
     return [edits.get(i, src[i]) for i in range(pal.k)]
 
 
 def cmd_palette(args: PaletteArgs) -> int:
-    from gsticker_plugin.recolor import palette as P
-    from gsticker_plugin.recolor import runs
-
     P.check_k(args.k)
     run_cfg, run_dir, _ = runs.check_input_config(args.load_config)
     if not args.list_:
@@ -182,9 +177,6 @@ def cmd_palette(args: PaletteArgs) -> int:
 
 def set_model_palette(model) -> None:
     """Buffers from the model's config (hex lists), so that config.yml and checkpoint agree."""
-    import torch
-
-    from gsticker_plugin.recolor import palette as P
 
     src = torch.tensor([P.parse_color(c) for c in model.config.palette_source], dtype=torch.float32).reshape(-1, 3)
     tgt = torch.tensor([P.parse_color(c) for c in model.config.palette_target], dtype=torch.float32).reshape(-1, 3)
@@ -203,9 +195,6 @@ def _done(cfg_path: Path) -> None:
 
 
 def cmd_hue(args: HueArgs) -> int:
-    from gsticker_plugin.recolor import palette as P
-    from gsticker_plugin.recolor import runs
-
     P.check_hue_shift(args.shift)
     run_cfg, run_dir, _ = runs.check_input_config(args.load_config)
     out = runs.check_output_dir(args.output_dir, run_dir, args.overwrite)
@@ -222,12 +211,6 @@ def cmd_hue(args: HueArgs) -> int:
 
 
 def _hue_images(args: HueArgs, out: Path) -> int:
-    import torch
-
-    from gsticker_plugin.attacks import hue_shift
-    from gsticker_plugin.recolor import palette as P
-    from gsticker_plugin.recolor import runs
-
     loaded = runs.load_run(args.load_config, args.data)
     dm = loaded.pipeline.datamanager
     if args.split == "train":
@@ -265,8 +248,6 @@ def _hue_images(args: HueArgs, out: Path) -> int:
 
 
 def _target_images(folder: Path, dataset, size) -> List:
-    import torch
-
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -282,7 +263,6 @@ def _target_images(folder: Path, dataset, size) -> List:
     else:
         raise GStickerError(f"--targets {folder} has {len(files)} images, not one per training view ({len(names)}, named "
                             f"like {names[0]}.png); name them like the training images or give one per view in order")
-    import numpy as np
     from PIL import Image
 
     out = []
@@ -297,17 +277,12 @@ def _target_images(folder: Path, dataset, size) -> List:
 
 
 def cmd_finetune(args: FinetuneArgs) -> int:
-    import torch
-
-    from gsticker_plugin.recolor import palette as P
-    from gsticker_plugin.recolor import runs
     from gsticker_plugin.recolor.finetune import (
         finetune_color,
         ray_schedule,
         render_ray_targets,
         split_color_parameters,
     )
-    from gsticker_plugin.recolor.model import ColorWrap, require_color_fields, unwrap
 
     P.check_k(args.k)
     has_palette = bool(args.set_ or args.palette)

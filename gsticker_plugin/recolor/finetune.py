@@ -16,7 +16,9 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import torch
 from jaxtyping import Float, Int
+from nerfstudio.model_components.ray_generators import RayGenerator
 from torch import Tensor, nn
+from tqdm import tqdm
 
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.recolor.model import require_color_fields, unwrap
@@ -24,8 +26,6 @@ from gsticker_plugin.runs import final_rgb
 
 
 def _probe_rays(model, cameras, num_rays: int = 256, seed: int = 0):
-    from nerfstudio.model_components.ray_generators import RayGenerator
-
     cams = cameras.to(model.device)
     gen = RayGenerator(cams)
     g = torch.Generator().manual_seed(seed)
@@ -123,9 +123,6 @@ def render_ray_targets(model, cameras, schedule: Int[Tensor, "T R 3"], chunk: in
     ``V * H * W`` pixels visit about ``1 - exp(-T R / (V H W))`` of them (300 x 1024 of 100 x 100 x 100: 26 %).
     Rays are generated as full renders generate them (pixel centres), clamped to [0, 1] as ``render_views`` does.
     """
-    from nerfstudio.model_components.ray_generators import RayGenerator
-    from tqdm import tqdm
-
     flat = schedule.reshape(-1, 3)
     uniq, inverse = torch.unique(flat, dim=0, return_inverse=True)
     gen = RayGenerator(cameras.to(model.device))
@@ -150,9 +147,6 @@ def finetune_color(model: nn.Module, cameras, targets: Union[Sequence[Tensor], R
     the same fine-tune when its values are the images' pixels. ``on_step(k, losses)`` runs after step k (1-based;
     the model holds the weights after k steps). Returns {"loss": per step}.
     """
-    from nerfstudio.model_components.ray_generators import RayGenerator
-    from tqdm import tqdm
-
     if isinstance(targets, RayTargets):
         schedule, values = targets.schedule, targets.values
         if schedule.shape[0] < steps or schedule.shape[1] != rays_per_step:

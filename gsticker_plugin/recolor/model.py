@@ -279,6 +279,8 @@ def iter_models(model: nn.Module) -> Iterator[nn.Module]:
 
 from nerfstudio.engine.trainer import Trainer, TrainerConfig  # noqa: E402
 
+from gsticker_plugin.trainer import exit_with_error
+
 
 @dataclass
 class RecolorTrainerConfig(TrainerConfig):
@@ -289,8 +291,6 @@ class RecolorTrainerConfig(TrainerConfig):
 
 class RecolorTrainer(Trainer):
     def setup(self, test_mode="val") -> None:
-        from gsticker_plugin.trainer import exit_with_error
-
         exit_with_error(GStickerError(
             f"{self.config.method_name} runs are written by ns-recolor, there is nothing to train; run "
             "`ns-recolor palette|hue --load-config RUN/config.yml --output-dir OUT` instead"))

@@ -27,6 +27,7 @@ import kornia
 import torch
 from torch import Tensor
 
+from gsticker_plugin.attacks import hue_shift
 from gsticker_plugin.errors import GStickerError
 
 K_MIN, K_MAX = 3, 8
@@ -151,8 +152,6 @@ def lab_to_rgb(lab: Tensor) -> Tensor:
 
 def hue_rotate(rgb: Tensor, shift: float | Tensor) -> Tensor:
     """Rotate the HSV hue of [..., 3] colors by ``shift`` turns (in [-0.5, 0.5]); gray stays gray."""
-    from gsticker_plugin.attacks import hue_shift
-
     shape = rgb.shape
     x = rgb.reshape(-1, 3).clamp(0.0, 1.0).t().reshape(1, 3, -1, 1)
     return hue_shift(x, shift).reshape(3, -1).t().reshape(shape)

@@ -18,11 +18,15 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
 import yaml
+from nerfstudio.engine.trainer import TrainerConfig
 from torch import Tensor
+from tqdm import tqdm
 
 from gsticker_plugin import runs
 from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.key import file_sha256
 from gsticker_plugin.model import shareable_state
+from gsticker_plugin.recolor.model import RecolorModelConfig, unwrap
 from gsticker_plugin.runs import copy_datamanager, latest_checkpoint
 
 # ---------------------------------------------------------------------------------------------- paths
@@ -34,7 +38,6 @@ def check_input_config(load_config: Path) -> Tuple[Any, Path, Path]:
     if not p.is_file():
         raise GStickerError(f"--load-config {p} does not exist; pass a trained run's RUN/config.yml")
     run_cfg = runs.load_run_config(p)
-    from nerfstudio.engine.trainer import TrainerConfig
 
     if not isinstance(run_cfg, TrainerConfig):
         raise GStickerError(f"{p} is not a Nerfstudio run config; pass a trained run's RUN/config.yml")
@@ -90,15 +93,7 @@ class StagedDir:
 
 def run_location(config, out: Path, method_name: str, timestamp: str) -> Path:
     """Point ``config`` at ``out/<experiment>/<method>/<timestamp>`` (Nerfstudio's layout); returns that folder."""
-    config.method_name = method_name
-    config.experiment_name = config.experiment_name or "recolor"
-    config.output_dir = out
-    config.timestamp = timestamp
-    config.load_dir = None
-    config.load_checkpoint = None
-    config.load_step = None
-    config.load_config = None
-    return Path(out) / config.experiment_name / method_name / timestamp
+    return runs.relocate(config, out, config.experiment_name or "recolor", method_name, timestamp)
 
 
 # ---------------------------------------------------------------------------------------------- loading
@@ -159,9 +154,6 @@ def build_recolor_run(load_config: Path, data: Optional[Path], method_name: str,
     Returns (config, pipeline, run_dir, checkpoint, step). The palette is empty and the hue shift 0 (no edit).
     """
     from nerfstudio.utils.eval_utils import all_methods
-
-    from gsticker_plugin.key import file_sha256
-    from gsticker_plugin.recolor.model import RecolorModelConfig
 
     run_cfg, run_dir, ckpt = check_input_config(load_config)
     if method_name not in all_methods:
@@ -237,8 +229,6 @@ def foreground_pixels(images: Sequence[Tensor]) -> Tensor:
 
 
 def background_of(model) -> Tensor:
-    from gsticker_plugin.recolor.model import unwrap
-
     inner = unwrap(model)
     bg = getattr(getattr(inner, "renderer_rgb", None), "background_color", None)
     if isinstance(bg, Tensor):
@@ -256,8 +246,6 @@ def composite_on(img: Tensor, bg: Tensor) -> Tensor:
 def render_views(model, cameras, indices: Sequence[int], desc: str = "rendering", outputs=("rgb",),
                  progress: bool = True) -> Dict[str, List[Tensor]]:
     """Render cameras[indices] with the model (any wrapper); {name: [H W C] per view} (rgb clamped to [0, 1])."""
-    from tqdm import tqdm
-
     res: Dict[str, List[Tensor]] = {k: [] for k in outputs}
     it = tqdm(list(indices), desc=desc, leave=False, disable=not progress)
     for i in it:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import sys
 import time
@@ -164,8 +165,6 @@ def distinct_sources(src_info: List[Dict[str, Any]]) -> Dict[str, int]:
 
 def _calibrate_geometry(config: CalibrateConfig, key_path: Path, key: OwnerKey, device: torch.device) -> Dict[str, Any]:
     """The geometric decoder's null: decode the unwatermarked base itself and the given (unmarked) runs."""
-    import contextlib
-
 
     if not key.geometry:
         raise GStickerError(missing_geometry_message(key_path))

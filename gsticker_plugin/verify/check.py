@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
@@ -207,9 +209,6 @@ def _informed_result(key: OwnerKey, path: Path, dec: Dict[str, Any], views: View
 
 def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device):
     """Geometric decoding of the suspect run for every key (each against its own base run)."""
-    import contextlib
-    import warnings
-
 
     with contextlib.redirect_stdout(sys.stderr):
         run_cfg, pipeline, ckpt = load_run(config.load_config, data=config.data, device=device)

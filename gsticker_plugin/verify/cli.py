@@ -30,6 +30,9 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
+import tyro
+
+from gsticker_plugin import compat
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.verify.calibrate import CalibrateConfig, calibrate, calibrate_text
 from gsticker_plugin.verify.check import VerifyConfig, verify
@@ -50,9 +53,6 @@ def _error(message: str) -> int:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Parse ``argv`` (default ``sys.argv[1:]``), run, and return the exit status (0 owned, 1 not shown, 2 error)."""
-    import tyro
-
-    from gsticker_plugin import compat
 
     # numpy scalars in keys/checkpoints (optimizer lr) under weights_only=True; offline-safe LPIPS for stock models
     compat.apply()

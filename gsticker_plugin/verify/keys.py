@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import sys
 from dataclasses import dataclass
@@ -12,6 +13,7 @@ import torch
 
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import OwnerKey, commitment
+from gsticker_plugin.model import geometry_reference
 from gsticker_plugin.runs import load_run
 
 
@@ -34,9 +36,6 @@ class ExportKeyConfig:
 
 
 def export_key(config: ExportKeyConfig) -> Dict[str, Any]:
-    import contextlib
-
-    from gsticker_plugin.model import geometry_reference
 
     key_path = Path(config.key)
     key = OwnerKey.load(key_path)

@@ -42,15 +42,20 @@ from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Type
 
 import torch
+import yaml
 from jaxtyping import Float, Int
+from nerfstudio.field_components.field_heads import FieldHeadNames
 from torch import Tensor
 
+from gsticker_plugin import metrics
 from gsticker_plugin.decoders.fit import fit_and_decide, fit_summary, per_ray_jacobian, tie_generator
 from gsticker_plugin.decoders.geometric import suspect_renders
 from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker
 from gsticker_plugin.decoders.result import decoded
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.model import GeometryStickerModel, GeometryStickerModelConfig
+from gsticker_plugin.recolor import runs
+from gsticker_plugin.recolor.model import color_fields, iter_models
 from gsticker_plugin.runs import final_rgb
 from gsticker_plugin.sticker import DensityWrap, Sticker, WrapState, render_weights
 from gsticker_plugin.views import View, select_cameras
@@ -113,7 +118,6 @@ class ColorMarkWrap:
         pending, self.pending = self.pending, None
         if not self.active:
             return out
-        from nerfstudio.field_components.field_heads import FieldHeadNames
 
         rgb = out.get(FieldHeadNames.RGB) if isinstance(out, dict) else out
         if not isinstance(rgb, Tensor) or rgb.shape[-1] != 3:
@@ -144,7 +148,6 @@ class ColorMarkModel(GeometryStickerModel):
         super().populate_modules()
         for w in self.wraps:
             w.remove()  # density bit-identical to the base's: the density wraps stay as gate/sticker holders only
-        from gsticker_plugin.recolor.model import color_fields
 
         final = self.final_wrap.field
         if not any(f is final for _, f in color_fields(self.base)):
@@ -186,9 +189,6 @@ def write_color_marked_run(watermarked_config: Path, output_dir: Path, amplitude
     checkpoint beside config.yml). Stock ``ns-viewer`` / ``ns-render`` look for it under
     ``output_dir/experiment/method/timestamp`` instead, which this layout does not have. Returns the config path.
     """
-    import yaml
-
-    from gsticker_plugin.recolor import runs
 
     run_cfg, run_dir, ckpt = runs.check_input_config(Path(watermarked_config))
     out = runs.check_output_dir(output_dir, run_dir, overwrite)
@@ -219,8 +219,6 @@ def write_color_marked_run(watermarked_config: Path, output_dir: Path, amplitude
 
 def color_mark_model(model) -> ColorMarkModel:
     """The ColorMarkModel in ``model`` (itself or the one a recolor run wraps); one-line error otherwise."""
-    from gsticker_plugin.recolor.model import iter_models
-
     found = next((m for m in iter_models(model) if isinstance(m, ColorMarkModel)), None)
     if found is None:
         raise GStickerError(f"{type(model).__name__} carries no color mark; load a run written by "
@@ -231,8 +229,6 @@ def color_mark_model(model) -> ColorMarkModel:
 @torch.no_grad()
 def mark_psnr(model, cameras: Sequence[Tuple[str, Any]]) -> Float[Tensor, " V"]:
     """Per-view PSNR of the color-marked render against the same model with the mark off (renders clamped)."""
-    from gsticker_plugin import metrics
-
     def render(cam) -> Tensor:
         rgb = model.get_outputs_for_camera(cam.to(model.device))["rgb"]
         return rgb.detach().float().clamp(0, 1).cpu().permute(2, 0, 1)[None]

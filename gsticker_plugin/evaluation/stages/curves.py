@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import inspect
 import sys
 from typing import Any, Dict
 
@@ -74,8 +75,6 @@ def leaked_key_attacked(ws: Workspace, wm: Tensor, psnr_budget: float) -> Tensor
 
 
 def describe_leaked_key() -> str:
-    import inspect
-
 
     doc = inspect.getdoc(leaked_key_attack) or ""
     return "leaked_key (strength: PSNR budget in dB): " + " ".join(doc.split("\n\n")[0].split())

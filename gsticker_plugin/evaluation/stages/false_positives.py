@@ -12,14 +12,13 @@ from typing import Any, Dict, List
 import torch
 from torch import Tensor
 
+from gsticker_plugin import metrics
 from gsticker_plugin.evaluation.workspace import Workspace
 from gsticker_plugin.runs import load_run
 from gsticker_plugin.views import images_views, random_views
 
 
 def run(ws: Workspace) -> Dict[str, Any]:
-    from gsticker_plugin import metrics
-
     key = ws.key(ws.primary)
     fp = ws.p.false_positives
     sources: List[Dict[str, Any]] = []

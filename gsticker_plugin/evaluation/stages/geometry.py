@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any, Dict
 
+from gsticker_plugin.evaluation.baselines.colormark import match_amplitude, write_color_marked_run
 from gsticker_plugin.evaluation.workspace import Workspace
 from gsticker_plugin.runs import load_run
 
@@ -43,8 +44,6 @@ def run(ws: Workspace) -> Dict[str, Any]:
 
 def color_baseline(ws: Workspace) -> Dict[str, Any]:
     """Write the color-marked run (amplitude matched to the sticker's PSNR) and decode it unedited."""
-    from gsticker_plugin.evaluation.baselines.colormark import match_amplitude, write_color_marked_run
-
     q = json.loads(ws.stage_path("quality").read_text())
     target = q[ws.primary]["wm_vs_unwm"]["psnr"]
     if not isinstance(target, (int, float)):

@@ -6,14 +6,13 @@ import time
 from typing import Any, Dict
 
 from gsticker_plugin.evaluation.workspace import Workspace
+from gsticker_plugin.recolor.finetune import finetune_color
+from gsticker_plugin.recolor.runs import background_of, composite_on, training_images
 
 
 def run(ws: Workspace) -> Dict[str, Any]:
     """Model purification: fine-tune every parameter of the watermarked run (density, color, sticker) on clean
     training images (MSE, Adam); geometric decoding and test PSNR after each cumulative step count."""
-    from gsticker_plugin.recolor.finetune import finetune_color
-    from gsticker_plugin.recolor.runs import background_of, composite_on, training_images
-
     g = ws.p.geometry
     pipe = ws.load(ws.wm_dir(ws.primary) / "config.yml")
     model = pipe.model

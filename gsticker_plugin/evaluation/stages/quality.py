@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from typing import Any, Dict
 
+from gsticker_plugin import compat
 from gsticker_plugin.evaluation.workspace import Workspace
 
 
 def run(ws: Workspace) -> Dict[str, Any]:
-    from gsticker_plugin import compat
-
     compat.apply()
     lp = lpips_fn()
     res = {"lpips": "available" if lp is not None else "unavailable (AlexNet weights not in the torch cache; offline)"}
@@ -30,8 +29,6 @@ def run(ws: Workspace) -> Dict[str, Any]:
 
 def lpips_fn():
     """LPIPS(a, b) on [B 3 H W] in [0, 1], or None when its AlexNet weights are unavailable (offline)."""
-    from gsticker_plugin import compat
-
     if not compat.lpips_backbone_available("alex"):
         return None
     from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity

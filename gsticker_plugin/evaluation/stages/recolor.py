@@ -12,6 +12,7 @@ from typing import Any, Dict, List, Optional, Sequence
 import torch
 from torch import Tensor
 
+from gsticker_plugin.attacks import hue_shift
 from gsticker_plugin.evaluation.workspace import Workspace, over_seeds
 from gsticker_plugin.recolor.edits import (
     FinetuneArgs,
@@ -21,12 +22,11 @@ from gsticker_plugin.recolor.edits import (
     apply_edit,
     extract_palette_of,
 )
+from gsticker_plugin.recolor.palette import parse_color, rgb_to_lab
 from gsticker_plugin.views import progress_bar
 
 
 def run(ws: Workspace) -> Dict[str, Any]:
-    from gsticker_plugin.attacks import hue_shift
-
     key = ws.key(ws.primary)
     v = ws.views(ws.primary)
     rows = []
@@ -169,7 +169,5 @@ def _recolor_row(var, per_seed, null_seed, quality, paper) -> Dict[str, Any]:
 
 def palette_distance(source_rgb: Sequence[float], color: str) -> float:
     """CIE76 distance (Lab Delta E) between a palette entry and the color an edit gives it."""
-    from gsticker_plugin.recolor.palette import parse_color, rgb_to_lab
-
     lab = rgb_to_lab(torch.tensor([list(source_rgb), list(parse_color(color))], dtype=torch.float32))
     return float((lab[0] - lab[1]).norm())

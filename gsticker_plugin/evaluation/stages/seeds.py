@@ -13,13 +13,12 @@ import torch
 from gsticker_plugin.decoders.geometric import decode_suspect
 from gsticker_plugin.decoders.reference import load_base_reference
 from gsticker_plugin.evaluation.workspace import Workspace
+from gsticker_plugin.key import OwnerKey
 
 
 def run(ws: Workspace) -> Dict[str, Any]:
     """The primary base's sticker trained again with other training seeds: each run's model-level geometric
     decode (its own owner key) and its PSNRs on the protocol's test views; mean and spread with the main run."""
-    from gsticker_plugin.key import OwnerKey
-
     g, b = ws.p.geometry, ws.primary
     q = json.loads(ws.stage_path("quality").read_text())[b]
     main = json.loads(ws.stage_path("geometry").read_text())["bases"][b]["watermarked"]
