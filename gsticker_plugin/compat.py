@@ -15,6 +15,8 @@ Two problems make stock Nerfstudio 1.1.5 unusable on an offline machine with tor
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import socket
 import warnings
@@ -69,9 +71,6 @@ def lpips_backbone_available(net_type: str = "alex", try_download: bool = True) 
         old = socket.getdefaulttimeout()
         socket.setdefaulttimeout(10)
         try:
-            import contextlib
-            import io
-
             with contextlib.redirect_stderr(io.StringIO()):  # torch.hub announces the download it then fails
                 weights.get_state_dict(progress=False)
             ok = os.path.isfile(path)
@@ -84,6 +83,7 @@ def lpips_backbone_available(net_type: str = "alex", try_download: bool = True) 
 
 
 def _make_offline_safe_lpips():
+    # deferred: slow to import, only this metric needs it
     from torchmetrics.functional.image import lpips as lpips_functional
     from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
 
@@ -127,7 +127,11 @@ def apply() -> None:
     if _PATCHED:
         return
     _PATCHED = True
+    # Nerfstudio's own @torch.jit.script helpers warn on import with torch >= 2.9; not ours to fix, and it would
+    # be the first line of every command's stderr
+    warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.* is deprecated", category=FutureWarning)
     allow_numpy_checkpoint_types()
+    # deferred: slow to import, only this metric needs it
     import torchmetrics.image.lpip as lpip_module
 
     safe = _make_offline_safe_lpips()

@@ -8,6 +8,7 @@ from typing import Dict, List, Optional
 
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from gsticker_plugin import metrics
 from gsticker_plugin.key import OwnerKey
@@ -16,6 +17,7 @@ from gsticker_plugin.runs import final_rgb
 
 def load_pipeline(config_path: Path, test_mode: str = "test"):
     """Stock Nerfstudio loading (what ns-viewer/ns-render/ns-eval do) of any run."""
+    # deferred: loads every method entry point, this plugin's included
     from nerfstudio.utils.eval_utils import eval_setup
 
     _, pipeline, _, _ = eval_setup(Path(config_path), test_mode=test_mode)
@@ -36,8 +38,6 @@ def render_split(pipeline, split: str = "test", limit: Optional[int] = None, sti
     gts: List[Tensor] = []
     iterator = range(n)
     if progress:
-        from tqdm import tqdm
-
         iterator = tqdm(iterator, desc=f"rendering {split}", leave=False)
     if ctx is not None:
         ctx.__enter__()

@@ -47,7 +47,7 @@ from nerfstudio.cameras.rays import Frustums, RaySamples
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from torch import Tensor
 
-from gsticker_plugin import runs
+from gsticker_plugin import compat, runs
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import orbit_cameras
 from gsticker_plugin.runs import final_rgb, load_run, relocate
@@ -490,12 +490,7 @@ def fuse(cfg: FuseConfig) -> Dict[str, Any]:
 
 
 def main(cfg: FuseConfig) -> int:
-    try:
-        from gsticker_plugin import compat
-
-        compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
-    except Exception:  # pragma: no cover
-        pass
+    compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
 
     warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
     try:

@@ -42,6 +42,7 @@ def small_backbone(width: int, depth: int) -> Tuple[nn.Module, int]:
 
 
 def vgg16_backbone() -> Tuple[nn.Module, int]:
+    # deferred: only the VGG16 backbone needs it
     from torchvision.models import vgg16
 
     return vgg16(weights=None).features, 512

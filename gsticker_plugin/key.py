@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -112,8 +113,6 @@ def plain(obj: Any) -> Any:
     if isinstance(obj, Tensor):
         return obj.detach().cpu()
     if type(obj).__module__ == "numpy":
-        import numpy as np
-
         return torch.from_numpy(np.ascontiguousarray(obj)) if isinstance(obj, np.ndarray) else obj.item()
     return obj
 

@@ -356,6 +356,7 @@ def psnr(a: Float[Tensor, "B C H W"], b: Float[Tensor, "B C H W"], max_val: floa
 def ssim(a: Float[Tensor, "B C H W"], b: Float[Tensor, "B C H W"]) -> Float[Tensor, " B"]:
     """Per-image SSIM (torchmetrics, Gaussian 11x11 window, ``data_range=1.0``)."""
     # the torchmetrics.functional root alias warns (FutureWarning) in torchmetrics >= 1.x; import from .image
+    # deferred: slow to import, only this metric needs it
     from torchmetrics.functional.image import structural_similarity_index_measure
 
     if a.shape != b.shape or a.ndim != 4:

@@ -112,6 +112,7 @@ class GeometryStickerModel(Model):
 
     def _viewer_elements(self) -> None:
         try:
+            # deferred: the viewer is optional
             from nerfstudio.viewer.viewer_elements import ViewerCheckbox
         except Exception:  # pragma: no cover - viewer extras missing
             return

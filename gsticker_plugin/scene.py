@@ -158,6 +158,7 @@ def _solid(mesh, color: Tuple[float, float, float], smooth: bool) -> Part:
 
 def builtin_scene() -> List[Part]:
     """The demo scene: a textured plate carrying red, green and blue primitives and two textured ones."""
+    # deferred: the scene generator's textures
     import skimage.data
     import trimesh
     from trimesh.transformations import rotation_matrix, translation_matrix
@@ -183,6 +184,7 @@ def builtin_scene() -> List[Part]:
 
 def read_texture(path: Path) -> UInt8[np.ndarray, "h w 3"]:
     """Read an image file as 8-bit RGB with OpenImageIO, or raise SceneError."""
+    # deferred: native image library, only image I/O needs it
     import OpenImageIO as oiio
 
     buf = oiio.ImageBuf(str(path))
@@ -235,6 +237,7 @@ def sibling_texture(mesh_file: Path) -> Optional[Path]:
 
 def load_mesh_parts(path: Path, up: Literal["y", "z"] = "y") -> List[Part]:
     """Load a user's mesh (with texture or colors) as Parts, z-up, centred and scaled into SCENE_RADIUS."""
+    # deferred: the scene generator's 3D stack
     import trimesh
 
     mesh_file = resolve_mesh_file(path)
@@ -294,6 +297,7 @@ def load_mesh_parts(path: Path, up: Literal["y", "z"] = "y") -> List[Part]:
 
 def make_plotter(parts: Sequence[Part], size: int):
     """An off-screen pyvista Plotter (no multisampling, transparent black background) holding ``parts``."""
+    # deferred: the scene generator's 3D stack
     import pyvista as pv
     from vtkmodules.vtkCommonCore import vtkLogger
 
@@ -352,6 +356,7 @@ def render_view(
 
 def write_png(path: Path, rgba: UInt8[np.ndarray, "h w 4"]) -> None:
     """Write straight (unassociated) alpha RGBA as an 8-bit PNG with OpenImageIO."""
+    # deferred: native image library, only image I/O needs it
     import OpenImageIO as oiio
 
     spec = oiio.ImageSpec(rgba.shape[1], rgba.shape[0], 4, oiio.UINT8)
@@ -361,6 +366,7 @@ def write_png(path: Path, rgba: UInt8[np.ndarray, "h w 4"]) -> None:
 
 def write_depth_exr(path: Path, depth: Float[np.ndarray, "h w"]) -> None:
     """Write z-depth (world units along the optical axis, 0 = background) as a one-channel float32 EXR."""
+    # deferred: native image library, only image I/O needs it
     import OpenImageIO as oiio
 
     spec = oiio.ImageSpec(depth.shape[1], depth.shape[0], 1, oiio.FLOAT)
@@ -371,6 +377,7 @@ def write_depth_exr(path: Path, depth: Float[np.ndarray, "h w"]) -> None:
 
 
 def _write_image(path: Path, spec, pixels: np.ndarray) -> None:
+    # deferred: native image library, only image I/O needs it
     import OpenImageIO as oiio
 
     out = oiio.ImageOutput.create(str(path))

@@ -55,6 +55,7 @@ def read_image(path: Path, max_side: int = 400, min_side: int = 16, max_pixels: 
     float (HDR) values are clamped to [0, 1]. Images with a longer side above ``max_side`` are reduced by an
     integer area average while being read in strips (memory stays bounded for any size), then resized exactly.
     """
+    # deferred: native image library, only image I/O needs it
     import OpenImageIO as oiio
 
     inp = oiio.ImageInput.open(str(path))

@@ -263,6 +263,7 @@ def test_match_amplitude_hits_the_target_psnr(loaded):
 def test_hue_shift_defeats_the_color_decoder_not_the_geometric_one(runs, loaded):
     from gsticker_plugin.recolor import cli
     from gsticker_plugin.recolor import runs as R
+    from gsticker_plugin.recolor.configs import HUE_METHOD
 
     dest = runs["ws"] / "colormark-hue"
     assert cli.run(["hue", "--load-config", str(runs["color"]), "--output-dir", str(dest), "--shift", "0.5"]) == 0
@@ -291,7 +292,7 @@ def test_hue_shift_defeats_the_color_decoder_not_the_geometric_one(runs, loaded)
     assert max(m) < 41 and sum(m) / len(m) <= 34, m  # below the owner threshold on every view
     # the density sticker under the same hue shift (model-level, in memory): the geometric decoder still reads it
     with _quiet():
-        _, gpipe, _, _, _ = R.build_recolor_run(runs["run"], None, cli.HUE_METHOD)
+        _, gpipe, _, _, _ = R.build_recolor_run(runs["run"], None, HUE_METHOD)
     gpipe.model.hue_shift.fill_(0.5)
     gpipe.model.recolor_enabled = False
     unedited, _ = G.decode_suspect(loaded.key, loaded.ref, gpipe.model, VIEWS, 0.5, 0)

@@ -95,6 +95,7 @@ def method_config(name: str):
     for ep in importlib.metadata.entry_points(group="nerfstudio.method_configs"):
         if ep.name == name:
             return copy.deepcopy(ep.load().config)
+    # deferred: loads every method entry point, this plugin's included
     from nerfstudio.configs.method_configs import all_methods
 
     if name not in all_methods:

@@ -67,6 +67,7 @@ def variant_overrides(name: str) -> Dict[str, object]:
 
 
 def run_variant(cfg: StickerBenchConfig, name: str) -> Dict[str, object]:
+    # deferred: an ns-train entry point module, not a library
     from method_configs.geometrysticker import geometrysticker_config
 
     tcfg = geometrysticker_config(cfg.max_steps)

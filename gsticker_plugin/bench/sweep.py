@@ -259,6 +259,7 @@ def markdown(cfg: SweepConfig, rows: List[Dict[str, Any]], when: str, machine: s
 
 
 def chart(rows: List[Dict[str, Any]], path: Path) -> None:
+    # deferred: only charts need it, slow to import
     import matplotlib
 
     matplotlib.use("Agg")

@@ -234,6 +234,7 @@ def chart(rows: List[Dict[str, Any]], num_bits: int, threshold: int, path: Path)
     """Per test view: matched bits (with the per-view threshold) and PSNR watermarked vs unwatermarked."""
     if not rows:
         return None
+    # deferred: only charts need it, slow to import
     import matplotlib
 
     matplotlib.use("Agg")

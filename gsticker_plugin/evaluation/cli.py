@@ -18,7 +18,6 @@ import tyro
 from gsticker_plugin import compat
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.evaluation.config import ALL_STAGES, load_protocol
-from gsticker_plugin.evaluation.runner import Runner
 
 
 @dataclass
@@ -43,7 +42,7 @@ class EvalArgs:
 
 
 def main(args: EvalArgs) -> int:
-
+    """Run the protocol's stages into its output folder; 0 when done."""
     compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
 
     # nerfstudio 1.1.5's camera indexing warns on every render with this torch: noise in a long log
@@ -52,6 +51,9 @@ def main(args: EvalArgs) -> int:
     bad = [s for s in (*args.stages, *args.redo) if s not in ALL_STAGES]
     if bad:
         raise GStickerError(f"unknown stage(s) {', '.join(bad)}; use {' '.join(ALL_STAGES)}")
+    # deferred: the stages pull in Nerfstudio (seconds): check the arguments first
+    from gsticker_plugin.evaluation.runner import Runner
+
     protocol = load_protocol(args.config, output_dir=args.output_dir, data=args.data, sticker_seeds=args.sticker_seeds)
     runner = Runner(protocol, progress=args.progress, redo=args.redo, log=lambda m: print(m, flush=True))
     runner.run(args.stages)

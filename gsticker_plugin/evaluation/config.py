@@ -16,6 +16,7 @@ import yaml
 
 from gsticker_plugin import attacks
 from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.recolor import palette as P
 
 # The paper's numbers (Blender column; method.md). Kept here so that the tables print them beside ours.
 PAPER = {
@@ -257,8 +258,6 @@ def validate(p: Protocol) -> None:
     except ValueError as e:
         raise GStickerError(str(e)) from None
     if p.recolor is not None:
-        from gsticker_plugin.recolor import palette as P
-
         try:
             for c in p.recolor.colors:
                 P.parse_color(c)

@@ -22,7 +22,7 @@ from typing_extensions import Annotated
 
 from gsticker_plugin import compat
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.recolor.edits import FinetuneArgs, HueArgs, PaletteArgs, apply_edit
+from gsticker_plugin.recolor.configs import FinetuneArgs, HueArgs, PaletteArgs
 
 Args = Union[
     Annotated[PaletteArgs, tyro.conf.subcommand("palette")],
@@ -35,6 +35,9 @@ def run(argv: Optional[List[str]] = None) -> int:
     """Parse ``argv`` and run; GStickerError -> one line ``error: ...`` on stderr, exit status 2."""
     compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
     args = tyro.cli(Args, args=argv, description=__doc__.split("\n\n")[0])
+    # deferred: the edits pull in Nerfstudio (seconds): parse the arguments first
+    from gsticker_plugin.recolor.edits import apply_edit
+
     try:
         return apply_edit(args)
     except GStickerError as e:

@@ -34,6 +34,7 @@ from gsticker_plugin.recolor import palette as P
 
 def _density_only(module: nn.Module) -> bool:
     try:
+        # deferred: optional field class
         from nerfstudio.fields.density_fields import HashMLPDensityField
     except Exception:  # pragma: no cover
         return False
@@ -177,6 +178,7 @@ class RecolorModel(Model):
 
     def _viewer_elements(self) -> None:
         try:
+            # deferred: the viewer is optional
             from nerfstudio.viewer.viewer_elements import ViewerCheckbox, ViewerRGB, ViewerSlider
         except Exception:  # pragma: no cover - viewer extras missing
             return

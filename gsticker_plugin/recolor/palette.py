@@ -78,6 +78,7 @@ def parse_color(text: str) -> Tuple[float, float, float]:
     key = _norm_name(s)
     if key in PRESETS:
         return parse_color(PRESETS[key])
+    # deferred: only charts need it, slow to import
     from matplotlib.colors import CSS4_COLORS
 
     css = {_norm_name(k): v for k, v in CSS4_COLORS.items()}
@@ -93,6 +94,7 @@ def to_hex(rgb: Sequence[float]) -> str:
 
 def color_name(rgb: Sequence[float]) -> str:
     """The nearest CSS color name (by Lab distance), for printing."""
+    # deferred: only charts need it, slow to import
     from matplotlib.colors import CSS4_COLORS
 
     names = sorted(CSS4_COLORS)
@@ -323,6 +325,7 @@ def swatch_image(rows: Sequence[Sequence[Sequence[float]]], cell: int = 48) -> T
 
 
 def write_png(path, img_u8: Tensor) -> None:
+    # deferred: only PNG writing needs it
     from PIL import Image
 
     Image.fromarray(img_u8.cpu().numpy()).save(str(path))

@@ -153,6 +153,7 @@ def build_recolor_run(load_config: Path, data: Optional[Path], method_name: str,
 
     Returns (config, pipeline, run_dir, checkpoint, step). The palette is empty and the hue shift 0 (no edit).
     """
+    # deferred: loads every method entry point, this plugin's included
     from nerfstudio.utils.eval_utils import all_methods
 
     run_cfg, run_dir, ckpt = check_input_config(load_config)

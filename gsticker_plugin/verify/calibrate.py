@@ -6,9 +6,8 @@ import contextlib
 import shutil
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Literal, Optional, Tuple
+from typing import Any, Dict, List
 
 import torch
 
@@ -24,61 +23,9 @@ from gsticker_plugin.decoders.reference import (
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.runs import load_run, pick_device
+from gsticker_plugin.verify.configs import CalibrateConfig
 from gsticker_plugin.verify.stats import NULL_FORMAT_VERSION, decoder_null
 from gsticker_plugin.views import Views, images_views, model_views, random_views
-
-
-@dataclass
-class CalibrateConfig:
-    """Decode unmarked renders/images with a key and store the observed null in the key.
-
-    The key is rewritten atomically (fingerprint recomputed); the previous file is kept as KEY.gskey.bak.
-    """
-
-    key: Path
-    """The owner key to calibrate (.gskey)."""
-    load_config: Tuple[Path, ...] = ()
-    """Unmarked runs (config.yml) to render: other scenes, other models. GeometrySticker runs are rendered with the
-    sticker off (i.e. their unmarked base)."""
-    images: Tuple[Path, ...] = ()
-    """Folders of unmarked images."""
-    base: bool = True
-    """Also render the base run the key was made on (the config path recorded in the key), when it exists here."""
-    decode: Literal["extractor", "geometry", "image"] = "extractor"
-    """Which decoder's null to measure: the extractor's (stored in the key's null), the geometric decoder's
-    (stored in the key's geometry reference; decodes the base itself and the --load-config runs, not images) or the
-    image decoder's (stored beside it; decodes the --images at the cameras of --cameras, e.g. the base dataset's
-    own photos: unmarked images at known cameras; random images are not used)."""
-    cameras: Optional[Path] = None
-    """--decode image: the transforms JSON giving the cameras of the --images (Blender format)."""
-    base_config: Optional[Path] = None
-    """--decode geometry: the owner's base run (config.yml), when the path recorded in the key moved."""
-    data: Optional[Path] = None
-    """--decode geometry: dataset folder of the owner's base run, when its recorded one does not exist here."""
-    random_images: int = 64
-    """Random images (noise, smooth noise, flat colours, gradients) added to the null."""
-    random_size: int = 64
-    """Side of the random images."""
-    num_views: int = 24
-    """Views rendered per run."""
-    sampled_share: float = 0.5
-    """Share of the rendered views taken from sampled orbit poses."""
-    append: bool = False
-    """Add to the null already stored in the key instead of replacing it."""
-    backup: bool = True
-    """Keep the previous key file as KEY.gskey.bak before rewriting it."""
-    seed: int = 0
-    """Seed of the sampled poses and the random images."""
-    max_side: int = 400
-    """Images whose longer side exceeds this are downscaled before decoding."""
-    min_side: int = 16
-    """Images with a shorter side below this are skipped."""
-    max_pixels: int = 1_000_000_000
-    """Images with more pixels than this are skipped."""
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    """Device for rendering and decoding."""
-    progress: bool = True
-    """Show tqdm progress bars (on stderr)."""
 
 
 def calibrate(config: CalibrateConfig) -> Dict[str, Any]:

@@ -6,12 +6,12 @@ import contextlib
 import sys
 import time
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Literal, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import torch
 
+from gsticker_plugin.attacks import parse_attack_spec
 from gsticker_plugin.decoders.blind import decode_views
 from gsticker_plugin.decoders.geometric import decode_suspect
 from gsticker_plugin.decoders.image import (
@@ -26,13 +26,9 @@ from gsticker_plugin.decoders.reference import (
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import KEY_SUFFIX, OwnerKey, commitment
 from gsticker_plugin.runs import load_run, pick_device
-from gsticker_plugin.verify.report import _write_json, write_figure
-from gsticker_plugin.verify.stats import (
-    EXIT_NOT_SHOWN,
-    EXIT_OWNED,
-    correct_keys,
-    key_result,
-)
+from gsticker_plugin.verify.configs import EXIT_NOT_SHOWN, EXIT_OWNED, VerifyConfig
+from gsticker_plugin.verify.report import write_figure, write_json
+from gsticker_plugin.verify.stats import correct_keys, key_result
 from gsticker_plugin.views import (
     Views,
     apply_attack,
@@ -44,73 +40,6 @@ from gsticker_plugin.views import (
 # ================================================================================================================
 # configuration
 # ================================================================================================================
-
-
-@dataclass
-class VerifyConfig:
-    """Decide whether a suspect run or a folder of suspect images carries an owner's message.
-
-    Exit status: 0 "owned", 1 "not shown", 2 error. Calibrate a key's empirical null first with
-    `ns-verify-owner calibrate --key KEY` (see docs/verify.md).
-    """
-
-    load_config: Optional[Path] = None
-    """RUN/config.yml of the suspect run (any Nerfstudio method, recolored or not); N views are rendered."""
-    images: Optional[Path] = None
-    """Folder (searched recursively) or single file of suspect images: renders, screenshots, any size or format
-    OpenImageIO reads. Files that cannot be used are skipped and listed in the report."""
-    key: Optional[Path] = None
-    """The owner key (.gskey written by ns-train geometrysticker)."""
-    keys: Optional[Path] = None
-    """A folder of owner keys (*.gskey): every key is tested, corrected for multiple testing (--correction)."""
-    num_views: int = 24
-    """Views rendered from a run (--load-config): its own cameras and sampled orbit poses."""
-    sampled_share: float = 0.5
-    """Share of the rendered views taken from sampled orbit poses; the rest are the run's own train/eval cameras."""
-    data: Optional[Path] = None
-    """Dataset folder of the run, when the path recorded in its config.yml does not exist from here (also used for
-    the owner's base run under --decode geometry when its recorded dataset does not exist and --base-data is unset)."""
-    decode: Literal["auto", "geometry", "image", "extractor"] = "auto"
-    """geometry: informed decoding from the suspect model's accumulation/depth, given the owner's unwatermarked base
-    run (needs a version-2 key and --load-config; model-level only); image: informed decoding of --images taken at
-    the known cameras of --cameras, given the owner's base run (the same fit on colour); extractor: the key's CNN
-    reads the message from RGB renders or images (blind); auto: geometry for a model and image for images with
-    --cameras when the keys' base runs are reachable, else extractor."""
-    cameras: Optional[Path] = None
-    """--images only: a transforms JSON (Blender format, e.g. the base dataset's transforms_test.json) giving each
-    image's camera, matched by file name without extension (r_0.png <-> ./test/r_0); enables --decode image.
-    Images without a camera are skipped and listed."""
-    base_config: Optional[Path] = None
-    """The owner's base run (config.yml) for --decode geometry, when the path recorded in the key moved."""
-    base_data: Optional[Path] = None
-    """Dataset folder of the owner's base run, when its recorded one does not exist from here (default: --data)."""
-    fpr: float = 1e-6
-    """Per-view false-positive rate of the binomial test (1e-6 = at least 41 of 48 bits)."""
-    min_share: float = 0.5
-    """Share of views that must pass for the model-level verdict; its FPR is at most fpr / min-share."""
-    correction: Literal["holm", "bonferroni"] = "holm"
-    """Multiple-testing correction across keys (--keys)."""
-    attack: str = ""
-    """Distortions applied before decoding, in order, e.g. 'noise=0.1,rotate=30,crop=0.25,blur=1,jpeg=50,hue=0.3'."""
-    seed: int = 0
-    """Seed of the sampled poses and of the random attacks."""
-    output: Path = Path("verify-report")
-    """Folder for report.json and report.png (created; an existing report there is replaced)."""
-    figure: bool = True
-    """Write report.png (histogram of matches against the null and a few decoded views)."""
-    max_side: int = 400
-    """Images whose longer side exceeds this are downscaled (area average, streamed) to this size before decoding."""
-    min_side: int = 16
-    """Images with a shorter side below this are skipped (too small to carry a mark)."""
-    max_pixels: int = 1_000_000_000
-    """Images with more pixels than this are skipped (decompression-bomb guard); smaller ones are streamed."""
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    """Device for rendering and decoding (auto: cuda when available)."""
-    progress: bool = True
-    """Show tqdm progress bars (on stderr)."""
-    commitment: Optional[str] = None
-    """The commitment (hex) printed by `ns-verify-owner commit` and published when the model was released: checked
-    against --key (a mismatch is an error, exit 2); the report says it matched, i.e. this key existed then."""
 
 
 # ================================================================================================================
@@ -257,8 +186,6 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
     if config.max_side < config.min_side or config.min_side < 1:
         raise GStickerError(f"need 1 <= --min-side <= --max-side, got {config.min_side} and {config.max_side}")
     if config.attack.strip():  # fail early on a bad spec, before rendering
-        from gsticker_plugin.attacks import parse_attack_spec
-
         try:
             parse_attack_spec(config.attack)
         except ValueError as e:
@@ -334,7 +261,7 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
             write_figure(out / "report.png", report, views, keys[best][1])
             files.append(str(out / "report.png"))
         report["files"] = files
-        _write_json(out / "report.json", report)
+        write_json(out / "report.json", report)
     except OSError as e:
         raise GStickerError(f"cannot write the report to {out} ({e.strerror or e}); pass --output with a "
                             "writable folder") from None

@@ -27,6 +27,7 @@ gates) to a version-1 key from the watermarked run it belongs to.
 from __future__ import annotations
 
 import sys
+import traceback
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -34,16 +35,15 @@ import tyro
 
 from gsticker_plugin import compat
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.verify.calibrate import CalibrateConfig, calibrate, calibrate_text
-from gsticker_plugin.verify.check import VerifyConfig, verify
-from gsticker_plugin.verify.keys import (
+from gsticker_plugin.verify.configs import (  # noqa: F401 (the exit statuses are part of the command)
+    EXIT_ERROR,
+    EXIT_NOT_SHOWN,
+    EXIT_OWNED,
+    CalibrateConfig,
     CommitConfig,
     ExportKeyConfig,
-    commit,
-    export_key,
+    VerifyConfig,
 )
-from gsticker_plugin.verify.report import summary_text
-from gsticker_plugin.verify.stats import EXIT_ERROR, EXIT_NOT_SHOWN, EXIT_OWNED  # noqa: F401 (exit codes of the command)
 
 
 def _error(message: str) -> int:
@@ -74,6 +74,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                            "version-1 key), commit (prints the key's commitment to publish at release).")
     except SystemExit as e:  # --help (0) or a parse error (tyro prints it; status 2)
         return int(e.code) if isinstance(e.code, int) else EXIT_ERROR
+    # deferred: the commands pull in Nerfstudio (seconds, and its warnings): parse the arguments first
+    from gsticker_plugin.verify.calibrate import calibrate, calibrate_text
+    from gsticker_plugin.verify.check import verify
+    from gsticker_plugin.verify.keys import commit, export_key
+    from gsticker_plugin.verify.report import summary_text
+
     try:
         if sub == "calibrate":
             res = calibrate(cfg)
@@ -103,8 +109,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except MemoryError:
         return _error("out of memory while decoding; lower --max-side or --num-views")
     except Exception as e:  # a crash is never a verdict: one line, exit 2
-        import traceback
-
         frames = traceback.extract_tb(e.__traceback__)
         where = f" at {Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else ""
         return _error(f"no verdict: {type(e).__name__}: {e}{where} (a failure inside ns-verify-owner, not a "

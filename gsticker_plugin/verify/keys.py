@@ -5,9 +5,8 @@ from __future__ import annotations
 import contextlib
 import shutil
 import sys
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Optional
+from typing import Any, Dict
 
 import torch
 
@@ -15,24 +14,7 @@ from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import OwnerKey, commitment
 from gsticker_plugin.model import geometry_reference
 from gsticker_plugin.runs import load_run
-
-
-@dataclass
-class ExportKeyConfig:
-    """Add the geometry reference (the sticker, the gates) of a watermarked run to its owner key: a version-1 key
-    becomes a version-2 key that `ns-verify-owner --decode geometry` can use. The run must carry the key's
-    message and be made on the key's base."""
-
-    load_config: Path
-    """The watermarked run (RUN/config.yml written by ns-train geometrysticker) the key belongs to."""
-    key: Path
-    """The owner key (.gskey) to extend."""
-    output: Optional[Path] = None
-    """Where the extended key is written (default: the key itself, the previous file kept as KEY.gskey.bak)."""
-    data: Optional[Path] = None
-    """Dataset folder of the run, when the path recorded in its config.yml does not exist from here."""
-    backup: bool = True
-    """Keep the previous key file as KEY.gskey.bak when rewriting it in place."""
+from gsticker_plugin.verify.configs import CommitConfig, ExportKeyConfig
 
 
 def export_key(config: ExportKeyConfig) -> Dict[str, Any]:
@@ -68,15 +50,6 @@ def export_key(config: ExportKeyConfig) -> Dict[str, Any]:
     OwnerKey.load(out)
     return {"key": str(out), "backup": str(backup) if backup else None, "run": str(config.load_config),
             "checkpoint": str(ckpt), "fields": key.geometry["fields"]}
-
-
-@dataclass
-class CommitConfig:
-    """Print the commitment of an owner key: 64 hex digits to publish or timestamp when the model is released.
-    Later, `ns-verify-owner --commitment HEX --key KEY` shows this key existed then (see docs/verify.md)."""
-
-    key: Path
-    """The owner key (.gskey) to commit to."""
 
 
 def commit(config: CommitConfig) -> Dict[str, Any]:

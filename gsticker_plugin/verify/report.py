@@ -84,6 +84,7 @@ def summary_text(report: Dict[str, Any]) -> str:
 
 
 def write_figure(path: Path, report: Dict[str, Any], views: Views, key: Optional[OwnerKey]) -> None:
+    # deferred: only charts need it, slow to import
     import matplotlib
 
     matplotlib.use("Agg")
@@ -137,7 +138,7 @@ def write_figure(path: Path, report: Dict[str, Any], views: Views, key: Optional
     os.replace(tmp, path)
 
 
-def _write_json(path: Path, obj: Any) -> None:
+def write_json(path: Path, obj: Any) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(obj, indent=2, allow_nan=False))
     os.replace(tmp, path)

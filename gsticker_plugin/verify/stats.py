@@ -10,8 +10,6 @@ from gsticker_plugin import metrics
 from gsticker_plugin.key import OwnerKey, bits_to_str
 from gsticker_plugin.views import Views
 
-EXIT_OWNED, EXIT_NOT_SHOWN, EXIT_ERROR = 0, 1, 2
-"""ns-verify-owner's exit statuses: owned, not shown, error (never a verdict)."""
 NULL_FORMAT_VERSION = 1
 
 

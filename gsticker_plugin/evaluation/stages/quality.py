@@ -31,6 +31,7 @@ def lpips_fn():
     """LPIPS(a, b) on [B 3 H W] in [0, 1], or None when its AlexNet weights are unavailable (offline)."""
     if not compat.lpips_backbone_available("alex"):
         return None
+    # deferred: slow to import, only this metric needs it
     from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
 
     m = LearnedPerceptualImagePatchSimilarity(net_type="alex", normalize=True)

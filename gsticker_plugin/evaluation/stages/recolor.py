@@ -14,14 +14,8 @@ from torch import Tensor
 
 from gsticker_plugin.attacks import hue_shift
 from gsticker_plugin.evaluation.workspace import Workspace, over_seeds
-from gsticker_plugin.recolor.edits import (
-    FinetuneArgs,
-    HueArgs,
-    PaletteArgs,
-    PaletteEdit,
-    apply_edit,
-    extract_palette_of,
-)
+from gsticker_plugin.recolor.configs import FinetuneArgs, HueArgs, PaletteArgs, PaletteEdit
+from gsticker_plugin.recolor.edits import apply_edit, extract_palette_of
 from gsticker_plugin.recolor.palette import parse_color, rgb_to_lab
 from gsticker_plugin.views import progress_bar
 
