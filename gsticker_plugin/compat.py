@@ -44,7 +44,9 @@ def numpy_checkpoint_types() -> list:
     types.append(scalar)
     dtypes = getattr(np, "dtypes", None)
     if dtypes is not None:
-        types += [getattr(dtypes, n) for n in dir(dtypes) if n.endswith("DType") and isinstance(getattr(dtypes, n), type)]
+        types += [
+            getattr(dtypes, n) for n in dir(dtypes) if n.endswith("DType") and isinstance(getattr(dtypes, n), type)
+        ]
     return types
 
 

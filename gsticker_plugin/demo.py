@@ -84,18 +84,51 @@ def main(cfg: DemoConfig) -> None:
 
     print("[1/6] Rendering the embedded scene", flush=True)
     if not (scene / "transforms_train.json").exists():
-        _run([console_script("ns-gsticker-scene"), "--output-dir", str(scene), "--resolution", str(cfg.resolution),
-              "--num-train", "100", "--num-val", "10", "--num-test", str(max(cfg.test_views, 1))], logs / "scene.log")
+        _run(
+            [
+                console_script("ns-gsticker-scene"),
+                "--output-dir",
+                str(scene),
+                "--resolution",
+                str(cfg.resolution),
+                "--num-train",
+                "100",
+                "--num-val",
+                "10",
+                "--num-test",
+                str(max(cfg.test_views, 1)),
+            ],
+            logs / "scene.log",
+        )
     else:
         print("    (exists)")
 
     print("[2/6] Training the small nerfacto base", flush=True)
     base_run = out / "demo" / "gsticker-nerfacto-small" / "base"
     if not list((base_run / "nerfstudio_models").glob("step-*.ckpt")):
-        _run([console_script("ns-train"), "gsticker-nerfacto-small", "--machine.device-type", "cpu", "--vis", "tensorboard",
-              "--output-dir", str(out), "--experiment-name", "demo", "--timestamp", "base",
-              "--max-num-iterations", str(cfg.base_iterations), "--steps-per-save", "500",
-              "--data", str(scene)], logs / "base.log")
+        _run(
+            [
+                console_script("ns-train"),
+                "gsticker-nerfacto-small",
+                "--machine.device-type",
+                "cpu",
+                "--vis",
+                "tensorboard",
+                "--output-dir",
+                str(out),
+                "--experiment-name",
+                "demo",
+                "--timestamp",
+                "base",
+                "--max-num-iterations",
+                str(cfg.base_iterations),
+                "--steps-per-save",
+                "500",
+                "--data",
+                str(scene),
+            ],
+            logs / "base.log",
+        )
     else:
         print("    (exists)")
     base_ckpt = latest_checkpoint(base_run / "nerfstudio_models")
@@ -104,10 +137,31 @@ def main(cfg: DemoConfig) -> None:
     wm_run = out / "demo" / "geometrysticker" / "watermarked"
     key_path = out / "owner-keys" / "demo.gskey"  # the secret half: outside the run's output folder
     if not key_path.exists() or not list((wm_run / "nerfstudio_models").glob("step-*.ckpt")):
-        _run([console_script("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
-              "--output-dir", str(out), "--experiment-name", "demo", "--timestamp", "watermarked",
-              "--max-num-iterations", str(cfg.sticker_iterations), "--pipeline.owner-id", cfg.owner_id,
-              "--pipeline.key-path", str(key_path), "--load-checkpoint", str(base_ckpt)], logs / "sticker.log")
+        _run(
+            [
+                console_script("ns-train"),
+                "geometrysticker",
+                "--machine.device-type",
+                "cpu",
+                "--vis",
+                "tensorboard",
+                "--output-dir",
+                str(out),
+                "--experiment-name",
+                "demo",
+                "--timestamp",
+                "watermarked",
+                "--max-num-iterations",
+                str(cfg.sticker_iterations),
+                "--pipeline.owner-id",
+                cfg.owner_id,
+                "--pipeline.key-path",
+                str(key_path),
+                "--load-checkpoint",
+                str(base_ckpt),
+            ],
+            logs / "sticker.log",
+        )
     else:
         print("    (exists)")
 
@@ -134,12 +188,24 @@ def main(cfg: DemoConfig) -> None:
 
     print("[5/6] Recoloring the watermarked model (palette edit, hue shift)", flush=True)
     recolored = {}
-    for name, args in (("palette", ["palette", "--set", "0=dodger blue", "1=magenta"]),
-                       ("hue", ["hue", "--shift", "0.3"])):
+    for name, args in (
+        ("palette", ["palette", "--set", "0=dodger blue", "1=magenta"]),
+        ("hue", ["hue", "--shift", "0.3"]),
+    ):
         dest = out / f"recolor-{name}"
         if not list(dest.glob("**/config.yml")):
-            _run([console_script("ns-recolor"), *args, "--load-config", str(wm_run / "config.yml"), "--output-dir", str(dest),
-                  "--overwrite"], logs / f"recolor-{name}.log")
+            _run(
+                [
+                    console_script("ns-recolor"),
+                    *args,
+                    "--load-config",
+                    str(wm_run / "config.yml"),
+                    "--output-dir",
+                    str(dest),
+                    "--overwrite",
+                ],
+                logs / f"recolor-{name}.log",
+            )
         else:
             print(f"    ({dest} exists)")
         recolored[name] = _config_under(dest)
@@ -147,19 +213,39 @@ def main(cfg: DemoConfig) -> None:
     print("[6/6] ns-verify-owner: empirical null, then verdicts", flush=True)
     null_done = out / "verify" / "calibrated"
     if not null_done.exists():
-        _run([console_script("ns-verify-owner"), "calibrate", "--key", str(key_path), "--num-views", str(cfg.verify_views),
-              "--random-images", "32"], logs / "calibrate.log")
+        _run(
+            [
+                console_script("ns-verify-owner"),
+                "calibrate",
+                "--key",
+                str(key_path),
+                "--num-views",
+                str(cfg.verify_views),
+                "--random-images",
+                "32",
+            ],
+            logs / "calibrate.log",
+        )
         null_done.parent.mkdir(parents=True, exist_ok=True)
         null_done.write_text("calibrated\n")
     else:
         print("    (key already calibrated)")
-    suspects = {"watermarked": wm_run / "config.yml", "palette-recolored": recolored["palette"],
-                "hue-recolored": recolored["hue"], "unwatermarked base": base_run / "config.yml"}
+    suspects = {
+        "watermarked": wm_run / "config.yml",
+        "palette-recolored": recolored["palette"],
+        "hue-recolored": recolored["hue"],
+        "unwatermarked base": base_run / "config.yml",
+    }
     verdicts = verify_stage(out / "verify", logs, key_path, suspects, {"geometry": cfg.geometry_views})
     # The blind extractor for comparison, on the watermarked run and the base (recolored runs add nothing while it
     # does not learn the message; docs/geometrysticker.md, Status).
-    blind = verify_stage(out / "verify", logs, key_path,
-                         {k: suspects[k] for k in ("watermarked", "unwatermarked base")}, {"extractor": cfg.verify_views})
+    blind = verify_stage(
+        out / "verify",
+        logs,
+        key_path,
+        {k: suspects[k] for k in ("watermarked", "unwatermarked base")},
+        {"extractor": cfg.verify_views},
+    )
     for name, by_decoder in blind.items():
         verdicts.setdefault(name, {}).update(by_decoder)
     summary["verdicts"] = verdicts
@@ -173,15 +259,19 @@ def main(cfg: DemoConfig) -> None:
     print(f"  recolored models:    {recolored['palette']}\n                       {recolored['hue']}")
     print(f"  verdict reports:     {out / 'verify'}/*/report.json, report.png")
     print(f"  summary:             {out / 'demo_summary.json'}")
-    if not any(v.get("extractor", {}).get("verdict") == "owned" for k, v in verdicts.items()
-               if k != "unwatermarked base"):
-        print("\nNote: the blind extractor does not yet learn the 48-bit message on a CPU budget, so its verdicts are\n"
-              "honest 'not shown' (docs/geometrysticker.md, Status). The geometric decoder is informed: it needs the\n"
-              "owner's unwatermarked base run and reads models, not images (docs/verify.md).")
+    if not any(
+        v.get("extractor", {}).get("verdict") == "owned" for k, v in verdicts.items() if k != "unwatermarked base"
+    ):
+        print(
+            "\nNote: the blind extractor does not yet learn the 48-bit message on a CPU budget, so its verdicts are\n"
+            "honest 'not shown' (docs/geometrysticker.md, Status). The geometric decoder is informed: it needs the\n"
+            "owner's unwatermarked base run and reads models, not images (docs/verify.md)."
+        )
 
 
-def verify_stage(out: Path, logs: Path, key_path: Path, suspects: Dict[str, Path],
-                 decoders: Dict[str, int]) -> Dict[str, Dict[str, Dict[str, str]]]:
+def verify_stage(
+    out: Path, logs: Path, key_path: Path, suspects: Dict[str, Path], decoders: Dict[str, int]
+) -> Dict[str, Dict[str, Dict[str, str]]]:
     """``ns-verify-owner --decode D`` on every suspect run for every decoder D (with its number of views);
     returns {suspect: {decoder: {verdict, summary, report, figure}}} and prints one line per verdict."""
     verdicts: Dict[str, Dict[str, Dict[str, str]]] = {}
@@ -190,9 +280,24 @@ def verify_stage(out: Path, logs: Path, key_path: Path, suspects: Dict[str, Path
         for decoder, views in decoders.items():
             report_dir = out / f"{slug}-{decoder}"
             log = logs / f"verify-{slug}-{decoder}.log"
-            code = _run([console_script("ns-verify-owner"), "--load-config", str(config), "--key", str(key_path), "--decode",
-                         decoder, "--num-views", str(views), "--output", str(report_dir), "--no-progress"], log,
-                        ok=(0, 1))
+            code = _run(
+                [
+                    console_script("ns-verify-owner"),
+                    "--load-config",
+                    str(config),
+                    "--key",
+                    str(key_path),
+                    "--decode",
+                    decoder,
+                    "--num-views",
+                    str(views),
+                    "--output",
+                    str(report_dir),
+                    "--no-progress",
+                ],
+                log,
+                ok=(0, 1),
+            )
             report = json.loads((report_dir / "report.json").read_text())  # written and readable
             verdict = "owned" if code == 0 else "not shown"
             if report["verdict"] != verdict or report["decoder"]["kind"] != decoder:
@@ -200,9 +305,12 @@ def verify_stage(out: Path, logs: Path, key_path: Path, suspects: Dict[str, Path
             line = next((ln for ln in log.read_text().splitlines() if ln.startswith("VERDICT")), verdict)
             label = "informed, geometry" if decoder == "geometry" else "blind, RGB renders"
             print(f"    {name:>20} [{decoder}: {label}]: {line}", flush=True)
-            verdicts.setdefault(name, {})[decoder] = {"verdict": verdict, "summary": line,
-                                                      "report": str(report_dir / "report.json"),
-                                                      "figure": str(report_dir / "report.png")}
+            verdicts.setdefault(name, {})[decoder] = {
+                "verdict": verdict,
+                "summary": line,
+                "report": str(report_dir / "report.json"),
+                "figure": str(report_dir / "report.png"),
+            }
     return verdicts
 
 

@@ -26,8 +26,9 @@ def load_pipeline(config_path: Path, test_mode: str = "test"):
 
 
 @torch.no_grad()
-def render_split(pipeline, split: str = "test", limit: Optional[int] = None, sticker: Optional[bool] = None,
-                 progress: bool = True) -> Dict[str, Tensor]:
+def render_split(
+    pipeline, split: str = "test", limit: Optional[int] = None, sticker: Optional[bool] = None, progress: bool = True
+) -> Dict[str, Tensor]:
     """Render the cameras of a split; returns {"rgb": [N H W 3], "gt": [N H W 3]} (gt on the model's background)."""
     dm = pipeline.datamanager
     dataset = dm.eval_dataset if split != "train" else dm.train_dataset
@@ -43,7 +44,7 @@ def render_split(pipeline, split: str = "test", limit: Optional[int] = None, sti
         ctx.__enter__()
     try:
         for i in iterator:
-            camera = dataset.cameras[i: i + 1].to(model.device)
+            camera = dataset.cameras[i : i + 1].to(model.device)
             out = model.get_outputs_for_camera(camera)
             rgbs.append(final_rgb(out).clamp(0, 1).cpu())
             img = dataset.get_image_float32(i)
@@ -67,12 +68,20 @@ class Decoded:
 @torch.no_grad()
 def decode_images(key: OwnerKey, images_nhw3: Tensor, batch: int = 16) -> Decoded:
     heads = key.build_heads()
-    logits = torch.cat([heads.decode(images_nhw3[i: i + batch].permute(0, 3, 1, 2).float())
-                        for i in range(0, images_nhw3.shape[0], batch)])
+    logits = torch.cat(
+        [
+            heads.decode(images_nhw3[i : i + batch].permute(0, 3, 1, 2).float())
+            for i in range(0, images_nhw3.shape[0], batch)
+        ]
+    )
     bits = metrics.decode_bits(logits)
     m = metrics.count_matches(bits, key.message)
-    return Decoded(matches=m, bit_acc=metrics.bit_accuracy(bits, key.message),
-                   pvalues=metrics.binomial_tail_pvalues(m, key.num_bits), num_bits=key.num_bits)
+    return Decoded(
+        matches=m,
+        bit_acc=metrics.bit_accuracy(bits, key.message),
+        pvalues=metrics.binomial_tail_pvalues(m, key.num_bits),
+        num_bits=key.num_bits,
+    )
 
 
 def psnr_nhw3(a: Tensor, b: Tensor) -> Tensor:

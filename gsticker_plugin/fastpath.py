@@ -37,8 +37,10 @@ class ViewCache:
         return self.image.shape[0], self.image.shape[1]
 
     def nbytes(self) -> int:
-        return sum(t.numel() * t.element_size() for t in (self.image, self.active, self.positions, self.deltas,
-                                                         self.density, self.rgb))
+        return sum(
+            t.numel() * t.element_size()
+            for t in (self.image, self.active, self.positions, self.deltas, self.density, self.rgb)
+        )
 
 
 def orbit_cameras(cameras: Cameras, num: int, generator: torch.Generator, max_tilt_deg: float = 20.0) -> Cameras:
@@ -65,15 +67,26 @@ def orbit_cameras(cameras: Cameras, num: int, generator: torch.Generator, max_ti
         out.append(torch.cat([r @ c2w[i, :, :3], (r @ c2w[i, :, 3:])], dim=1))
     return Cameras(
         camera_to_worlds=torch.stack(out),
-        fx=cameras.fx[idx], fy=cameras.fy[idx], cx=cameras.cx[idx], cy=cameras.cy[idx],
-        width=cameras.width[idx], height=cameras.height[idx], camera_type=cameras.camera_type[idx],
+        fx=cameras.fx[idx],
+        fy=cameras.fy[idx],
+        cx=cameras.cx[idx],
+        cy=cameras.cy[idx],
+        width=cameras.width[idx],
+        height=cameras.height[idx],
+        camera_type=cameras.camera_type[idx],
     )
 
 
 @torch.no_grad()
-def cache_view(model, camera: Cameras, novel: bool, min_density: Optional[float] = None,
-               outputs_into: Optional[Dict[str, Tensor]] = None, full_precision: bool = False,
-               message: Optional[Tensor] = None) -> ViewCache:
+def cache_view(
+    model,
+    camera: Cameras,
+    novel: bool,
+    min_density: Optional[float] = None,
+    outputs_into: Optional[Dict[str, Tensor]] = None,
+    full_precision: bool = False,
+    message: Optional[Tensor] = None,
+) -> ViewCache:
     """Render one camera with the sticker off, recording the final field's samples.
 
     ``outputs_into``: a dict that receives the render's outputs (accumulation, depth, ...), CPU float.
@@ -92,13 +105,22 @@ def cache_view(model, camera: Cameras, novel: bool, min_density: Optional[float]
     density = torch.cat([r["density"].reshape(-1, *r["density"].shape[-2:]) for r in records]).float().cpu()
     rgb = torch.cat([r["rgb"].reshape(-1, *r["rgb"].shape[-2:]) for r in records]).cpu()
     if pos.shape[0] != h * w:
-        raise RuntimeError(f"captured {pos.shape[0]} rays for a {h}x{w} image; the base renders in a way the "
-                           "fast path does not understand: pass --pipeline.fast-path False")
+        raise RuntimeError(
+            f"captured {pos.shape[0]} rays for a {h}x{w} image; the base renders in a way the "
+            "fast path does not understand: pass --pipeline.fast-path False"
+        )
     thr = 0.0 if min_density is None else min_density
     active = (density.squeeze(-1) > thr).any(dim=-1).nonzero().squeeze(-1)
     low = (lambda t: t.float()) if full_precision else (lambda t: t.half())
-    return ViewCache(image=image, active=active, positions=low(pos[active]), deltas=deltas[active].float(),
-                     density=density[active], rgb=low(rgb[active]), novel=novel)
+    return ViewCache(
+        image=image,
+        active=active,
+        positions=low(pos[active]),
+        deltas=deltas[active].float(),
+        density=density[active],
+        rgb=low(rgb[active]),
+        novel=novel,
+    )
 
 
 def render_cached(view: ViewCache, wrap, message: Tensor, background: Tensor) -> tuple:

@@ -68,6 +68,7 @@ def transmittance(density: Tensor, deltas: Tensor) -> Tensor:
 @dataclass
 class LossWeights:
     """Weights of the distillation terms (each a mean over the batch's rays)."""
+
     weights: float = 1.0
     """sum over samples of (w_student - w_teacher)^2: the whole per-ray geometry."""
     accumulation: float = 1.0
@@ -79,9 +80,19 @@ class LossWeights:
     log_density: float = 1e-3
     """Transmittance-weighted squared error of log density (keeps hidden samples where the teacher has them)."""
 
-def distill_losses(student_density: Tensor, student_rgb: Tensor, teacher_density: Tensor, teacher_rgb: Tensor,
-                   deltas: Tensor, steps: Tensor, background: Tensor, depth_scale: float,
-                   density_floor: float, w: LossWeights) -> Dict[str, Tensor]:
+
+def distill_losses(
+    student_density: Tensor,
+    student_rgb: Tensor,
+    teacher_density: Tensor,
+    teacher_rgb: Tensor,
+    deltas: Tensor,
+    steps: Tensor,
+    background: Tensor,
+    depth_scale: float,
+    density_floor: float,
+    w: LossWeights,
+) -> Dict[str, Tensor]:
     """The distillation terms for a batch of rays, all [R S *] tensors on the same samples.
 
     ``steps``: distance of each sample from the ray origin (for the depth term), ``depth_scale`` divides it (so
@@ -124,8 +135,9 @@ def psnr(a: Tensor, b: Tensor) -> float:
     return float("inf") if mse == 0.0 else -10.0 * math.log10(mse)
 
 
-def select_rays(changed: Tensor, acc: Tensor, keep_other: float, generator: torch.Generator,
-                acc_threshold: float = 1e-3) -> Tensor:
+def select_rays(
+    changed: Tensor, acc: Tensor, keep_other: float, generator: torch.Generator, acc_threshold: float = 1e-3
+) -> Tensor:
     """Flat ray indices kept in the pool: every ray the sticker changes or that sees something
     (``acc > acc_threshold``), and a ``keep_other`` share of the rest (empty rays keep the student's empty space)."""
     seen = changed | (acc > acc_threshold)
@@ -135,8 +147,7 @@ def select_rays(changed: Tensor, acc: Tensor, keep_other: float, generator: torc
     return torch.cat([seen.nonzero().squeeze(-1), pick]).sort().values
 
 
-def fused_run_config(base_config, output_dir: Path, experiment_name: str, timestamp: str,
-                     data: Optional[Path] = None):
+def fused_run_config(base_config, output_dir: Path, experiment_name: str, timestamp: str, data: Optional[Path] = None):
     """The base run's TrainerConfig (its own method and model) pointed at a new run folder; nothing of the
     watermark or of the plugin in it."""
     cfg = copy.deepcopy(base_config)
@@ -169,6 +180,7 @@ def checkpoint_state(step: int, pipeline_state: Dict[str, Tensor], base_state: D
 @dataclass
 class SamplePool:
     """Cached final-field samples of many rays with the teacher's marked density and colour at them."""
+
     origins: Tensor  # [R 3]
     directions: Tensor  # [R 3]
     pixel_area: Tensor  # [R 1]
@@ -210,12 +222,18 @@ def cache_view(wm_model, camera, keep_other: float, generator: torch.Generator) 
         with wm_model.sticker_enabled(False):
             base_density, _ = fld.get_density(ray_samples)
         fr = ray_samples.frustums
-        records.append({
-            "origins": fr.origins[:, 0].detach(), "directions": fr.directions[:, 0].detach(),
-            "pixel_area": fr.pixel_area[:, 0].detach(), "starts": fr.starts[..., 0].detach(),
-            "ends": fr.ends[..., 0].detach(), "density": out[FieldHeadNames.DENSITY][..., 0].detach().float(),
-            "base_density": base_density[..., 0].detach().float(), "rgb": out[FieldHeadNames.RGB].detach().half(),
-        })
+        records.append(
+            {
+                "origins": fr.origins[:, 0].detach(),
+                "directions": fr.directions[:, 0].detach(),
+                "pixel_area": fr.pixel_area[:, 0].detach(),
+                "starts": fr.starts[..., 0].detach(),
+                "ends": fr.ends[..., 0].detach(),
+                "density": out[FieldHeadNames.DENSITY][..., 0].detach().float(),
+                "base_density": base_density[..., 0].detach().float(),
+                "rgb": out[FieldHeadNames.RGB].detach().half(),
+            }
+        )
         return out
 
     object.__setattr__(fld, "forward", forward)
@@ -227,13 +245,23 @@ def cache_view(wm_model, camera, keep_other: float, generator: torch.Generator) 
     cat = {k: torch.cat([r[k] for r in records]).cpu() for k in records[0]}
     acc = outputs["accumulation"].reshape(-1).float().cpu()
     if cat["origins"].shape[0] != acc.shape[0]:
-        raise GStickerError(f"captured {cat['origins'].shape[0]} rays for {acc.shape[0]} pixels: the base renders in a "
-                            "way the fused export does not understand (nerfacto-style bases only)")
+        raise GStickerError(
+            f"captured {cat['origins'].shape[0]} rays for {acc.shape[0]} pixels: the base renders in a "
+            "way the fused export does not understand (nerfacto-style bases only)"
+        )
     changed = (cat["density"] != cat["base_density"]).any(dim=-1)
     keep = select_rays(changed, acc, keep_other, generator)
-    pool = SamplePool(origins=cat["origins"], directions=cat["directions"], pixel_area=cat["pixel_area"],
-                      starts=cat["starts"], ends=cat["ends"], density=cat["density"],
-                      base_density=cat["base_density"], rgb=cat["rgb"], changed=changed).take(keep)
+    pool = SamplePool(
+        origins=cat["origins"],
+        directions=cat["directions"],
+        pixel_area=cat["pixel_area"],
+        starts=cat["starts"],
+        ends=cat["ends"],
+        density=cat["density"],
+        base_density=cat["base_density"],
+        rgb=cat["rgb"],
+        changed=changed,
+    ).take(keep)
     return pool, outputs["rgb"].detach().float().cpu()
 
 
@@ -246,8 +274,9 @@ def ray_samples_of(pool: SamplePool, device: torch.device):
     starts = pool.starts.to(device)[..., None]
     ends = pool.ends.to(device)[..., None]
     fr = Frustums(origins=o, directions=d, starts=starts, ends=ends, pixel_area=pa)
-    return RaySamples(frustums=fr, camera_indices=torch.zeros(r, s, 1, dtype=torch.long, device=device),
-                      deltas=ends - starts)
+    return RaySamples(
+        frustums=fr, camera_indices=torch.zeros(r, s, 1, dtype=torch.long, device=device), deltas=ends - starts
+    )
 
 
 # ================================================================================================================
@@ -258,6 +287,7 @@ def ray_samples_of(pool: SamplePool, device: torch.device):
 @dataclass
 class FuseConfig:
     """Distil a watermarked run into a stock run of its base's method (no sticker module in the shared file)."""
+
     load_config: Path
     """The watermarked (ns-train geometrysticker) run's config.yml."""
     output_dir: Path = Path("outputs/fused")
@@ -290,27 +320,36 @@ class FuseConfig:
     pool_cache: Optional[Path] = None
     """Keep the sample pool in this file and reuse it when it exists (experiments)."""
 
+
 def setup_runs(cfg: FuseConfig, device: torch.device):
     """Teacher (the watermarked run) and student (a fresh strict load of the base run it was made on)."""
     with contextlib.redirect_stdout(sys.stderr):
         wm_config, wm_pipeline, _ = load_run(cfg.load_config, data=cfg.data, device=device)
     wm_model = wm_pipeline.model
     if not hasattr(wm_model, "sticker_enabled"):
-        raise GStickerError(f"{cfg.load_config} is not a watermarked (geometrysticker) run; pass the run "
-                            "`ns-train geometrysticker` wrote")
+        raise GStickerError(
+            f"{cfg.load_config} is not a watermarked (geometrysticker) run; pass the run "
+            "`ns-train geometrysticker` wrote"
+        )
     base_info = dict(getattr(wm_config.pipeline, "base_run", None) or {})
     base_cfg_path = Path(base_info.get("config", ""))
     if not base_cfg_path.is_file():
-        raise GStickerError(f"the base run {base_cfg_path} the watermark was made on does not exist here; the fused "
-                            "export starts from it")
+        raise GStickerError(
+            f"the base run {base_cfg_path} the watermark was made on does not exist here; the fused "
+            "export starts from it"
+        )
     ckpt = Path(base_info["checkpoint"])
     base_config = runs.load_run_config(base_cfg_path)
     if base_config.method_name != base_info.get("method"):
-        raise GStickerError(f"{base_cfg_path} is a {base_config.method_name} run, the watermark was made on a "
-                            f"{base_info.get('method')} run")
+        raise GStickerError(
+            f"{base_cfg_path} is a {base_config.method_name} run, the watermark was made on a "
+            f"{base_info.get('method')} run"
+        )
     if not hasattr(wm_model.base, "proposal_sampler"):
-        raise GStickerError(f"the fused export supports nerfacto-style bases (a proposal sampler that the sticker does "
-                            f"not mark); this base is {type(wm_model.base).__name__}")
+        raise GStickerError(
+            f"the fused export supports nerfacto-style bases (a proposal sampler that the sticker does "
+            f"not mark); this base is {type(wm_model.base).__name__}"
+        )
     with contextlib.redirect_stdout(sys.stderr):
         _, student_pipeline, _ = load_run(base_cfg_path, data=cfg.data, device=device)
     state = runs.load_checkpoint_state(ckpt)
@@ -323,14 +362,16 @@ def pool_cameras(pipeline, train_views: int, orbit_views: int, seed: int) -> Lis
     n = len(cams)
     k = min(train_views, n)
     idx = sorted({int(round(j * (n - 1) / max(1, k - 1))) for j in range(k)}) if k > 1 else ([0] if k else [])
-    out = [(f"train/{i:03d}", cams[i: i + 1]) for i in idx]
+    out = [(f"train/{i:03d}", cams[i : i + 1]) for i in idx]
     if orbit_views > 0:
         orbit = orbit_cameras(cams, orbit_views, torch.Generator().manual_seed(seed))
-        out += [(f"orbit/{i:03d}", orbit[i: i + 1]) for i in range(orbit_views)]
+        out += [(f"orbit/{i:03d}", orbit[i : i + 1]) for i in range(orbit_views)]
     return out
 
 
-def build_pool(wm_model, cameras: List[Tuple[str, Any]], keep_other: float, seed: int, progress: bool = True) -> SamplePool:
+def build_pool(
+    wm_model, cameras: List[Tuple[str, Any]], keep_other: float, seed: int, progress: bool = True
+) -> SamplePool:
     gen = torch.Generator().manual_seed(seed + 1)
     pools = []
     t0 = time.time()
@@ -338,8 +379,12 @@ def build_pool(wm_model, cameras: List[Tuple[str, Any]], keep_other: float, seed
         p, _ = cache_view(wm_model, cam, keep_other, gen)
         pools.append(p)
         if progress and (j + 1) % 20 == 0:
-            print(f"[fuse] cached {j + 1}/{len(cameras)} views, {sum(len(q) for q in pools)} rays, "
-                  f"{time.time() - t0:.0f} s", file=sys.stderr, flush=True)
+            print(
+                f"[fuse] cached {j + 1}/{len(cameras)} views, {sum(len(q) for q in pools)} rays, "
+                f"{time.time() - t0:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
     return SamplePool.cat(pools)
 
 
@@ -349,8 +394,15 @@ def student_params(model) -> List[torch.nn.Parameter]:
     return [p for p in model.field.parameters() if p.requires_grad]
 
 
-def distill(student, pool: SamplePool, cfg: FuseConfig, background: Tensor, mu: float, device: torch.device,
-            log: Optional[List[Dict[str, float]]] = None) -> Dict[str, float]:
+def distill(
+    student,
+    pool: SamplePool,
+    cfg: FuseConfig,
+    background: Tensor,
+    mu: float,
+    device: torch.device,
+    log: Optional[List[Dict[str, float]]] = None,
+) -> Dict[str, float]:
     """Fine-tune the student's final field on the pool (student in eval mode: nerfacto then uses no appearance code,
     as when it renders)."""
     student.eval()
@@ -373,8 +425,12 @@ def distill(student, pool: SamplePool, cfg: FuseConfig, background: Tensor, mu: 
     t0 = time.time()
     last: Dict[str, float] = {}
     for step in range(cfg.steps):
-        idx = torch.cat([marked[torch.randint(0, marked.numel(), (n_marked,), generator=gen)],
-                         torch.randint(0, len(pool), (cfg.rays_per_step - n_marked,), generator=gen)])
+        idx = torch.cat(
+            [
+                marked[torch.randint(0, marked.numel(), (n_marked,), generator=gen)],
+                torch.randint(0, len(pool), (cfg.rays_per_step - n_marked,), generator=gen),
+            ]
+        )
         b = pool.take(idx)
         rs = ray_samples_of(b, device)
         t_density = b.density.to(device)[..., None]
@@ -385,8 +441,18 @@ def distill(student, pool: SamplePool, cfg: FuseConfig, background: Tensor, mu: 
         out = student.field.forward(rs[live])
         s_density = t_density.masked_scatter(live[..., None], out[FieldHeadNames.DENSITY].reshape(-1, 1))
         s_rgb = t_rgb.masked_scatter(live[..., None].expand_as(t_rgb), out[FieldHeadNames.RGB].reshape(-1, 3))
-        terms = distill_losses(s_density, s_rgb, t_density, t_rgb, rs.deltas,
-                               0.5 * (rs.frustums.starts + rs.frustums.ends), bg, depth_scale, floor, cfg.losses)
+        terms = distill_losses(
+            s_density,
+            s_rgb,
+            t_density,
+            t_rgb,
+            rs.deltas,
+            0.5 * (rs.frustums.starts + rs.frustums.ends),
+            bg,
+            depth_scale,
+            floor,
+            cfg.losses,
+        )
         terms["live_share"] = live.float().mean()
         opt.zero_grad(set_to_none=True)
         terms["total"].backward()
@@ -396,14 +462,19 @@ def distill(student, pool: SamplePool, cfg: FuseConfig, background: Tensor, mu: 
         if log is not None and (step % cfg.log_every == 0 or step == cfg.steps - 1):
             row = {"step": step, "seconds": time.time() - t0, **last}
             log.append(row)
-            print(f"[fuse] step {step}: " + " ".join(f"{k} {v:.3g}" for k, v in row.items() if k != "step"),
-                  file=sys.stderr, flush=True)
+            print(
+                f"[fuse] step {step}: " + " ".join(f"{k} {v:.3g}" for k, v in row.items() if k != "step"),
+                file=sys.stderr,
+                flush=True,
+            )
     for p in student.parameters():
         p.requires_grad_(False)
     return last
 
 
-def save_fused_run(fused_config, student_pipeline, base_state: Dict[str, Any], base_run_dir: Optional[Path] = None) -> Path:
+def save_fused_run(
+    fused_config, student_pipeline, base_state: Dict[str, Any], base_run_dir: Optional[Path] = None
+) -> Path:
     """Write config.yml and nerfstudio_models/step-N.ckpt (atomic) of the fused run; returns its config.yml."""
     run_dir = Path(fused_config.get_base_dir())
     ckpt_dir = run_dir / fused_config.relative_model_dir
@@ -441,15 +512,19 @@ def compare_renders(wm_model, student, base_model_ctx, cameras: List[Tuple[str, 
         vs_base.append(psnr(st, base))
         wm_vs_base.append(psnr(wm, base))
     mean = lambda xs: float(sum(xs) / len(xs))  # noqa: E731
-    return {"fused_vs_watermarked_db": mean(vs_wm), "fused_vs_base_db": mean(vs_base),
-            "watermarked_vs_base_db": mean(wm_vs_base), "views": len(cameras)}
+    return {
+        "fused_vs_watermarked_db": mean(vs_wm),
+        "fused_vs_base_db": mean(vs_base),
+        "watermarked_vs_base_db": mean(wm_vs_base),
+        "views": len(cameras),
+    }
 
 
 def eval_cameras(pipeline, num: int) -> List[Tuple[str, Any]]:
     cams = pipeline.datamanager.eval_dataset.cameras
     n = len(cams)
     idx = sorted({int(round(j * (n - 1) / max(1, num - 1))) for j in range(num)}) if num > 1 else [0]
-    return [(f"eval/{i:03d}", cams[i: i + 1]) for i in idx]
+    return [(f"eval/{i:03d}", cams[i : i + 1]) for i in idx]
 
 
 def fuse(cfg: FuseConfig) -> Dict[str, Any]:
@@ -469,23 +544,40 @@ def fuse(cfg: FuseConfig) -> Dict[str, Any]:
             Path(cfg.pool_cache).parent.mkdir(parents=True, exist_ok=True)
             torch.save({f: getattr(pool, f) for f in SamplePool.__dataclass_fields__}, cfg.pool_cache)
     cache_s = time.time() - t0
-    print(f"[fuse] pool: {len(cams)} views, {len(pool)} rays ({int(pool.changed.sum())} changed by the sticker), "
-          f"{pool.nbytes() / 2**20:.0f} MiB, {cache_s:.0f} s", file=sys.stderr, flush=True)
+    print(
+        f"[fuse] pool: {len(cams)} views, {len(pool)} rays ({int(pool.changed.sum())} changed by the sticker), "
+        f"{pool.nbytes() / 2**20:.0f} MiB, {cache_s:.0f} s",
+        file=sys.stderr,
+        flush=True,
+    )
     log: List[Dict[str, float]] = []
     t0 = time.time()
     final = distill(student, pool, cfg, wm_model.background_color(), float(wm_model.final_wrap.gate.mu), device, log)
     distill_s = time.time() - t0
     fused_config = fused_run_config(base_config, cfg.output_dir, cfg.experiment_name, cfg.timestamp, cfg.data)
     config_path = save_fused_run(fused_config, student_pipeline, base_state, Path(ckpt).resolve().parent.parent)
-    summary = {"fused_config": str(config_path), "method": fused_config.method_name, "base_checkpoint": str(ckpt),
-               "watermarked_config": str(cfg.load_config), "pool_views": len(cams), "pool_rays": len(pool),
-               "pool_changed_rays": int(pool.changed.sum()), "cache_seconds": cache_s,
-               "distill_seconds": distill_s, "total_seconds": time.time() - t_all, "final_losses": final,
-               "log": log, "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()}}
+    summary = {
+        "fused_config": str(config_path),
+        "method": fused_config.method_name,
+        "base_checkpoint": str(ckpt),
+        "watermarked_config": str(cfg.load_config),
+        "pool_views": len(cams),
+        "pool_rays": len(pool),
+        "pool_changed_rays": int(pool.changed.sum()),
+        "cache_seconds": cache_s,
+        "distill_seconds": distill_s,
+        "total_seconds": time.time() - t_all,
+        "final_losses": final,
+        "log": log,
+        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()},
+    }
     run_dir = config_path.parent
     run_dir.with_name(run_dir.name + ".fuse.json").write_text(json.dumps(summary, indent=1, default=str))
-    print(f"[fuse] fused {fused_config.method_name} run: {config_path} ({summary['total_seconds']:.0f} s)",
-          file=sys.stderr, flush=True)
+    print(
+        f"[fuse] fused {fused_config.method_name} run: {config_path} ({summary['total_seconds']:.0f} s)",
+        file=sys.stderr,
+        flush=True,
+    )
     return summary
 
 

@@ -138,12 +138,18 @@ def commitment(key: "OwnerKey") -> str:
     """sha256 over the salt and the key's secret parts (message, heads, sticker, base checksum, creation time):
     published or timestamped at release, it shows later that this key existed then. Stable across calibration."""
     if not key.salt:
-        raise GStickerError("this owner key has no commitment salt (written before version 3); only keys written by "
-                            "this gsticker can be committed: retrain the sticker to get one")
-    parts = {"message": key.message.to(torch.long).cpu(), "message_source": key.message_source,
-             "heads_state": {k: v.detach().cpu() for k, v in key.heads_state.items()},
-             "geometry_sticker": plain((key.geometry or {}).get("sticker_state")),
-             "base_sha256": (key.base or {}).get("checkpoint_sha256"), "created": key.created}
+        raise GStickerError(
+            "this owner key has no commitment salt (written before version 3); only keys written by "
+            "this gsticker can be committed: retrain the sticker to get one"
+        )
+    parts = {
+        "message": key.message.to(torch.long).cpu(),
+        "message_source": key.message_source,
+        "heads_state": {k: v.detach().cpu() for k, v in key.heads_state.items()},
+        "geometry_sticker": plain((key.geometry or {}).get("sticker_state")),
+        "base_sha256": (key.base or {}).get("checkpoint_sha256"),
+        "created": key.created,
+    }
     h = hashlib.sha256()
     h.update(b"gsticker-commitment-v1:" + bytes.fromhex(key.salt))
     _canonical_hash(parts, h)
@@ -203,8 +209,10 @@ class OwnerKey:
         elif self.message_source != "random":
             out.append("the key does not record how its message was drawn (written before version 3)")
         if self.owner_message_prob > 0:
-            out.append(f"the sticker and heads were trained on the owner's message in {self.owner_message_prob:.0%} "
-                       "of renders: the decoders may lean toward its bits on unmarked input")
+            out.append(
+                f"the sticker and heads were trained on the owner's message in {self.owner_message_prob:.0%} "
+                "of renders: the decoders may lean toward its bits on unmarked input"
+            )
         return out
 
     def payload(self) -> Dict[str, Any]:
@@ -259,40 +267,60 @@ class OwnerKey:
         try:
             p = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as e:  # not a torch file, truncated, or holding arbitrary objects
-            raise GStickerError(f"{path} is not a readable gsticker owner key ({type(e).__name__}); "
-                                "pass the .gskey file written by `ns-train geometrysticker`") from None
+            raise GStickerError(
+                f"{path} is not a readable gsticker owner key ({type(e).__name__}); "
+                "pass the .gskey file written by `ns-train geometrysticker`"
+            ) from None
         if not isinstance(p, dict) or p.get("format") != KEY_FORMAT:
-            raise GStickerError(f"{path} is not a gsticker owner key (wrong format); pass the .gskey file "
-                                "written by `ns-train geometrysticker`")
+            raise GStickerError(
+                f"{path} is not a gsticker owner key (wrong format); pass the .gskey file "
+                "written by `ns-train geometrysticker`"
+            )
         if p.get("version") not in READABLE_VERSIONS:
-            raise GStickerError(f"{path} is an owner key of version {p.get('version')}, this gsticker reads "
-                                f"versions {', '.join(map(str, READABLE_VERSIONS))}; use the gsticker release that wrote it")
+            raise GStickerError(
+                f"{path} is an owner key of version {p.get('version')}, this gsticker reads "
+                f"versions {', '.join(map(str, READABLE_VERSIONS))}; use the gsticker release that wrote it"
+            )
         version = int(p["version"])
         if version >= 3:
             secret = p.get("secret")
             try:
-                ok = isinstance(secret, str) and hmac.compare_digest(str(p.get("hmac")),
-                                                                      payload_hmac(p, bytes.fromhex(secret)))
+                ok = isinstance(secret, str) and hmac.compare_digest(
+                    str(p.get("hmac")), payload_hmac(p, bytes.fromhex(secret))
+                )
             except ValueError:
                 ok = False
             if not ok:
-                raise GStickerError(f"{path} failed its integrity check (HMAC: edited or corrupted); use your "
-                                    "original copy of the owner key")
+                raise GStickerError(
+                    f"{path} failed its integrity check (HMAC: edited or corrupted); use your "
+                    "original copy of the owner key"
+                )
         elif p.get("fingerprint") != fingerprint(p):
-            raise GStickerError(f"{path} failed its fingerprint check (tampered or corrupted); use your "
-                                "original copy of the owner key")
+            raise GStickerError(
+                f"{path} failed its fingerprint check (tampered or corrupted); use your original copy of the owner key"
+            )
         message = p["message"]
         if not isinstance(message, Tensor) or message.ndim != 1 or not bool(((message == 0) | (message == 1)).all()):
-            raise GStickerError(f"{path} holds a malformed message (not a vector of 0/1 bits); use your original "
-                                "copy of the owner key")
-        return cls(owner_id=p["owner_id"], message=message, heads_config=p["heads_config"],
-                   heads_state=p["heads_state"], base=p["base"], model_run=p["model_run"], null=p["null"],
-                   training_state=p.get("training_state") or {}, created=p["created"],
-                   geometry=p.get("geometry") if version >= 2 else None,
-                   message_source=p.get("message_source", "unknown") if version >= 3 else "unknown",
-                   owner_message_prob=float(p.get("owner_message_prob", 0.0)),
-                   secret=p.get("secret", "") if version >= 3 else "", salt=p.get("salt", "") if version >= 3 else "",
-                   version=version)
+            raise GStickerError(
+                f"{path} holds a malformed message (not a vector of 0/1 bits); use your original copy of the owner key"
+            )
+        return cls(
+            owner_id=p["owner_id"],
+            message=message,
+            heads_config=p["heads_config"],
+            heads_state=p["heads_state"],
+            base=p["base"],
+            model_run=p["model_run"],
+            null=p["null"],
+            training_state=p.get("training_state") or {},
+            created=p["created"],
+            geometry=p.get("geometry") if version >= 2 else None,
+            message_source=p.get("message_source", "unknown") if version >= 3 else "unknown",
+            owner_message_prob=float(p.get("owner_message_prob", 0.0)),
+            secret=p.get("secret", "") if version >= 3 else "",
+            salt=p.get("salt", "") if version >= 3 else "",
+            version=version,
+        )
 
     def build_heads(self):
         heads = Heads(HeadConfig(**self.heads_config), self.num_bits)

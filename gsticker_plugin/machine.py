@@ -50,9 +50,17 @@ def machine_info() -> Dict[str, Any]:
         nproc = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         nproc = os.cpu_count() or 0
-    return {"cpu": cpu, "cores": os.cpu_count(), "nproc": nproc, "torch": torch.__version__,
-            "torch_threads": torch.get_num_threads(), "nerfstudio": _version("nerfstudio"), "numpy": np.__version__,
-            "python": platform.python_version(), "cuda": torch.cuda.is_available(),
-            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
-            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-            "load_average_at_start": load_average()}
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "nproc": nproc,
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "nerfstudio": _version("nerfstudio"),
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "cuda": torch.cuda.is_available(),
+        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "load_average_at_start": load_average(),
+    }

@@ -76,8 +76,10 @@ class GeometryStickerModel(Model):
     def populate_modules(self) -> None:
         super().populate_modules()
         if self.config.base_model is None:
-            raise GStickerError("this geometrysticker config has no base model; train it with "
-                                "`ns-train geometrysticker --load-checkpoint BASE_RUN/nerfstudio_models/step-N.ckpt`")
+            raise GStickerError(
+                "this geometrysticker config has no base model; train it with "
+                "`ns-train geometrysticker --load-checkpoint BASE_RUN/nerfstudio_models/step-N.ckpt`"
+            )
         self.base: Model = self.config.base_model.setup(
             scene_box=self.scene_box, num_train_data=self.num_train_data, **self.kwargs
         )
@@ -85,13 +87,19 @@ class GeometryStickerModel(Model):
             self.base.update_to_step(int(self.config.base_step))  # e.g. TensoRF's grid resolution at that step
         self.base.requires_grad_(False)
         self.base.eval()
-        self.sticker = Sticker(self.config.num_bits, self.config.num_frequencies,
-                               self.config.sticker_hidden_dim, self.config.sticker_num_layers,
-                               self.config.sticker_init_scale, self.config.sticker_kind)
+        self.sticker = Sticker(
+            self.config.num_bits,
+            self.config.num_frequencies,
+            self.config.sticker_hidden_dim,
+            self.config.sticker_num_layers,
+            self.config.sticker_init_scale,
+            self.config.sticker_kind,
+        )
         self.register_buffer("message", torch.zeros(self.config.num_bits, dtype=torch.long))
         # the shared form: the sticker of the owner's message, folded (no bits, no per-bit patterns)
-        self.folded_sticker = FoldedSticker(self.config.num_frequencies, self.config.sticker_hidden_dim,
-                                            self.config.sticker_num_layers)
+        self.folded_sticker = FoldedSticker(
+            self.config.num_frequencies, self.config.sticker_hidden_dim, self.config.sticker_num_layers
+        )
         self.register_buffer("folded", torch.tensor(False))
         self.register_load_state_dict_pre_hook(GeometryStickerModel._fill_unshared)
         self.wrap_state = WrapState(enabled=True, final_only=not self.config.mark_sampling_passes)
@@ -102,11 +110,16 @@ class GeometryStickerModel(Model):
             self.gates[name.replace(".", "__")] = gate
             aabb = getattr(fld, "aabb", None)
             aabb = aabb if isinstance(aabb, Tensor) and aabb.shape == (2, 3) else self.scene_box.aabb
-            self.wraps.append(DensityWrap(fld, name, self.sticker, gate, self.wrap_state, aabb.detach().clone(),
-                                          self.config.gate_threshold))
+            self.wraps.append(
+                DensityWrap(
+                    fld, name, self.sticker, gate, self.wrap_state, aabb.detach().clone(), self.config.gate_threshold
+                )
+            )
         if not self.wraps:
-            raise GStickerError(f"{type(self.base).__name__} has no density field that gsticker can wrap; "
-                                "use a NeRF-style base (nerfacto, vanilla-nerf, tensorf, instant-ngp)")
+            raise GStickerError(
+                f"{type(self.base).__name__} has no density field that gsticker can wrap; "
+                "use a NeRF-style base (nerfacto, vanilla-nerf, tensorf, instant-ngp)"
+            )
         self.wraps[-1].is_final = True
         self._viewer_elements()
 
@@ -120,8 +133,9 @@ class GeometryStickerModel(Model):
         def toggle(element) -> None:
             self.wrap_state.enabled = bool(element.value)
 
-        self.viewer_sticker_on = ViewerCheckbox("Sticker on", True, cb_hook=toggle,
-                                                hint="Render with (on) or without (off) the ownership sticker")
+        self.viewer_sticker_on = ViewerCheckbox(
+            "Sticker on", True, cb_hook=toggle, hint="Render with (on) or without (off) the ownership sticker"
+        )
 
     # ------------------------------------------------------------------------------------------ structure
     def rendering_fields(self) -> Iterator[Tuple[str, nn.Module]]:
@@ -172,8 +186,7 @@ class GeometryStickerModel(Model):
             for k, v in self.sticker.fold(self.message).items():
                 state[prefix + "folded_sticker." + k] = v
             state[prefix + "folded"] = torch.tensor(True)
-        return {k: v for k, v in state.items()
-                if not any(k[len(prefix):].startswith(s) for s in self.SECRET_PREFIXES)}
+        return {k: v for k, v in state.items() if not any(k[len(prefix) :].startswith(s) for s in self.SECRET_PREFIXES)}
 
     def unfold(self, sticker_state: Dict[str, Tensor], message: Tensor) -> None:
         """Back from the shared form to the trainable sticker (resuming a run): the key's sticker and message."""
@@ -182,8 +195,9 @@ class GeometryStickerModel(Model):
         self.folded.fill_(False)
 
     @staticmethod
-    def _fill_unshared(module, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
-                       error_msgs) -> None:
+    def _fill_unshared(
+        module, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ) -> None:
         """Load hook: a shared state has no per-bit sticker and message (filled with this model's own, unused in the
         folded form); a run written before the shared form has no folded sticker (filled, ``folded`` False)."""
         if prefix + "folded" not in state_dict:
@@ -295,17 +309,21 @@ class GeometryStickerModel(Model):
             if message is not None:
                 with self.sticker_enabled(False):
                     base = original_forward(ray_samples, *args, **kwargs)
-            records.append({
-                "positions": ray_samples.frustums.get_positions().detach(),
-                "deltas": ray_samples.deltas.detach(),
-                "density": base[FieldHeadNames.DENSITY].detach(),
-                "rgb": base[FieldHeadNames.RGB].detach(),
-            })
+            records.append(
+                {
+                    "positions": ray_samples.frustums.get_positions().detach(),
+                    "deltas": ray_samples.deltas.detach(),
+                    "density": base[FieldHeadNames.DENSITY].detach(),
+                    "rgb": base[FieldHeadNames.RGB].detach(),
+                }
+            )
             return out
 
         if message is not None and bool(self.folded):
-            raise GStickerError("this run holds the shared (folded) sticker and no message; render another message "
-                                "with the owner key's sticker (gsticker_plugin.decoders.reference.load_base_reference)")
+            raise GStickerError(
+                "this run holds the shared (folded) sticker and no message; render another message "
+                "with the owner key's sticker (gsticker_plugin.decoders.reference.load_base_reference)"
+            )
         old_message = None if message is None else self.message.clone()
         object.__setattr__(fld, "forward", forward)
         try:
@@ -327,9 +345,11 @@ class GeometryStickerModel(Model):
             return torch.ones(3)
         if bg == "black":
             return torch.zeros(3)
-        raise GStickerError(f"the base's background '{bg}' is not supported by the fast trainer; retrain the "
-                            "base with --pipeline.model.background-color white (or black), or pass "
-                            "--pipeline.fast-path False")
+        raise GStickerError(
+            f"the base's background '{bg}' is not supported by the fast trainer; retrain the "
+            "base with --pipeline.model.background-color white (or black), or pass "
+            "--pipeline.fast-path False"
+        )
 
 
 def shareable_state(model: nn.Module) -> Dict[str, Tensor]:
@@ -349,9 +369,13 @@ def geometry_reference(model: "GeometryStickerModel") -> Dict[str, Any]:
     cfg = model.config
     return {
         "version": GEOMETRY_REFERENCE_VERSION,
-        "sticker_config": {"kind": cfg.sticker_kind, "num_bits": int(cfg.num_bits),
-                           "num_frequencies": int(cfg.num_frequencies), "hidden_dim": int(cfg.sticker_hidden_dim),
-                           "num_layers": int(cfg.sticker_num_layers)},
+        "sticker_config": {
+            "kind": cfg.sticker_kind,
+            "num_bits": int(cfg.num_bits),
+            "num_frequencies": int(cfg.num_frequencies),
+            "hidden_dim": int(cfg.sticker_hidden_dim),
+            "num_layers": int(cfg.sticker_num_layers),
+        },
         "gate_threshold": float(cfg.gate_threshold),
         "wrap_proposal_networks": bool(cfg.wrap_proposal_networks),
         "mark_sampling_passes": bool(cfg.mark_sampling_passes),

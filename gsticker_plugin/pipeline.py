@@ -105,8 +105,15 @@ class GeometryStickerPipeline(VanillaPipeline):
     config: GeometryStickerPipelineConfig
     model: GeometryStickerModel
 
-    def __init__(self, config: GeometryStickerPipelineConfig, device: str, test_mode: Literal["test", "val", "inference"] = "val",
-                 world_size: int = 1, local_rank: int = 0, grad_scaler=None):
+    def __init__(
+        self,
+        config: GeometryStickerPipelineConfig,
+        device: str,
+        test_mode: Literal["test", "val", "inference"] = "val",
+        world_size: int = 1,
+        local_rank: int = 0,
+        grad_scaler=None,
+    ):
         super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
         # training draws (or takes) the owner's message; a loaded shared run has none (its sticker is folded)
         self.owner_message: Optional[Tensor] = self.resolve_message(config) if test_mode == "val" else None
@@ -136,8 +143,9 @@ class GeometryStickerPipeline(VanillaPipeline):
     @staticmethod
     def source_of_message(config: GeometryStickerPipelineConfig) -> str:
         """How :meth:`resolve_message` draws the message for ``config`` (the key records it)."""
-        return config.message_source or ("given" if config.message else
-                                         "owner-id" if config.message_from_owner_id else "random")
+        return config.message_source or (
+            "given" if config.message else "owner-id" if config.message_from_owner_id else "random"
+        )
 
     def set_owner(self, message: Tensor, source: str, label: str, resumed_key: Optional[OwnerKey] = None) -> None:
         """The owner's message, how it was drawn and the owner's label (the trainer keeps them out of the config);
@@ -172,7 +180,7 @@ class GeometryStickerPipeline(VanillaPipeline):
 
     def load_state_dict(self, state_dict: Mapping[str, Any], strict: Optional[bool] = None):
         """Strict, unlike the host's (which silently retries with strict=False)."""
-        model_state = {k[len("_model."):]: v for k, v in state_dict.items() if k.startswith("_model.")}
+        model_state = {k[len("_model.") :]: v for k, v in state_dict.items() if k.startswith("_model.")}
         self.model.load_state_dict(model_state, strict=True)
 
     def owner_key(self, training_state: Optional[Dict[str, Any]] = None, model_run: str = "") -> OwnerKey:
@@ -206,17 +214,31 @@ class GeometryStickerPipeline(VanillaPipeline):
         novel = orbit_cameras(cams, self.config.pool_novel_views, gen)
         held = orbit_cameras(cams, self.config.monitor_views, gen)
         if not model.calibrated:
-            calib = [cache_view(model, cams[int(i): int(i) + 1].to(self.device), False) for i in train_idx[:4]]
+            calib = [cache_view(model, cams[int(i) : int(i) + 1].to(self.device), False) for i in train_idx[:4]]
             dens = torch.cat([v.density.reshape(-1, 1) for v in calib])
-            w = torch.cat([composite(v.density, v.rgb.float(), v.deltas, model.background_color())[1].reshape(-1, 1)
-                           for v in calib])
+            w = torch.cat(
+                [
+                    composite(v.density, v.rgb.float(), v.deltas, model.background_color())[1].reshape(-1, 1)
+                    for v in calib
+                ]
+            )
             for gate in model.gates.values():
-                gate.calibrate(dens, w, self.config.model.gate_quantile, self.config.model.beta_ratio,
-                               self.config.model.sticker_amplitude)
+                gate.calibrate(
+                    dens,
+                    w,
+                    self.config.model.gate_quantile,
+                    self.config.model.beta_ratio,
+                    self.config.model.sticker_amplitude,
+                )
         mu = float(model.final_wrap.gate.mu)
-        cache_id = {"base": self.config.base_run.get("checkpoint_sha256", ""), "seed": self.config.seed,
-                    "train": n_train, "novel": self.config.pool_novel_views, "held": self.config.monitor_views,
-                    "mu": round(mu, 6)}
+        cache_id = {
+            "base": self.config.base_run.get("checkpoint_sha256", ""),
+            "seed": self.config.seed,
+            "train": n_train,
+            "novel": self.config.pool_novel_views,
+            "held": self.config.monitor_views,
+            "mu": round(mu, 6),
+        }
         path = self.config.pool_cache
         if path is not None and Path(path).is_file():
             try:  # tensors and plain containers only: a cache file is never trusted with arbitrary objects
@@ -230,21 +252,24 @@ class GeometryStickerPipeline(VanillaPipeline):
                 CONSOLE.print(f"\\[gsticker] pool reused from {path} ({len(self.pool)} views)")
                 return
         t0 = time.time()
-        jobs = [(cams[int(i): int(i) + 1], False, self.pool) for i in train_idx]
-        jobs += [(novel[i: i + 1], True, self.pool) for i in range(novel.shape[0])]
-        jobs += [(held[i: i + 1], True, self.monitor) for i in range(held.shape[0])]
+        jobs = [(cams[int(i) : int(i) + 1], False, self.pool) for i in train_idx]
+        jobs += [(novel[i : i + 1], True, self.pool) for i in range(novel.shape[0])]
+        jobs += [(held[i : i + 1], True, self.monitor) for i in range(held.shape[0])]
         with Progress(console=CONSOLE, transient=True) as progress:
             task = progress.add_task("Rendering the frozen base into the sticker pool", total=len(jobs))
             for cam, is_novel, dest in jobs:
                 dest.append(cache_view(model, cam.to(self.device), is_novel, min_density=0.05 * mu))
                 progress.advance(task)
-        CONSOLE.print(f"\\[gsticker] pool: {len(self.pool)} views + {len(self.monitor)} held out, "
-                      f"{pool_memory_mb(self.pool + self.monitor):.0f} MiB, {time.time() - t0:.0f} s; "
-                      f"gate mu={mu:.4g}, beta={float(model.final_wrap.gate.beta):.4g}")
+        CONSOLE.print(
+            f"\\[gsticker] pool: {len(self.pool)} views + {len(self.monitor)} held out, "
+            f"{pool_memory_mb(self.pool + self.monitor):.0f} MiB, {time.time() - t0:.0f} s; "
+            f"gate mu={mu:.4g}, beta={float(model.final_wrap.gate.beta):.4g}"
+        )
         if path is not None:
             tmp = Path(str(path) + ".tmp")
-            torch.save({"id": cache_id, "pool": [vars(v) for v in self.pool],
-                        "monitor": [vars(v) for v in self.monitor]}, tmp)
+            torch.save(
+                {"id": cache_id, "pool": [vars(v) for v in self.pool], "monitor": [vars(v) for v in self.monitor]}, tmp
+            )
             tmp.replace(path)
 
     # ------------------------------------------------------------------------------------ training
@@ -257,7 +282,9 @@ class GeometryStickerPipeline(VanillaPipeline):
     def render_batch_fast(self, messages: Tensor):
         bg = self.model.background_color().to(self.device)
         wrap = self.model.final_wrap
-        views = [self.pool[int(i)] for i in torch.randint(0, len(self.pool), (messages.shape[0],), generator=self.generator)]
+        views = [
+            self.pool[int(i)] for i in torch.randint(0, len(self.pool), (messages.shape[0],), generator=self.generator)
+        ]
         marked, clean, psis = [], [], []
         for view, msg in zip(views, messages):
             img, psi = render_cached(view, wrap, msg, bg)
@@ -273,12 +300,12 @@ class GeometryStickerPipeline(VanillaPipeline):
         marked, clean, psis = [], [], []
         for msg in messages:
             i = int(torch.randint(0, cams.shape[0], (1,), generator=self.generator))
-            cam = cams[i: i + 1].to(self.device)
+            cam = cams[i : i + 1].to(self.device)
             bundle = cam.generate_rays(camera_indices=0, keep_shape=True)
             h, w = bundle.shape[:2]
             y = int(torch.randint(0, max(1, h - p + 1), (1,), generator=self.generator))
             x = int(torch.randint(0, max(1, w - p + 1), (1,), generator=self.generator))
-            patch2d = bundle[y: y + p, x: x + p]
+            patch2d = bundle[y : y + p, x : x + p]
             ph, pw = patch2d.shape[:2]  # smaller than p where the image is
             patch = patch2d.flatten()
             self.model.wrap_state.message = msg
@@ -293,7 +320,9 @@ class GeometryStickerPipeline(VanillaPipeline):
             psis.append(torch.zeros(1, device=self.device))
         return torch.stack(marked), torch.stack(clean), torch.cat(psis)
 
-    def losses(self, marked: Tensor, clean: Tensor, psi: Tensor, messages: Tensor, step: int = 10**9) -> Dict[str, Tensor]:
+    def losses(
+        self, marked: Tensor, clean: Tensor, psi: Tensor, messages: Tensor, step: int = 10**9
+    ) -> Dict[str, Tensor]:
         heads = self.heads
         assert heads is not None
         cfg = self.config
@@ -303,8 +332,10 @@ class GeometryStickerPipeline(VanillaPipeline):
         content = F.relu(mse - floor) / budget + 10.0 * F.relu(mse / budget - 1.0)
         # Warm-up: no content loss and no distortions for warmup_steps, then both ramp in over as many steps.
         ramp = min(1.0, max(0.0, (step + 1 - cfg.warmup_steps) / max(1, cfg.warmup_steps)))
-        losses = {"content_loss": cfg.content_weight * ramp * content,
-                  "sparsity_loss": cfg.sparse_weight * sparsity_loss(psi)}
+        losses = {
+            "content_loss": cfg.content_weight * ramp * content,
+            "sparsity_loss": cfg.sparse_weight * sparsity_loss(psi),
+        }
         if not self.trains_heads:  # the informed decoders need no heads: skip their forward passes altogether
             self._last = {"logits": None, "messages": messages, "mse": mse.detach()}
             return losses
@@ -321,8 +352,8 @@ class GeometryStickerPipeline(VanillaPipeline):
         return {
             **losses,
             "message_loss": cfg.msg_weight * F.binary_cross_entropy_with_logits(logits, messages.float()),
-            "negative_loss": cfg.negative_weight * F.binary_cross_entropy_with_logits(
-                neg_logits, torch.full_like(neg_logits, 0.5)),
+            "negative_loss": cfg.negative_weight
+            * F.binary_cross_entropy_with_logits(neg_logits, torch.full_like(neg_logits, 0.5)),
             "classifier_loss": cfg.cls_weight * F.binary_cross_entropy_with_logits(cls, labels),
         }
 
@@ -357,12 +388,15 @@ class GeometryStickerPipeline(VanillaPipeline):
             metrics_dict["bit_acc"] = metrics.bit_accuracy(metrics.decode_bits(self._last["logits"]), messages).mean()
         if self.config.fast_path and self.monitor and (step + 1) % self.config.steps_per_monitor == 0:
             metrics_dict.update(self.monitor_metrics())
-            self.history.append({"step": step + 1, "seconds": time.time() - self._t0,
-                                 **{k: float(v) for k, v in metrics_dict.items()}})
-            CONSOLE.print(f"\\[gsticker] step {step + 1}: held-out bit acc {float(metrics_dict['heldout_bit_acc']):.4f} "
-                          f"(clean renders: {float(metrics_dict['heldout_clean_bit_acc']):.3f}), "
-                          f"PSNR marked/clean {float(metrics_dict['heldout_psnr']):.2f} dB, "
-                          f"{time.time() - self._t0:.0f} s")
+            self.history.append(
+                {"step": step + 1, "seconds": time.time() - self._t0, **{k: float(v) for k, v in metrics_dict.items()}}
+            )
+            CONSOLE.print(
+                f"\\[gsticker] step {step + 1}: held-out bit acc {float(metrics_dict['heldout_bit_acc']):.4f} "
+                f"(clean renders: {float(metrics_dict['heldout_clean_bit_acc']):.3f}), "
+                f"PSNR marked/clean {float(metrics_dict['heldout_psnr']):.2f} dB, "
+                f"{time.time() - self._t0:.0f} s"
+            )
         return {}, loss_dict, metrics_dict
 
     @torch.no_grad()
@@ -381,10 +415,15 @@ class GeometryStickerPipeline(VanillaPipeline):
             clean_accs.append(metrics.bit_accuracy(bits[1:], owner))
             psnrs.append(metrics.psnr(marked, clean))
         self.heads.train()
-        return {"heldout_bit_acc": torch.cat(accs).mean(), "heldout_clean_bit_acc": torch.cat(clean_accs).mean(),
-                "heldout_psnr": torch.cat(psnrs).mean()}
+        return {
+            "heldout_bit_acc": torch.cat(accs).mean(),
+            "heldout_clean_bit_acc": torch.cat(clean_accs).mean(),
+            "heldout_psnr": torch.cat(psnrs).mean(),
+        }
 
     def describe(self) -> str:
         h = self.heads
-        return (f"sticker {count_parameters(self.model.sticker)} params, heads "
-                f"{count_parameters(h) if h is not None else 0} params ({self.config.heads.backbone})")
+        return (
+            f"sticker {count_parameters(self.model.sticker)} params, heads "
+            f"{count_parameters(h) if h is not None else 0} params ({self.config.heads.backbone})"
+        )

@@ -26,12 +26,16 @@ from gsticker_plugin.compat import allow_numpy_checkpoint_types
 from gsticker_plugin.errors import GStickerError
 
 
-def resolve_checkpoint(load_checkpoint: Optional[Path], load_dir: Optional[Path], load_step: Optional[int]) -> Optional[Path]:
+def resolve_checkpoint(
+    load_checkpoint: Optional[Path], load_dir: Optional[Path], load_step: Optional[int]
+) -> Optional[Path]:
     """The checkpoint file named by ``--load-checkpoint`` or ``--load-dir`` (+ ``--load-step``), if any."""
     if load_checkpoint is not None:
         p = Path(load_checkpoint)
         if not p.is_file():
-            raise GStickerError(f"checkpoint {p} does not exist; pass --load-checkpoint RUN/nerfstudio_models/step-N.ckpt")
+            raise GStickerError(
+                f"checkpoint {p} does not exist; pass --load-checkpoint RUN/nerfstudio_models/step-N.ckpt"
+            )
         return p
     if load_dir is not None:
         d = Path(load_dir)
@@ -50,8 +54,11 @@ def resolve_checkpoint(load_checkpoint: Optional[Path], load_dir: Optional[Path]
 def latest_checkpoint(folder: Path) -> Optional[Path]:
     """The ``step-N.ckpt`` of ``folder`` with the largest N (None when there is none): the one rule for "latest"."""
     folder = Path(folder)
-    numbered = [(int(m.group(1)), c) for c in (folder.glob("step-*.ckpt") if folder.is_dir() else [])
-                if (m := re.fullmatch(r"step-(\d+)", c.stem))]
+    numbered = [
+        (int(m.group(1)), c)
+        for c in (folder.glob("step-*.ckpt") if folder.is_dir() else [])
+        if (m := re.fullmatch(r"step-(\d+)", c.stem))
+    ]
     return max(numbered)[1] if numbered else None
 
 
@@ -69,14 +76,22 @@ def relocate(config, output_dir: Path, experiment_name: str, method_name: str, t
 def run_config_path(checkpoint: Path) -> Path:
     cfg = checkpoint.resolve().parent.parent / "config.yml"
     if not cfg.is_file():
-        raise GStickerError(f"no config.yml beside {checkpoint} (expected {cfg}); point --load-checkpoint at "
-                            "RUN/nerfstudio_models/step-N.ckpt inside an intact Nerfstudio run folder")
+        raise GStickerError(
+            f"no config.yml beside {checkpoint} (expected {cfg}); point --load-checkpoint at "
+            "RUN/nerfstudio_models/step-N.ckpt inside an intact Nerfstudio run folder"
+        )
     return cfg
 
 
 TRUSTED_PACKAGES = ("nerfstudio", "gsticker_plugin", "method_configs")
-PATH_CLASSES = ("pathlib.Path", "pathlib.PosixPath", "pathlib.WindowsPath", "pathlib.PurePath", "pathlib.PurePosixPath",
-                "pathlib.PureWindowsPath")
+PATH_CLASSES = (
+    "pathlib.Path",
+    "pathlib.PosixPath",
+    "pathlib.WindowsPath",
+    "pathlib.PurePath",
+    "pathlib.PurePosixPath",
+    "pathlib.PureWindowsPath",
+)
 
 
 def method_packages() -> Tuple[str, ...]:
@@ -96,14 +111,18 @@ class RunConfigLoader(yaml.Loader):
     def _trusted(self, suffix: str, node, what: str):
         top = suffix.split(".")[0]
         if not (top in self.packages or suffix in PATH_CLASSES or suffix.startswith("torch.optim.")):
-            raise yaml.constructor.ConstructorError(None, None, f"{what} {suffix!r} is not a Nerfstudio config class",
-                                                    node.start_mark)
+            raise yaml.constructor.ConstructorError(
+                None, None, f"{what} {suffix!r} is not a Nerfstudio config class", node.start_mark
+            )
         obj = self.find_python_name(suffix, node.start_mark)
         if what == "object" and not (isinstance(obj, type) and dataclasses.is_dataclass(obj)):
-            raise yaml.constructor.ConstructorError(None, None, f"{suffix!r} is not a config dataclass", node.start_mark)
+            raise yaml.constructor.ConstructorError(
+                None, None, f"{suffix!r} is not a config dataclass", node.start_mark
+            )
         if what == "call" and not (suffix in PATH_CLASSES or (isinstance(obj, type) and issubclass(obj, enum.Enum))):
-            raise yaml.constructor.ConstructorError(None, None, f"{suffix!r} may not be called by a config",
-                                                    node.start_mark)
+            raise yaml.constructor.ConstructorError(
+                None, None, f"{suffix!r} may not be called by a config", node.start_mark
+            )
         return obj
 
     def construct_python_name(self, suffix, node):
@@ -126,11 +145,13 @@ class RunConfigLoader(yaml.Loader):
         raise yaml.constructor.ConstructorError(None, None, f"module {suffix!r} in a config", node.start_mark)
 
 
-for _tag, _method in (("name", RunConfigLoader.construct_python_name),
-                      ("object", RunConfigLoader.construct_python_object),
-                      ("object/apply", RunConfigLoader.construct_python_object_apply),
-                      ("object/new", RunConfigLoader.construct_python_object_new),
-                      ("module", RunConfigLoader.construct_python_module)):
+for _tag, _method in (
+    ("name", RunConfigLoader.construct_python_name),
+    ("object", RunConfigLoader.construct_python_object),
+    ("object/apply", RunConfigLoader.construct_python_object_apply),
+    ("object/new", RunConfigLoader.construct_python_object_new),
+    ("module", RunConfigLoader.construct_python_module),
+):
     RunConfigLoader.add_multi_constructor(f"tag:yaml.org,2002:python/{_tag}:", _method)
 
 
@@ -142,14 +163,19 @@ def load_run_config(config_path: Path):
         return yaml.load(Path(config_path).read_text(), Loader=loader)
     except (ModuleNotFoundError, ImportError, AttributeError) as e:
         name = getattr(e, "name", None) or str(e)
-        raise GStickerError(f"{config_path} was written by a method that is not installed here ({name}); "
-                            "install that method's package (pip install ...) and retry") from None
+        raise GStickerError(
+            f"{config_path} was written by a method that is not installed here ({name}); "
+            "install that method's package (pip install ...) and retry"
+        ) from None
     except yaml.constructor.ConstructorError as e:
-        raise GStickerError(f"{config_path} is refused: {e.problem} (line {e.problem_mark.line + 1 if e.problem_mark else '?'}); "
-                            "only config.yml files written by Nerfstudio are read") from None
+        raise GStickerError(
+            f"{config_path} is refused: {e.problem} (line {e.problem_mark.line + 1 if e.problem_mark else '?'}); "
+            "only config.yml files written by Nerfstudio are read"
+        ) from None
     except yaml.YAMLError as e:
-        raise GStickerError(f"{config_path} is not a readable Nerfstudio config ({type(e).__name__}); "
-                            "restore the run's config.yml") from None
+        raise GStickerError(
+            f"{config_path} is not a readable Nerfstudio config ({type(e).__name__}); restore the run's config.yml"
+        ) from None
     except (OSError, UnicodeDecodeError) as e:
         raise GStickerError(f"{config_path} cannot be read ({type(e).__name__}); pass RUN/config.yml") from None
 
@@ -165,8 +191,10 @@ def load_checkpoint_state(checkpoint: Path) -> Dict[str, Any]:
     try:
         state = torch.load(checkpoint, map_location="cpu")
     except Exception as e:
-        raise GStickerError(f"checkpoint {checkpoint} is truncated or corrupt ({type(e).__name__}); "
-                            "copy it again or point at another step-N.ckpt") from None
+        raise GStickerError(
+            f"checkpoint {checkpoint} is truncated or corrupt ({type(e).__name__}); "
+            "copy it again or point at another step-N.ckpt"
+        ) from None
     if not isinstance(state, dict) or "pipeline" not in state:
         raise GStickerError(f"{checkpoint} is not a Nerfstudio checkpoint (no 'pipeline' entry)")
     return state
@@ -175,9 +203,9 @@ def load_checkpoint_state(checkpoint: Path) -> Dict[str, Any]:
 def model_state_from_pipeline_state(pipeline_state: Dict[str, Any], prefix: str = "_model.") -> Dict[str, Any]:
     out = {}
     for k, v in pipeline_state.items():
-        k = k[len("module."):] if k.startswith("module.") else k
+        k = k[len("module.") :] if k.startswith("module.") else k
         if k.startswith(prefix):
-            out[k[len(prefix):]] = v
+            out[k[len(prefix) :]] = v
     return out
 
 
@@ -185,9 +213,11 @@ def check_tcnn(model_config, model_state: Dict[str, Any]) -> None:
     """A tinycudann checkpoint cannot be loaded into the torch implementation (different key layouts)."""
     tcnn_layout = any(k.endswith(".params") for k in model_state)
     if tcnn_layout and importlib.util.find_spec("tinycudann") is None:
-        raise GStickerError("the base was trained with tinycudann (tcnn key layout) and tinycudann is not "
-                            "installed here; install tinycudann (needs CUDA) or retrain the base with "
-                            "--pipeline.model.implementation torch")
+        raise GStickerError(
+            "the base was trained with tinycudann (tcnn key layout) and tinycudann is not "
+            "installed here; install tinycudann (needs CUDA) or retrain the base with "
+            "--pipeline.model.implementation torch"
+        )
 
 
 def strict_load(model: torch.nn.Module, model_state: Dict[str, Any], num_train_data: Optional[int] = None) -> None:
@@ -195,39 +225,50 @@ def strict_load(model: torch.nn.Module, model_state: Dict[str, Any], num_train_d
     own = model.state_dict()
     missing = [k for k in own if k not in model_state]
     unexpected = [k for k in model_state if k not in own]
-    mismatched = [(k, tuple(own[k].shape), tuple(model_state[k].shape)) for k in own
-                  if k in model_state and hasattr(model_state[k], "shape") and own[k].shape != model_state[k].shape]
+    mismatched = [
+        (k, tuple(own[k].shape), tuple(model_state[k].shape))
+        for k in own
+        if k in model_state and hasattr(model_state[k], "shape") and own[k].shape != model_state[k].shape
+    ]
     if mismatched:
         k, a, b = mismatched[0]
         if "appearance" in k and num_train_data is not None:
-            raise GStickerError(f"the data has {a[0]} training images but the base was trained on {b[0]} "
-                                "(appearance embedding size differs); pass --data with the base's dataset")
-        raise GStickerError(f"base weight {k} has shape {b} but the rebuilt base expects {a} "
-                            f"({len(mismatched)} mismatches); rebuild with the run's own config.yml, unmodified")
+            raise GStickerError(
+                f"the data has {a[0]} training images but the base was trained on {b[0]} "
+                "(appearance embedding size differs); pass --data with the base's dataset"
+            )
+        raise GStickerError(
+            f"base weight {k} has shape {b} but the rebuilt base expects {a} "
+            f"({len(mismatched)} mismatches); rebuild with the run's own config.yml, unmodified"
+        )
     if missing or unexpected:
         try:  # a module's load hook may fill what its stored form leaves out (a shared run's folded sticker)
             model.load_state_dict(model_state, strict=True)
             return
         except RuntimeError:
             pass
-        raise GStickerError(f"base checkpoint does not match its model: {len(missing)} missing keys "
-                            f"(e.g. {missing[:2]}), {len(unexpected)} unexpected (e.g. {unexpected[:2]}); "
-                            "use the checkpoint written by the same run as its config.yml")
+        raise GStickerError(
+            f"base checkpoint does not match its model: {len(missing)} missing keys "
+            f"(e.g. {missing[:2]}), {len(unexpected)} unexpected (e.g. {unexpected[:2]}); "
+            "use the checkpoint written by the same run as its config.yml"
+        )
     model.load_state_dict(model_state, strict=True)
 
 
 def load_pipeline_strictly(pipeline, state: Dict[str, Any], checkpoint: Path) -> None:
     """Load a checkpoint's pipeline state with every key matching (Nerfstudio's own load silently retries non-strictly:
     a half-loaded suspect would render at chance and read "not shown")."""
-    pstate = {(k[len("module."):] if k.startswith("module.") else k): v for k, v in state["pipeline"].items()}
+    pstate = {(k[len("module.") :] if k.startswith("module.") else k): v for k, v in state["pipeline"].items()}
     pipeline.model.update_to_step(int(state.get("step", 0)))
     try:
         pipeline.load_state_dict(pstate, strict=True)
     except RuntimeError as e:
         lines = [" ".join(x.split()) for x in str(e).splitlines()[1:] if x.strip()]
         detail = "; ".join(lines)[:400] or str(e).splitlines()[0][:200]
-        raise GStickerError(f"checkpoint {checkpoint} does not match its run's model ({detail}); use the checkpoint "
-                            "written by the same run as its config.yml") from None
+        raise GStickerError(
+            f"checkpoint {checkpoint} does not match its run's model ({detail}); use the checkpoint "
+            "written by the same run as its config.yml"
+        ) from None
 
 
 def resolve_data_path(recorded: Optional[Path], override: Optional[Path]) -> Path:
@@ -236,8 +277,10 @@ def resolve_data_path(recorded: Optional[Path], override: Optional[Path]) -> Pat
             raise GStickerError(f"--data {override} does not exist; pass the base's dataset folder")
         return Path(override)
     if recorded is None or not Path(recorded).exists():
-        raise GStickerError(f"the base's dataset {recorded} does not exist from here; pass --data with the "
-                            "folder that holds the base's training images")
+        raise GStickerError(
+            f"the base's dataset {recorded} does not exist from here; pass --data with the "
+            "folder that holds the base's training images"
+        )
     return Path(recorded)
 
 
@@ -252,8 +295,10 @@ def final_rgb(outputs: Dict[str, Any]) -> torch.Tensor:
     if rgb is None:
         rgb = outputs.get("rgb_fine")
     if rgb is None:
-        raise GStickerError(f"the model renders no 'rgb' (or 'rgb_fine') output, only {sorted(outputs)}; "
-                            "use a NeRF-style run (nerfacto, vanilla-nerf, tensorf)")
+        raise GStickerError(
+            f"the model renders no 'rgb' (or 'rgb_fine') output, only {sorted(outputs)}; "
+            "use a NeRF-style run (nerfacto, vanilla-nerf, tensorf)"
+        )
     return rgb
 
 
@@ -286,15 +331,19 @@ def load_run(config_path: Path, data: Optional[Path] = None, device: Optional[to
     if not isinstance(config, TrainerConfig):
         raise GStickerError(f"{config_path} is not a Nerfstudio run config; pass RUN/config.yml")
     if config.method_name not in all_methods:
-        raise GStickerError(f"{config_path} was written by method {config.method_name!r}, which is not installed "
-                            "here; install its package and retry")
+        raise GStickerError(
+            f"{config_path} was written by method {config.method_name!r}, which is not installed "
+            "here; install its package and retry"
+        )
     config.pipeline.datamanager._target = all_methods[config.method_name].pipeline.datamanager._target
     # checkpoint: where the config says, else beside the config (a run folder that was moved)
     candidates = [config.get_checkpoint_dir(), config_path.parent / config.relative_model_dir]
     ckpt = next((c for c in map(latest_checkpoint, candidates) if c is not None), None)
     if ckpt is None:
-        raise GStickerError(f"the run {config_path.parent} has no checkpoint (no step-*.ckpt in "
-                            f"{config_path.parent / config.relative_model_dir}); copy its nerfstudio_models folder")
+        raise GStickerError(
+            f"the run {config_path.parent} has no checkpoint (no step-*.ckpt in "
+            f"{config_path.parent / config.relative_model_dir}); copy its nerfstudio_models folder"
+        )
     dm = config.pipeline.datamanager
     recorded = getattr(dm, "data", None) or getattr(dm.dataparser, "data", None)
     if data is not None:
@@ -304,8 +353,10 @@ def load_run(config_path: Path, data: Optional[Path] = None, device: Optional[to
         if hasattr(dm.dataparser, "data"):
             dm.dataparser.data = Path(data)
     elif recorded is None or not Path(recorded).exists():
-        raise GStickerError(f"the run's dataset {recorded} does not exist from here (its cameras are needed); "
-                            "pass --data with the run's dataset folder")
+        raise GStickerError(
+            f"the run's dataset {recorded} does not exist from here (its cameras are needed); "
+            "pass --data with the run's dataset folder"
+        )
     if spawns_workers(config.pipeline.datamanager._target):
         # nerfacto's ParallelDataManager spawns a worker process that samples training rays nobody reads here, and
         # its __del__ printed a traceback at exit: the same dataparser in nerfstudio's in-process data manager
@@ -316,8 +367,10 @@ def load_run(config_path: Path, data: Optional[Path] = None, device: Optional[to
     except GStickerError:
         raise
     except (FileNotFoundError, OSError) as e:
-        raise GStickerError(f"could not load the dataset of {config_path} ({type(e).__name__}: {e}); "
-                            "pass --data with the run's dataset folder") from None
+        raise GStickerError(
+            f"could not load the dataset of {config_path} ({type(e).__name__}: {e}); "
+            "pass --data with the run's dataset folder"
+        ) from None
     pipeline.eval()
     state = load_checkpoint_state(ckpt)
     load_pipeline_strictly(pipeline, state, ckpt)
@@ -332,5 +385,10 @@ def copy_datamanager(base_config, data_override: Optional[Path]) -> VanillaDataM
     recorded = dm.data if getattr(dm, "data", None) is not None else getattr(dataparser, "data", None)
     data = resolve_data_path(recorded, data_override)
     dataparser.data = data
-    return VanillaDataManagerConfig(dataparser=dataparser, data=data, train_num_rays_per_batch=1024,
-                                    eval_num_rays_per_batch=1024, camera_res_scale_factor=dm.camera_res_scale_factor)
+    return VanillaDataManagerConfig(
+        dataparser=dataparser,
+        data=data,
+        train_num_rays_per_batch=1024,
+        eval_num_rays_per_batch=1024,
+        camera_res_scale_factor=dm.camera_res_scale_factor,
+    )

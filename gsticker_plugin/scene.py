@@ -95,7 +95,10 @@ def look_at(position: Float[np.ndarray, "3"], up: Sequence[float] = (0.0, 0.0, 1
 
 
 def sample_camera_poses(
-    num: int, rng: np.random.Generator, radius: float = CAMERA_RADIUS, min_elevation_deg: float = 5.0,
+    num: int,
+    rng: np.random.Generator,
+    radius: float = CAMERA_RADIUS,
+    min_elevation_deg: float = 5.0,
     max_elevation_deg: float = 80.0,
 ) -> Float[np.ndarray, "n 4 4"]:
     """``num`` cameras uniformly (by area) on a band of the upper hemisphere, all looking at the origin."""
@@ -171,14 +174,24 @@ def builtin_scene() -> List[Part]:
     return [
         _textured(plate, skimage.data.coffee(), "plane"),
         _solid(placed(trimesh.creation.icosphere(4, radius=0.32), (0.5, 0.5, -0.18)), (0.85, 0.08, 0.08), True),
-        _solid(placed(trimesh.creation.torus(0.3, 0.11, 64, 24), (-0.52, 0.42, -0.08), math.pi / 2, (1, 0, 0)),
-               (0.1, 0.75, 0.15), True),
-        _solid(placed(trimesh.creation.box((0.48, 0.48, 0.48)), (0.5, -0.48, -0.26), math.radians(30)),
-               (0.1, 0.2, 0.9), False),
-        _textured(placed(trimesh.creation.icosphere(4, radius=0.33), (-0.5, -0.5, -0.17)),
-                  skimage.data.astronaut(), "sphere"),
-        _textured(placed(trimesh.creation.cylinder(radius=0.2, height=0.75, sections=64), (0, 0, -0.125)),
-                  skimage.data.chelsea(), "cylinder"),
+        _solid(
+            placed(trimesh.creation.torus(0.3, 0.11, 64, 24), (-0.52, 0.42, -0.08), math.pi / 2, (1, 0, 0)),
+            (0.1, 0.75, 0.15),
+            True,
+        ),
+        _solid(
+            placed(trimesh.creation.box((0.48, 0.48, 0.48)), (0.5, -0.48, -0.26), math.radians(30)),
+            (0.1, 0.2, 0.9),
+            False,
+        ),
+        _textured(
+            placed(trimesh.creation.icosphere(4, radius=0.33), (-0.5, -0.5, -0.17)), skimage.data.astronaut(), "sphere"
+        ),
+        _textured(
+            placed(trimesh.creation.cylinder(radius=0.2, height=0.75, sections=64), (0, 0, -0.125)),
+            skimage.data.chelsea(),
+            "cylinder",
+        ),
     ]
 
 
@@ -219,8 +232,10 @@ def obj_texture_files(obj: Path) -> List[Path]:
         if line.startswith("mtllib "):
             mtl = obj.parent / line.split(None, 1)[1].strip()
             if not mtl.is_file():
-                raise SceneError(f"material file {mtl} named by {obj} does not exist; put it next to the .obj "
-                                 "or delete the mtllib line")
+                raise SceneError(
+                    f"material file {mtl} named by {obj} does not exist; put it next to the .obj "
+                    "or delete the mtllib line"
+                )
             for mline in mtl.read_text(errors="replace").splitlines():
                 if mline.strip().startswith("map_Kd"):
                     found.append(mtl.parent / mline.split()[-1])
@@ -230,8 +245,12 @@ def obj_texture_files(obj: Path) -> List[Path]:
 def sibling_texture(mesh_file: Path) -> Optional[Path]:
     """An image beside the mesh that is evidently its texture (the only image, or one named like it)."""
     images = sorted(p for p in mesh_file.parent.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
-    named = [p for p in images if mesh_file.stem.split("_")[0].lower() in p.stem.lower()
-             or any(k in p.stem.lower() for k in ("texture", "diffuse", "albedo", "basecolor"))]
+    named = [
+        p
+        for p in images
+        if mesh_file.stem.split("_")[0].lower() in p.stem.lower()
+        or any(k in p.stem.lower() for k in ("texture", "diffuse", "albedo", "basecolor"))
+    ]
     return images[0] if len(images) == 1 else named[0] if len(named) == 1 else None
 
 
@@ -244,8 +263,9 @@ def load_mesh_parts(path: Path, up: Literal["y", "z"] = "y") -> List[Part]:
     textures = obj_texture_files(mesh_file) if mesh_file.suffix.lower() == ".obj" else []
     for tex in textures:
         if not tex.is_file():
-            raise SceneError(f"texture {tex} named by {mesh_file} does not exist; put it next to the .mtl "
-                             "or delete the map_Kd line")
+            raise SceneError(
+                f"texture {tex} named by {mesh_file} does not exist; put it next to the .mtl or delete the map_Kd line"
+            )
         read_texture(tex)
     fallback = textures[0] if textures else sibling_texture(mesh_file)
     try:
@@ -253,12 +273,16 @@ def load_mesh_parts(path: Path, up: Literal["y", "z"] = "y") -> List[Part]:
         meshes = loaded.dump(concatenate=False) if isinstance(loaded, trimesh.Scene) else [loaded]
     except Exception as exc:  # trimesh raises many kinds of errors on malformed files
         detail = (str(exc).strip().splitlines() or [""])[0]
-        raise SceneError(f"cannot read mesh {mesh_file} ({type(exc).__name__}: {detail}); "
-                         "pass --mesh with a valid .obj/.ply/.glb or omit it for the built-in scene") from None
+        raise SceneError(
+            f"cannot read mesh {mesh_file} ({type(exc).__name__}: {detail}); "
+            "pass --mesh with a valid .obj/.ply/.glb or omit it for the built-in scene"
+        ) from None
     meshes = [m for m in meshes if isinstance(m, trimesh.Trimesh) and len(m.faces)]
     if not meshes:
-        raise SceneError(f"mesh {mesh_file} has no triangles; pass --mesh with a valid .obj/.ply/.glb "
-                         "or omit it for the built-in scene")
+        raise SceneError(
+            f"mesh {mesh_file} has no triangles; pass --mesh with a valid .obj/.ply/.glb "
+            "or omit it for the built-in scene"
+        )
     points = np.concatenate([m.vertices for m in meshes])
     if not np.isfinite(points).all() or np.ptp(points, axis=0).max() <= 0:
         raise SceneError(f"mesh {mesh_file} has degenerate or non-finite vertices; pass --mesh with a valid mesh")
@@ -276,8 +300,11 @@ def load_mesh_parts(path: Path, up: Literal["y", "z"] = "y") -> List[Part]:
             image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
             if mesh_file.suffix.lower() == ".obj" and not textures:
                 image = None  # an .obj without map_Kd gets a placeholder image from trimesh
-            texture = np.asarray(image.convert("RGB")) if image is not None else (
-                read_texture(fallback) if fallback is not None else None)
+            texture = (
+                np.asarray(image.convert("RGB"))
+                if image is not None
+                else (read_texture(fallback) if fallback is not None else None)
+            )
             if texture is not None:
                 parts.append(Part(**part, uv=np.asarray(uv, dtype=np.float64), texture=texture))
                 continue
@@ -393,8 +420,9 @@ def write_dataset(parts: Sequence[Part], folder: Path, config: SceneConfig, prog
     poses = split_poses(config.seed, counts)
     plotter = make_plotter(parts, config.resolution * config.supersample)
     try:
-        with tqdm(total=sum(counts.values()), desc="rendering views", unit="view",
-                  disable=None if progress else True) as bar:
+        with tqdm(
+            total=sum(counts.values()), desc="rendering views", unit="view", disable=None if progress else True
+        ) as bar:
             for split in SPLITS:
                 (folder / split).mkdir()
                 frames = []
@@ -402,12 +430,24 @@ def write_dataset(parts: Sequence[Part], folder: Path, config: SceneConfig, prog
                     rgba, depth = render_view(plotter, c2w, config.resolution, config.supersample)
                     write_png(folder / split / f"r_{i}.png", rgba)
                     write_depth_exr(folder / split / f"r_{i}_depth.exr", depth)
-                    frames.append({"file_path": f"./{split}/r_{i}", "rotation": 2 * math.pi / len(poses[split]),
-                                   "transform_matrix": c2w.tolist(), "depth_file_path": f"./{split}/r_{i}_depth.exr"})
+                    frames.append(
+                        {
+                            "file_path": f"./{split}/r_{i}",
+                            "rotation": 2 * math.pi / len(poses[split]),
+                            "transform_matrix": c2w.tolist(),
+                            "depth_file_path": f"./{split}/r_{i}_depth.exr",
+                        }
+                    )
                     bar.update(1)
-                meta = {"camera_angle_x": CAMERA_ANGLE_X, "near": NEAR, "far": FAR,
-                        "depth": "z-depth in world units along the camera's viewing axis; 0 where empty",
-                        "scene": str(config.mesh) if config.mesh else "builtin", "seed": config.seed, "frames": frames}
+                meta = {
+                    "camera_angle_x": CAMERA_ANGLE_X,
+                    "near": NEAR,
+                    "far": FAR,
+                    "depth": "z-depth in world units along the camera's viewing axis; 0 where empty",
+                    "scene": str(config.mesh) if config.mesh else "builtin",
+                    "seed": config.seed,
+                    "frames": frames,
+                }
                 (folder / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2) + "\n")
     finally:
         plotter.close()
@@ -418,9 +458,13 @@ def write_dataset(parts: Sequence[Part], folder: Path, config: SceneConfig, prog
 
 def validate(config: SceneConfig) -> None:
     """Check the numeric flags, raising SceneError with a fix."""
-    for flag, value, low in [("--resolution", config.resolution, 8), ("--num-train", config.num_train, 1),
-                             ("--num-val", config.num_val, 1), ("--num-test", config.num_test, 1),
-                             ("--supersample", config.supersample, 1)]:
+    for flag, value, low in [
+        ("--resolution", config.resolution, 8),
+        ("--num-train", config.num_train, 1),
+        ("--num-val", config.num_val, 1),
+        ("--num-test", config.num_test, 1),
+        ("--supersample", config.supersample, 1),
+    ]:
         if value < low:
             raise SceneError(f"{flag} is {value} but must be at least {low}; pass {flag} {max(low, 1)} or more")
 
@@ -433,16 +477,21 @@ def _prepare_output(output: Path, overwrite: bool) -> Tuple[Path, Optional[Path]
     """
     if output.exists() or output.is_symlink():
         if not overwrite:
-            raise SceneError(f"output folder {output} already exists; pass --overwrite to replace it "
-                             "or choose another --output-dir")
+            raise SceneError(
+                f"output folder {output} already exists; pass --overwrite to replace it or choose another --output-dir"
+            )
         if not output.is_dir() or (any(output.iterdir()) and not (output / "transforms_train.json").exists()):
-            raise SceneError(f"output path {output} exists and is not a dataset written by this command (no "
-                             "transforms_train.json), so --overwrite will not delete it; choose another --output-dir")
+            raise SceneError(
+                f"output path {output} exists and is not a dataset written by this command (no "
+                "transforms_train.json), so --overwrite will not delete it; choose another --output-dir"
+            )
     missing = [p for p in output.parents if not p.exists()]
     blocker = next((p for p in output.parents if p.exists() and not p.is_dir()), None)
     if blocker is not None:
-        raise SceneError(f"cannot write to output folder {output} because {blocker} is a file, not a folder; "
-                         "pass --output-dir with a writable location")
+        raise SceneError(
+            f"cannot write to output folder {output} because {blocker} is a file, not a folder; "
+            "pass --output-dir with a writable location"
+        )
     try:
         output.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.partial-", dir=output.parent))
@@ -453,8 +502,10 @@ def _prepare_output(output: Path, overwrite: bool) -> Tuple[Path, Optional[Path]
     except OSError as exc:
         if missing:
             shutil.rmtree(missing[-1], ignore_errors=True)
-        raise SceneError(f"cannot write to output folder {output} ({exc.strerror or exc}); "
-                         "pass --output-dir with a writable location") from None
+        raise SceneError(
+            f"cannot write to output folder {output} ({exc.strerror or exc}); "
+            "pass --output-dir with a writable location"
+        ) from None
 
 
 def _commit(tmp: Path, output: Path) -> None:

@@ -44,12 +44,27 @@ class SmallNeRFModel(NeRFModel):
     def populate_modules(self) -> None:
         super().populate_modules()  # samplers, renderers, losses, metrics; its 8 x 256 fields are replaced here
         c = self.config
-        position_encoding = NeRFEncoding(in_dim=3, num_frequencies=c.position_frequencies, min_freq_exp=0.0,
-                                         max_freq_exp=float(c.position_frequencies - 2), include_input=True)
-        direction_encoding = NeRFEncoding(in_dim=3, num_frequencies=c.direction_frequencies, min_freq_exp=0.0,
-                                          max_freq_exp=float(c.direction_frequencies), include_input=True)
-        kw = dict(position_encoding=position_encoding, direction_encoding=direction_encoding,
-                  base_mlp_num_layers=c.base_mlp_num_layers, base_mlp_layer_width=c.base_mlp_layer_width,
-                  head_mlp_layer_width=c.head_mlp_layer_width, skip_connections=tuple(c.skip_connections))
+        position_encoding = NeRFEncoding(
+            in_dim=3,
+            num_frequencies=c.position_frequencies,
+            min_freq_exp=0.0,
+            max_freq_exp=float(c.position_frequencies - 2),
+            include_input=True,
+        )
+        direction_encoding = NeRFEncoding(
+            in_dim=3,
+            num_frequencies=c.direction_frequencies,
+            min_freq_exp=0.0,
+            max_freq_exp=float(c.direction_frequencies),
+            include_input=True,
+        )
+        kw = dict(
+            position_encoding=position_encoding,
+            direction_encoding=direction_encoding,
+            base_mlp_num_layers=c.base_mlp_num_layers,
+            base_mlp_layer_width=c.base_mlp_layer_width,
+            head_mlp_layer_width=c.head_mlp_layer_width,
+            skip_connections=tuple(c.skip_connections),
+        )
         self.field_coarse = NeRFField(**kw)
         self.field_fine = NeRFField(**kw)

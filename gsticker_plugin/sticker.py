@@ -95,8 +95,9 @@ class Gate(nn.Module):
         return torch.minimum(torch.exp(self.log_beta), self.mu * self.max_beta_ratio)
 
     @torch.no_grad()
-    def calibrate(self, density: Tensor, weights: Tensor, quantile: float = 0.5, beta_ratio: float = 0.1,
-                  amplitude: float = 10.0) -> None:
+    def calibrate(
+        self, density: Tensor, weights: Tensor, quantile: float = 0.5, beta_ratio: float = 0.1, amplitude: float = 10.0
+    ) -> None:
         """Set mu to the weight-weighted ``quantile`` of the base density over visible samples, and the sticker's
         largest density change to ``amplitude * mu``.
 
@@ -132,8 +133,15 @@ class Sticker(nn.Module):
     which it learns in a few hundred steps instead of thousands (docs/geometrysticker.md).
     """
 
-    def __init__(self, num_bits: int = 48, num_frequencies: int = 5, hidden_dim: int = 64, num_layers: int = 2,
-                 init_scale: float = 0.1, kind: str = "bilinear"):
+    def __init__(
+        self,
+        num_bits: int = 48,
+        num_frequencies: int = 5,
+        hidden_dim: int = 64,
+        num_layers: int = 2,
+        init_scale: float = 0.1,
+        kind: str = "bilinear",
+    ):
         super().__init__()
         if kind not in ("concat", "bilinear"):
             raise ValueError(f"unknown sticker kind {kind!r}; use 'bilinear' or 'concat'")
@@ -225,8 +233,16 @@ class WrapState:
 class DensityWrap:
     """Installs ``sigma + psi * scale * m`` on a field instance's ``get_density``; removable."""
 
-    def __init__(self, field: nn.Module, name: str, sticker: Sticker, gate: Gate, state: WrapState,
-                 aabb: Tensor, gate_threshold: float = 1e-3) -> None:
+    def __init__(
+        self,
+        field: nn.Module,
+        name: str,
+        sticker: Sticker,
+        gate: Gate,
+        state: WrapState,
+        aabb: Tensor,
+        gate_threshold: float = 1e-3,
+    ) -> None:
         self.field = field
         self.name = name
         self.sticker = sticker

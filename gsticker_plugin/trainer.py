@@ -95,8 +95,10 @@ class GeometryStickerTrainer(Trainer):
         pcfg = cfg.pipeline
         ckpt = runs.resolve_checkpoint(cfg.load_checkpoint, cfg.load_dir, cfg.load_step)
         if ckpt is None and pcfg.model.base_model is None:
-            raise GStickerError("geometrysticker needs a trained base: pass --load-checkpoint "
-                                "BASE_RUN/nerfstudio_models/step-N.ckpt (any nerfacto, vanilla-nerf or tensorf run)")
+            raise GStickerError(
+                "geometrysticker needs a trained base: pass --load-checkpoint "
+                "BASE_RUN/nerfstudio_models/step-N.ckpt (any nerfacto, vanilla-nerf or tensorf run)"
+            )
         GeometryStickerPipeline.resolve_message(pcfg)  # a malformed message stops here, before any work
         if ckpt is not None:
             run_cfg = runs.load_run_config(runs.run_config_path(ckpt))
@@ -112,13 +114,20 @@ class GeometryStickerTrainer(Trainer):
                 # the message, label and sticker come from the run's key: --pipeline.key-path, else the key's
                 # default place for that run, else (runs written before the keys folder) beside the run folder
                 run_dir = ckpt.resolve().parent.parent
-                candidates = [Path(pcfg.key_path)] if pcfg.key_path is not None else [
-                    default_key_path(run_cfg.experiment_name, run_cfg.method_name, run_cfg.timestamp),
-                    run_dir.with_name(run_dir.name + ".gskey")]
+                candidates = (
+                    [Path(pcfg.key_path)]
+                    if pcfg.key_path is not None
+                    else [
+                        default_key_path(run_cfg.experiment_name, run_cfg.method_name, run_cfg.timestamp),
+                        run_dir.with_name(run_dir.name + ".gskey"),
+                    ]
+                )
                 found = next((c for c in candidates if c.is_file()), None)
                 if found is None:
-                    raise GStickerError(f"resuming {run_dir} needs its owner key (looked at "
-                                        f"{', '.join(map(str, candidates))}); pass --pipeline.key-path OWNER.gskey")
+                    raise GStickerError(
+                        f"resuming {run_dir} needs its owner key (looked at "
+                        f"{', '.join(map(str, candidates))}); pass --pipeline.key-path OWNER.gskey"
+                    )
                 self._resume_key = OwnerKey.load(found)
                 pcfg.key_path = found
                 pcfg.message = bits_to_str(self._resume_key.message)
@@ -145,8 +154,7 @@ class GeometryStickerTrainer(Trainer):
         self.save_shared_config()  # again, now with the base filled in: stock ns-viewer/ns-render rebuild from it
         super().setup(test_mode)
         self.pipeline.set_owner(message, source, label, self._resume_key)
-        CONSOLE.print(f"\\[gsticker] {self.pipeline.describe()}; message source {source}; "
-                      f"owner key {self._key_path}")
+        CONSOLE.print(f"\\[gsticker] {self.pipeline.describe()}; message source {source}; owner key {self._key_path}")
 
     def _load_checkpoint(self) -> None:
         ckpt = self._checkpoint
@@ -156,8 +164,9 @@ class GeometryStickerTrainer(Trainer):
         if not self._resume:
             model_state = runs.model_state_from_pipeline_state(state["pipeline"])
             runs.check_tcnn(self.config.pipeline.model.base_model, model_state)
-            runs.strict_load(self.pipeline.model.base, model_state,
-                                 num_train_data=len(self.pipeline.datamanager.train_dataset))
+            runs.strict_load(
+                self.pipeline.model.base, model_state, num_train_data=len(self.pipeline.datamanager.train_dataset)
+            )
             self._start_step = 0
             CONSOLE.print(f"\\[gsticker] base loaded strictly from {ckpt} (frozen); starting at step 0")
             return
@@ -192,7 +201,9 @@ class GeometryStickerTrainer(Trainer):
             "scalers": self.grad_scaler.state_dict(),
         }
         # (a prefix check: base fields have their own "heads", e.g. vanilla-nerf's field_coarse.field_heads)
-        assert not any(k.split(".")[0] == "heads" for k in state["pipeline"]), "the heads must never enter the shareable model"
+        assert not any(k.split(".")[0] == "heads" for k in state["pipeline"]), (
+            "the heads must never enter the shareable model"
+        )
         tmp = ckpt_path.with_suffix(".ckpt.tmp")
         torch.save(state, tmp)
         os.replace(tmp, ckpt_path)

@@ -48,7 +48,9 @@ def progress_bar(iterable, desc: str, enabled: bool, total: Optional[int] = None
     return tqdm(iterable, desc=desc, total=total, leave=False, file=sys.stderr)
 
 
-def read_image(path: Path, max_side: int = 400, min_side: int = 16, max_pixels: int = 1_000_000_000) -> Tuple[Tensor, str]:
+def read_image(
+    path: Path, max_side: int = 400, min_side: int = 16, max_pixels: int = 1_000_000_000
+) -> Tuple[Tensor, str]:
     """An image file as ``[3 H W]`` float RGB in [0, 1]; raises ``SkipImage(reason)`` when it cannot be used.
 
     Grayscale is replicated to RGB, alpha is composited on white, 8/16-bit integers are normalised to [0, 1] and
@@ -109,7 +111,7 @@ def read_image(path: Path, max_side: int = 400, min_side: int = 16, max_pixels: 
             elif rgb.shape[-1] == 2:
                 rgb = np.concatenate([rgb, rgb[..., :1]], axis=-1)
             if alpha >= 0:
-                al = a[..., alpha: alpha + 1]
+                al = a[..., alpha : alpha + 1]
                 rgb = rgb * al + (1.0 - al)
             if f > 1:
                 rgb = np.add.reduceat(rgb, col_idx, axis=1) / col_cnt[None, :, None]
@@ -126,16 +128,20 @@ def read_image(path: Path, max_side: int = 400, min_side: int = 16, max_pixels: 
     if max(hh, ww) > max_side:  # the integer reduction left it slightly above the target: exact resize
         s = max_side / max(hh, ww)
         size = (max(1, round(hh * s)), max(1, round(ww * s)))
-        img = torch.nn.functional.interpolate(img[None], size=size, mode="bilinear", antialias=True,
-                                              align_corners=False)[0].clamp(0, 1)
+        img = torch.nn.functional.interpolate(
+            img[None], size=size, mode="bilinear", antialias=True, align_corners=False
+        )[0].clamp(0, 1)
     return img, "; ".join(notes)
 
 
 def list_files(folder: Path) -> List[Path]:
     if folder.is_file():
         return [folder]
-    return sorted(p for p in folder.rglob("*") if p.is_file() and not any(part.startswith(".") for part in
-                                                                            p.relative_to(folder).parts))
+    return sorted(
+        p
+        for p in folder.rglob("*")
+        if p.is_file() and not any(part.startswith(".") for part in p.relative_to(folder).parts)
+    )
 
 
 def images_views(folder: Path, max_side: int, min_side: int, max_pixels: int, progress: bool = True) -> Views:
@@ -160,8 +166,10 @@ def images_views(folder: Path, max_side: int, min_side: int, max_pixels: int, pr
         out.views.append(View(name=name, image=img, note=note))
     if not out.views:
         reasons = "; ".join(f"{s['name']}: {s['reason']}" for s in out.skipped[:3])
-        raise GStickerError(f"no usable image among the {len(files)} files of {folder} ({reasons}"
-                            f"{'; ...' if len(out.skipped) > 3 else ''}); pass a folder of renders or screenshots")
+        raise GStickerError(
+            f"no usable image among the {len(files)} files of {folder} ({reasons}"
+            f"{'; ...' if len(out.skipped) > 3 else ''}); pass a folder of renders or screenshots"
+        )
     return out
 
 
@@ -175,8 +183,9 @@ def random_views(n: int, size: int, seed: int) -> Views:
             img = torch.rand(3, size, size, generator=g)
         elif kind == 1:
             cells = int(torch.randint(2, 9, (1,), generator=g))
-            img = torch.nn.functional.interpolate(torch.rand(1, 3, cells, cells, generator=g), size=(size, size),
-                                                  mode="bicubic", align_corners=False)[0].clamp(0, 1)
+            img = torch.nn.functional.interpolate(
+                torch.rand(1, 3, cells, cells, generator=g), size=(size, size), mode="bicubic", align_corners=False
+            )[0].clamp(0, 1)
         elif kind == 2:
             img = torch.rand(3, 1, 1, generator=g).expand(3, size, size).clone()
             img = (img + 0.02 * torch.randn(3, size, size, generator=g)).clamp(0, 1)
@@ -206,19 +215,27 @@ def select_cameras(pipeline, num_views: int, sampled_share: float, seed: int):
     chosen = []
     if n_own > 0:
         idx = sorted({int(round(j * (len(own) - 1) / max(1, n_own - 1))) for j in range(n_own)}) if n_own > 1 else [0]
-        chosen += [(name, cams[i: i + 1]) for name, cams, i in (own[j] for j in idx)]
+        chosen += [(name, cams[i : i + 1]) for name, cams, i in (own[j] for j in idx)]
         n_sampled = num_views - len(chosen)  # fewer own cameras than asked: fill with sampled poses
     if n_sampled > 0:
         g = torch.Generator().manual_seed(seed)
         cams = dm.train_dataset.cameras
         orbit = orbit_cameras(cams, n_sampled, g)
-        chosen += [(f"sampled/{i:03d}", orbit[i: i + 1]) for i in range(n_sampled)]
+        chosen += [(f"sampled/{i:03d}", orbit[i : i + 1]) for i in range(n_sampled)]
     return chosen
 
 
 @torch.no_grad()
-def model_views(config_path: Path, num_views: int, sampled_share: float, seed: int, data: Optional[Path],
-                device: torch.device, sticker: Optional[bool] = None, progress: bool = True) -> Views:
+def model_views(
+    config_path: Path,
+    num_views: int,
+    sampled_share: float,
+    seed: int,
+    data: Optional[Path],
+    device: torch.device,
+    sticker: Optional[bool] = None,
+    progress: bool = True,
+) -> Views:
     """Render ``num_views`` views of a run (sticker as the run has it unless ``sticker`` says otherwise)."""
     if num_views <= 0:
         raise GStickerError(f"--num-views must be positive, got {num_views}")
@@ -231,10 +248,16 @@ def model_views(config_path: Path, num_views: int, sampled_share: float, seed: i
     model = pipeline.model
     cams = select_cameras(pipeline, num_views, sampled_share, seed)
     ctx = model.sticker_enabled(sticker) if (sticker is not None and hasattr(model, "sticker_enabled")) else None
-    out = Views(kind="model", source=str(config_path),
-                details={"method": config.method_name, "model": type(model).__name__, "checkpoint": str(ckpt),
-                         "sticker": (None if not hasattr(model, "sticker_enabled") else
-                                     ("off" if sticker is False else "on"))})
+    out = Views(
+        kind="model",
+        source=str(config_path),
+        details={
+            "method": config.method_name,
+            "model": type(model).__name__,
+            "checkpoint": str(ckpt),
+            "sticker": (None if not hasattr(model, "sticker_enabled") else ("off" if sticker is False else "on")),
+        },
+    )
     if ctx is not None:
         ctx.__enter__()
     try:

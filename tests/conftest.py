@@ -31,13 +31,33 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED = REPO_ROOT.parent / "shared"
 BIN = Path(sys.executable).parent
 TINY_MESSAGE = "101100111000111100001111100000111111000000111111"
-NERFACTO_TINY = ["gsticker-nerfacto-small", "--pipeline.model.num-nerf-samples-per-ray", "16",
-                 "--pipeline.model.num-proposal-samples-per-ray", "32", "16",
-                 "--pipeline.datamanager.train-num-rays-per-batch", "256"]
+NERFACTO_TINY = [
+    "gsticker-nerfacto-small",
+    "--pipeline.model.num-nerf-samples-per-ray",
+    "16",
+    "--pipeline.model.num-proposal-samples-per-ray",
+    "32",
+    "16",
+    "--pipeline.datamanager.train-num-rays-per-batch",
+    "256",
+]
 CPU_ARGS = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
-TINY_STICKER_ARGS = ["--max-num-iterations", "10", "--pipeline.pool-train-views", "2", "--pipeline.pool-novel-views",
-                     "2", "--pipeline.monitor-views", "1", "--pipeline.steps-per-monitor", "5",
-                     "--pipeline.views-per-step", "2", "--pipeline.heads.width", "8"]
+TINY_STICKER_ARGS = [
+    "--max-num-iterations",
+    "10",
+    "--pipeline.pool-train-views",
+    "2",
+    "--pipeline.pool-novel-views",
+    "2",
+    "--pipeline.monitor-views",
+    "1",
+    "--pipeline.steps-per-monitor",
+    "5",
+    "--pipeline.views-per-step",
+    "2",
+    "--pipeline.heads.width",
+    "8",
+]
 
 
 def subprocess_env(threads: int = 0, **extra: str) -> dict:
@@ -58,7 +78,9 @@ def console_script(name: str) -> Path:
     return path
 
 
-def run_parallel(commands: Sequence[Sequence[str]], cwd: Path, timeout: float = 600) -> List[subprocess.CompletedProcess]:
+def run_parallel(
+    commands: Sequence[Sequence[str]], cwd: Path, timeout: float = 600
+) -> List[subprocess.CompletedProcess]:
     """Run the commands concurrently (one thread each when several), wait for all; output goes to files in ``cwd``."""
     cwd.mkdir(parents=True, exist_ok=True)
     threads = 1 if len(commands) > 1 else 0
@@ -67,8 +89,9 @@ def run_parallel(commands: Sequence[Sequence[str]], cwd: Path, timeout: float = 
     for i, cmd in enumerate(commands):
         out = open(cwd / f"cmd{i}.stdout", "w+")
         err = open(cwd / f"cmd{i}.stderr", "w+")
-        procs.append((cmd, subprocess.Popen(list(cmd), stdout=out, stderr=err, cwd=cwd, env=subprocess_env(threads)),
-                      out, err))
+        procs.append(
+            (cmd, subprocess.Popen(list(cmd), stdout=out, stderr=err, cwd=cwd, env=subprocess_env(threads)), out, err)
+        )
     deadline = time.time() + timeout
     results = []
     for cmd, proc, out, err in procs:
@@ -88,8 +111,9 @@ def run_parallel(commands: Sequence[Sequence[str]], cwd: Path, timeout: float = 
 
 def ns_train(args: List[str], cwd: Path, timeout: int = 900) -> subprocess.CompletedProcess:
     """The real ``ns-train`` in a subprocess (one thread, offline); fails the test with its log tail."""
-    proc = subprocess.run([str(BIN / "ns-train"), *args], capture_output=True, text=True, env=subprocess_env(1), cwd=cwd,
-                          timeout=timeout)
+    proc = subprocess.run(
+        [str(BIN / "ns-train"), *args], capture_output=True, text=True, env=subprocess_env(1), cwd=cwd, timeout=timeout
+    )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return proc
 
@@ -120,8 +144,23 @@ def tiny_scene(tmp_path_factory) -> Path:
     """A tiny generated scene (32 px; 6 train, 2 val, 2 test views; seed 0), made once per test session."""
     out = tmp_path_factory.mktemp("tiny_scene") / "scene"
     # In a subprocess: no OpenGL context (nor VTK's libraries) in the test process.
-    cmd = [sys.executable, "-m", "gsticker_plugin.scene", "--output-dir", str(out), "--resolution", "32",
-           "--num-train", "6", "--num-val", "2", "--num-test", "2", "--seed", "0"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "gsticker_plugin.scene",
+        "--output-dir",
+        str(out),
+        "--resolution",
+        "32",
+        "--num-train",
+        "6",
+        "--num-val",
+        "2",
+        "--num-test",
+        "2",
+        "--seed",
+        "0",
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     for split in ("train", "val", "test"):
@@ -141,9 +180,26 @@ def shared_dir() -> Path:
 def tiny_base(tiny_scene, tmp_path_factory) -> Path:
     """config.yml of a 2-step nerfacto base on the tiny scene (read-only: copy it before changing it)."""
     ws = tmp_path_factory.mktemp("tiny_base")
-    ns_train([*NERFACTO_TINY, *CPU_ARGS, "--output-dir", str(ws), "--experiment-name", "nerfacto", "--timestamp",
-              "base", "--max-num-iterations", "2", "--steps-per-save", "2", "blender-data", "--data", str(tiny_scene)],
-             ws)
+    ns_train(
+        [
+            *NERFACTO_TINY,
+            *CPU_ARGS,
+            "--output-dir",
+            str(ws),
+            "--experiment-name",
+            "nerfacto",
+            "--timestamp",
+            "base",
+            "--max-num-iterations",
+            "2",
+            "--steps-per-save",
+            "2",
+            "blender-data",
+            "--data",
+            str(tiny_scene),
+        ],
+        ws,
+    )
     return ws / "nerfacto" / "gsticker-nerfacto-small" / "base" / "config.yml"
 
 
@@ -154,9 +210,26 @@ def tiny_sticker(tiny_base, tmp_path_factory) -> Dict[str, Path]:
     ws = tmp_path_factory.mktemp("tiny_sticker")
     ckpt = max((tiny_base.parent / "nerfstudio_models").glob("step-*.ckpt"))
     key = ws / "gs" / "geometrysticker" / "run.gskey"
-    ns_train(["geometrysticker", "--load-checkpoint", str(ckpt), *CPU_ARGS, "--output-dir", str(ws),
-              "--experiment-name", "gs", "--timestamp", "run", "--pipeline.message", TINY_MESSAGE, *TINY_STICKER_ARGS,
-              "--pipeline.key-path", str(key)], ws)
+    ns_train(
+        [
+            "geometrysticker",
+            "--load-checkpoint",
+            str(ckpt),
+            *CPU_ARGS,
+            "--output-dir",
+            str(ws),
+            "--experiment-name",
+            "gs",
+            "--timestamp",
+            "run",
+            "--pipeline.message",
+            TINY_MESSAGE,
+            *TINY_STICKER_ARGS,
+            "--pipeline.key-path",
+            str(key),
+        ],
+        ws,
+    )
     return {"base": tiny_base, "run": ws / "gs" / "geometrysticker" / "run" / "config.yml", "key": key}
 
 
@@ -186,7 +259,18 @@ def synthetic_reference_view(st, r: int = 600, s: int = 24, seed: int = 0, with_
     rgb = torch.rand(r, s, 3, generator=g) if with_rgb else None
     with torch.no_grad():
         feats = st.features(pos[open_index])
-    return ReferenceView(name="v", hw=(1, r), rays=torch.arange(r), density=dens, deltas=torch.full((r, s, 1), 0.1),
-                         steps=torch.linspace(2, 6, s).expand(r, s)[..., None].clone(), open_index=open_index,
-                         psi_scale=psi[open_index] * 2.0, features=feats, base_signal=torch.zeros(2, r),
-                         depth_scale=4.0, signals=("accumulation", "expected_depth"), rgb=rgb)
+    return ReferenceView(
+        name="v",
+        hw=(1, r),
+        rays=torch.arange(r),
+        density=dens,
+        deltas=torch.full((r, s, 1), 0.1),
+        steps=torch.linspace(2, 6, s).expand(r, s)[..., None].clone(),
+        open_index=open_index,
+        psi_scale=psi[open_index] * 2.0,
+        features=feats,
+        base_signal=torch.zeros(2, r),
+        depth_scale=4.0,
+        signals=("accumulation", "expected_depth"),
+        rgb=rgb,
+    )

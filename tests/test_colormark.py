@@ -104,22 +104,40 @@ def test_tensorf_and_vanilla_nerf_bases_get_the_mark_with_their_density_unchange
 
     from gsticker_plugin import compat
 
-
     compat.apply()  # the host fixes the ns-* commands apply
 
     torch.manual_seed(0)
-    base = (TensoRFModelConfig(init_resolution=16, final_resolution=32, num_samples=32, num_uniform_samples=16,
-                               upsampling_iters=(), num_den_components=4, num_color_components=4, appearance_dim=9)
-            if kind == "tensorf" else VanillaModelConfig(num_coarse_samples=16, num_importance_samples=16))
+    base = (
+        TensoRFModelConfig(
+            init_resolution=16,
+            final_resolution=32,
+            num_samples=32,
+            num_uniform_samples=16,
+            upsampling_iters=(),
+            num_den_components=4,
+            num_color_components=4,
+            appearance_dim=9,
+        )
+        if kind == "tensorf"
+        else VanillaModelConfig(num_coarse_samples=16, num_importance_samples=16)
+    )
     model = C.ColorMarkModelConfig(base_model=base, color_amplitude=0.2).setup(
-        scene_box=SceneBox(aabb=torch.tensor([[-1.5] * 3, [1.5] * 3])), num_train_data=2, metadata={}, device="cpu")
+        scene_box=SceneBox(aabb=torch.tensor([[-1.5] * 3, [1.5] * 3])), num_train_data=2, metadata={}, device="cpu"
+    )
     model.eval()
     if kind == "tensorf":  # untrained grids are ~0: give the density planes something to render
         for p in model.base.field.density_encoding.parameters():
             p.data.uniform_(0.0, 0.5)
     model.set_message(torch.tensor([int(c) for c in MESSAGE]))
-    cam = Cameras(camera_to_worlds=torch.tensor([[[1.0, 0, 0, 0], [0, 0, -1, -4], [0, 1, 0, 0]]]), fx=20.0, fy=20.0,
-                  cx=8.0, cy=8.0, width=16, height=16)
+    cam = Cameras(
+        camera_to_worlds=torch.tensor([[[1.0, 0, 0, 0], [0, 0, -1, -4], [0, 1, 0, 0]]]),
+        fx=20.0,
+        fy=20.0,
+        cx=8.0,
+        cy=8.0,
+        width=16,
+        height=16,
+    )
     with torch.no_grad():
         with model.capture_final_samples() as records:
             model.get_outputs_for_camera(cam)
@@ -139,20 +157,70 @@ def test_tensorf_and_vanilla_nerf_bases_get_the_mark_with_their_density_unchange
 def runs(tiny_scene, tmp_path_factory) -> Dict[str, Path]:
     ws = tmp_path_factory.mktemp("colormark")
     out = ws / "runs"
-    _train([*NERFACTO_TINY, *COMMON, "--output-dir", str(out / "base"), "--experiment-name", "nerfacto",
-            "--timestamp", "base", "--max-num-iterations", BASE_STEPS, "--steps-per-save", BASE_STEPS,
-            "blender-data", "--data", str(tiny_scene)], ws)
+    _train(
+        [
+            *NERFACTO_TINY,
+            *COMMON,
+            "--output-dir",
+            str(out / "base"),
+            "--experiment-name",
+            "nerfacto",
+            "--timestamp",
+            "base",
+            "--max-num-iterations",
+            BASE_STEPS,
+            "--steps-per-save",
+            BASE_STEPS,
+            "blender-data",
+            "--data",
+            str(tiny_scene),
+        ],
+        ws,
+    )
     base = out / "base" / "nerfacto" / "gsticker-nerfacto-small" / "base"
     ckpt = max((base / "nerfstudio_models").glob("step-*.ckpt"))
-    _train(["geometrysticker", "--load-checkpoint", str(ckpt), *COMMON, "--output-dir", str(out / "gs"),
-            "--experiment-name", "gs", "--timestamp", "run", "--max-num-iterations", "10",
-            "--pipeline.message", MESSAGE, "--pipeline.pool-train-views", "2", "--pipeline.pool-novel-views", "2",
-            "--pipeline.monitor-views", "1", "--pipeline.steps-per-monitor", "5", "--pipeline.views-per-step", "2",
-            "--pipeline.heads.width", "8", "--pipeline.key-path", str(ws / "keys" / "run.gskey")], ws)
+    _train(
+        [
+            "geometrysticker",
+            "--load-checkpoint",
+            str(ckpt),
+            *COMMON,
+            "--output-dir",
+            str(out / "gs"),
+            "--experiment-name",
+            "gs",
+            "--timestamp",
+            "run",
+            "--max-num-iterations",
+            "10",
+            "--pipeline.message",
+            MESSAGE,
+            "--pipeline.pool-train-views",
+            "2",
+            "--pipeline.pool-novel-views",
+            "2",
+            "--pipeline.monitor-views",
+            "1",
+            "--pipeline.steps-per-monitor",
+            "5",
+            "--pipeline.views-per-step",
+            "2",
+            "--pipeline.heads.width",
+            "8",
+            "--pipeline.key-path",
+            str(ws / "keys" / "run.gskey"),
+        ],
+        ws,
+    )
     run = out / "gs" / "gs" / "geometrysticker" / "run"
     color = C.write_color_marked_run(run / "config.yml", ws / "colormark", AMPLITUDE)
-    return {"ws": ws, "base": base / "config.yml", "run": run / "config.yml", "key": ws / "keys" / "run.gskey",
-            "color": color}
+    return {
+        "ws": ws,
+        "base": base / "config.yml",
+        "run": run / "config.yml",
+        "key": ws / "keys" / "run.gskey",
+        "color": color,
+    }
 
 
 @pytest.fixture(scope="module")
@@ -171,8 +239,15 @@ def test_written_run_round_trips_through_load_run(runs, loaded):
     wm = yaml.load(run.read_text(), Loader=yaml.Loader)
     mc = cfg.pipeline.model
     assert type(mc) is C.ColorMarkModelConfig and mc._target is C.ColorMarkModel and mc.color_amplitude == AMPLITUDE
-    for name in ("num_bits", "sticker_kind", "sticker_hidden_dim", "gate_threshold", "wrap_proposal_networks",
-                 "sticker_amplitude", "eval_num_rays_per_chunk"):
+    for name in (
+        "num_bits",
+        "sticker_kind",
+        "sticker_hidden_dim",
+        "gate_threshold",
+        "wrap_proposal_networks",
+        "sticker_amplitude",
+        "eval_num_rays_per_chunk",
+    ):
         assert getattr(mc, name) == getattr(wm.pipeline.model, name), name
     assert yaml.dump(mc.base_model) == yaml.dump(wm.pipeline.model.base_model)
     (src,) = (run.parent / "nerfstudio_models").glob("step-*.ckpt")
@@ -196,9 +271,11 @@ def test_written_run_round_trips_through_load_run(runs, loaded):
     ws, cs = shareable_state(wpipe.model), shareable_state(model)  # what the checkpoint holds (no filler sticker)
     assert list(ws) == list(cs) and all(torch.equal(ws[k], cs[k]) for k in ws)
     # bad input: one line naming the fix
-    cases = [(lambda: C.write_color_marked_run(run, runs["ws"] / "x", 0.0), "positive"),
-             (lambda: C.write_color_marked_run(run, runs["ws"] / "colormark", AMPLITUDE), "--overwrite"),
-             (lambda: C.write_color_marked_run(runs["base"], runs["ws"] / "y", AMPLITUDE), "geometrysticker")]
+    cases = [
+        (lambda: C.write_color_marked_run(run, runs["ws"] / "x", 0.0), "positive"),
+        (lambda: C.write_color_marked_run(run, runs["ws"] / "colormark", AMPLITUDE), "--overwrite"),
+        (lambda: C.write_color_marked_run(runs["base"], runs["ws"] / "y", AMPLITUDE), "geometrysticker"),
+    ]
     for call, words in cases:
         with pytest.raises(GStickerError) as e:
             call()
@@ -226,8 +303,9 @@ def test_density_is_the_base_and_color_carries_the_mark(loaded):
         changed = d.abs().amax(-1) > 0
         assert changed.any() and not changed[~gate_open].any(), name
         inside = ((o_on["rgb"] > 0) & (o_on["rgb"] < 1)).all(-1).reshape(-1)  # not clamped by the renderer
-        assert torch.allclose(d[inside, 0], d[inside, 1], atol=1e-5) and torch.allclose(d[inside, 0], d[inside, 2],
-                                                                                         atol=1e-5)
+        assert torch.allclose(d[inside, 0], d[inside, 1], atol=1e-5) and torch.allclose(
+            d[inside, 0], d[inside, 2], atol=1e-5
+        )
 
 
 def test_color_decoder_reads_the_owner_message(loaded):
@@ -237,8 +315,9 @@ def test_color_decoder_reads_the_owner_message(loaded):
     assert sum(x >= 41 for x in m) >= VIEWS - 1, m
     assert all(d["explained"] > 0.95 and d["undetermined"] == 0 for d in dec["color"]), dec["color"]
     # the mark off: nothing to fit, every bit a coin flip (chance), like the geometric decoder on the base
-    dec, _ = C.decode_color_suspect(loaded.key, loaded.ref, loaded.model, VIEWS, 0.5, 0, amplitude=AMPLITUDE,
-                                    sticker=False)
+    dec, _ = C.decode_color_suspect(
+        loaded.key, loaded.ref, loaded.model, VIEWS, 0.5, 0, amplitude=AMPLITUDE, sticker=False
+    )
     m = dec["matches"].tolist()
     assert all(d["undetermined"] == 48 for d in dec["color"]) and max(m) < 41, m
     # the density sticker's decoder sees the base's geometry in the color-marked run

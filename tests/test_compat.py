@@ -31,8 +31,14 @@ def _run(code: str, **env_extra: str) -> dict:
     env.pop("TORCH_FORCE_WEIGHTS_ONLY_LOAD", None)
     env.update({"PYTHONWARNINGS": "ignore::FutureWarning,ignore::DeprecationWarning"})
     env.update(env_extra)
-    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
-                          timeout=300, env=env, cwd=REPO_ROOT)
+    proc = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+        cwd=REPO_ROOT,
+    )
     assert proc.returncode == 0, f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-3000:]}"
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -177,7 +183,6 @@ def _render_first_train_view(base: Path, monkeypatch) -> tuple:
     from nerfstudio.utils.eval_utils import eval_setup
 
     from gsticker_plugin import compat
-
 
     compat.apply()  # the host fixes the ns-* commands apply
 

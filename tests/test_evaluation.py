@@ -26,8 +26,16 @@ BIN = Path(sys.executable).parent
 @pytest.fixture(scope="module")
 def smoke(tiny_scene: Path, tmp_path_factory) -> dict:
     out = tmp_path_factory.mktemp("eval") / "smoke"
-    cmd = [str(console_script("ns-gsticker-eval")), "--config", str(SMOKE), "--output-dir", str(out), "--data", str(tiny_scene),
-           "--no-progress"]
+    cmd = [
+        str(console_script("ns-gsticker-eval")),
+        "--config",
+        str(SMOKE),
+        "--output-dir",
+        str(out),
+        "--data",
+        str(tiny_scene),
+        "--no-progress",
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=840, env=subprocess_env(), cwd=REPO_ROOT)
     assert proc.returncode == 0, f"exit {proc.returncode}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
     return {"out": out, "stdout": proc.stdout, "cmd": cmd, "results": json.loads((out / "results.json").read_text())}
@@ -50,11 +58,32 @@ def _psnr(x) -> None:
 @pytest.mark.slow
 def test_files_written(smoke):
     out = smoke["out"]
-    for name in ("results.json", "results.md", "charts/curves.png", "charts/recolor.png", "charts/speed.png",
-                 "charts/geometry_recolor.png", "charts/purify.png", "charts/recolor_strength.png"):
+    for name in (
+        "results.json",
+        "results.md",
+        "charts/curves.png",
+        "charts/recolor.png",
+        "charts/speed.png",
+        "charts/geometry_recolor.png",
+        "charts/purify.png",
+        "charts/recolor_strength.png",
+    ):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
-    for stage in ("scene", "bases", "sticker", "renders", "quality", "geometry", "seeds", "distortions", "curves",
-                  "recolor", "purify", "false_positives", "speed"):
+    for stage in (
+        "scene",
+        "bases",
+        "sticker",
+        "renders",
+        "quality",
+        "geometry",
+        "seeds",
+        "distortions",
+        "curves",
+        "recolor",
+        "purify",
+        "false_positives",
+        "speed",
+    ):
         assert (out / "stages" / f"{stage}.json").is_file(), stage
         assert stage in smoke["results"], stage
     assert list((out / "runs" / "nerfacto" / "geometrysticker").glob("watermarked.gskey"))
@@ -88,7 +117,9 @@ def test_numbers_in_range(smoke):
         assert all(0 <= m <= 48 for m in q[d]["matches"])
     sd = r["seeds"]
     assert [x["seed"] for x in sd["rows"]] == [42, *p.sticker.seeds] and [x["main_run"] for x in sd["rows"]][0]
-    assert sd["rows"][0]["geometry"] == r["geometry"]["bases"]["nerfacto"]["watermarked"]  # the main run, not re-decoded
+    assert (
+        sd["rows"][0]["geometry"] == r["geometry"]["bases"]["nerfacto"]["watermarked"]
+    )  # the main run, not re-decoded
     for x in sd["rows"]:
         _acc(x["geometry"]["bit_acc"])
         assert len(x["geometry"]["matches"]) == p.geometry.num_views
@@ -119,7 +150,9 @@ def test_numbers_in_range(smoke):
             assert pt["bit_acc_std"] >= 0 and 0.0 <= pt["verdict_rate"] <= 1.0
             _acc(pt["image_decoder"]["bit_acc"])
             if name == "leaked_key":  # within its budget (8-bit rounding can cost a little at high budgets)
-                assert pt["attack_psnr"] == "inf" or pt["attack_psnr"] >= min(pt["strength"], 45.0) - 0.5  # inf: unchanged
+                assert (
+                    pt["attack_psnr"] == "inf" or pt["attack_psnr"] >= min(pt["strength"], 45.0) - 0.5
+                )  # inf: unchanged
         assert set(c["image_decoder"]) == {"bit_acc_below_90_at", "verdict_fails_at"}
     assert "leaked_key" in curves and curves["leaked_key"]["definition"].startswith("leaked_key (strength: PSNR budget")
     rec = r["recolor"]["rows"]
@@ -202,8 +235,17 @@ def test_geometric_decoder_reads_the_smoke_watermark(smoke):
 def test_tables_have_every_row(smoke):
     md = (smoke["out"] / "results.md").read_text()
     p = _protocol()
-    for section in ("## Bases", "## Model-level verdicts", "## Seeds", "## Recolor", "## Model purification", "## Distortions",
-                    "## False positives", "## Where it breaks", "## Speed vs accuracy"):
+    for section in (
+        "## Bases",
+        "## Model-level verdicts",
+        "## Seeds",
+        "## Recolor",
+        "## Model purification",
+        "## Distortions",
+        "## False positives",
+        "## Where it breaks",
+        "## Speed vs accuracy",
+    ):
         assert section in md, section
     for row in p.distortions:
         assert f"| {row.label} |" in md, row.label
@@ -218,7 +260,9 @@ def test_tables_have_every_row(smoke):
 
 @pytest.mark.slow
 def test_resume_skips_finished_stages(smoke):
-    proc = subprocess.run(smoke["cmd"], capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=REPO_ROOT)
+    proc = subprocess.run(
+        smoke["cmd"], capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=REPO_ROOT
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.count("done earlier") == 13, proc.stdout
     assert "$ " not in proc.stdout  # nothing trained, generated or recolored again
@@ -255,7 +299,9 @@ def test_protocols_load_and_an_empty_purification_prints_no_table():
             continue
         p = load_protocol(path)
         assert p.bases and p.name
-    vanilla = load_protocol(SMOKE.parent / "lego100-vanilla-nerf.yaml") if (REPO_ROOT.parent / "shared").is_dir() else None
+    vanilla = (
+        load_protocol(SMOKE.parent / "lego100-vanilla-nerf.yaml") if (REPO_ROOT.parent / "shared").is_dir() else None
+    )
     if vanilla is not None:
         assert vanilla.bases[0].preset == "gsticker-vanilla-nerf-small" and len(vanilla.recolor.colors) == 10
         assert vanilla.recolor.finetune is not None and vanilla.geometry.color_baseline

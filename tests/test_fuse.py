@@ -55,8 +55,9 @@ def test_losses_give_gradients_to_the_student_only():
     s_density = (density * 0.7).requires_grad_(True)
     s_rgb = rgb.clone().requires_grad_(True)
     t_density = density.clone().requires_grad_(True)
-    terms = fuse.distill_losses(s_density, s_rgb, t_density, rgb, deltas, steps, torch.ones(3), 3.0, 1e-3,
-                                fuse.LossWeights())
+    terms = fuse.distill_losses(
+        s_density, s_rgb, t_density, rgb, deltas, steps, torch.ones(3), 3.0, 1e-3, fuse.LossWeights()
+    )
     terms["total"].backward()
     assert s_density.grad is not None and float(s_density.grad.abs().sum()) > 0
     assert s_rgb.grad is not None
@@ -100,10 +101,17 @@ def test_psnr():
 
 def test_sample_pool_take_and_cat():
     r, s = 6, 4
-    pool = fuse.SamplePool(origins=torch.rand(r, 3), directions=torch.rand(r, 3), pixel_area=torch.rand(r, 1),
-                           starts=torch.rand(r, s), ends=torch.rand(r, s), density=torch.rand(r, s),
-                           base_density=torch.rand(r, s), rgb=torch.rand(r, s, 3).half(),
-                           changed=torch.rand(r) > 0.5)
+    pool = fuse.SamplePool(
+        origins=torch.rand(r, 3),
+        directions=torch.rand(r, 3),
+        pixel_area=torch.rand(r, 1),
+        starts=torch.rand(r, s),
+        ends=torch.rand(r, s),
+        density=torch.rand(r, s),
+        base_density=torch.rand(r, s),
+        rgb=torch.rand(r, s, 3).half(),
+        changed=torch.rand(r) > 0.5,
+    )
     both = fuse.SamplePool.cat([pool, pool.take(torch.tensor([1, 3]))])
     assert len(both) == 8
     assert torch.equal(both.starts[6], pool.starts[1])
@@ -113,7 +121,9 @@ def test_sample_pool_take_and_cat():
     assert torch.allclose(rs.deltas[..., 0], pool.ends - pool.starts)
     # the samples' positions are the captured rays' (origin + direction * mid-point)
     mid = 0.5 * (pool.starts + pool.ends)
-    assert torch.allclose(rs.frustums.get_positions(), pool.origins[:, None] + pool.directions[:, None] * mid[..., None])
+    assert torch.allclose(
+        rs.frustums.get_positions(), pool.origins[:, None] + pool.directions[:, None] * mid[..., None]
+    )
 
 
 def test_fused_run_config_and_checkpoint_state(tmp_path):
@@ -123,16 +133,23 @@ def test_fused_run_config_and_checkpoint_state(tmp_path):
     from nerfstudio.models.nerfacto import NerfactoModelConfig
     from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
-    base = TrainerConfig(method_name="nerfacto", pipeline=VanillaPipelineConfig(
-        datamanager=VanillaDataManagerConfig(dataparser=BlenderDataParserConfig()), model=NerfactoModelConfig()))
+    base = TrainerConfig(
+        method_name="nerfacto",
+        pipeline=VanillaPipelineConfig(
+            datamanager=VanillaDataManagerConfig(dataparser=BlenderDataParserConfig()), model=NerfactoModelConfig()
+        ),
+    )
     base.load_dir = Path("somewhere")
     cfg = fuse.fused_run_config(base, tmp_path, "exp", "ts", data=tmp_path / "data")
     assert cfg.method_name == "nerfacto"
     assert cfg.get_base_dir() == tmp_path / "exp" / "nerfacto" / "ts"
     assert cfg.load_dir is None and base.load_dir == Path("somewhere")  # a copy, the base config untouched
     assert cfg.pipeline.datamanager.data == tmp_path / "data"
-    state = fuse.checkpoint_state(2999, {"_model.field.x": torch.ones(2, requires_grad=True)},
-                                  {"optimizers": {"fields": {}}, "schedulers": {}, "scalers": {}})
+    state = fuse.checkpoint_state(
+        2999,
+        {"_model.field.x": torch.ones(2, requires_grad=True)},
+        {"optimizers": {"fields": {}}, "schedulers": {}, "scalers": {}},
+    )
     assert set(state) == {"step", "pipeline", "optimizers", "schedulers", "scalers"}
     assert state["step"] == 2999 and not state["pipeline"]["_model.field.x"].requires_grad
 
@@ -147,5 +164,13 @@ def test_pool_cameras_spread_and_seeded():
     pipe = SimpleNamespace(datamanager=SimpleNamespace(train_dataset=SimpleNamespace(cameras=cams)))
     a = fuse.pool_cameras(pipe, 4, 3, seed=5)
     b = fuse.pool_cameras(pipe, 4, 3, seed=5)
-    assert [n for n, _ in a] == ["train/000", "train/003", "train/006", "train/009", "orbit/000", "orbit/001", "orbit/002"]
+    assert [n for n, _ in a] == [
+        "train/000",
+        "train/003",
+        "train/006",
+        "train/009",
+        "orbit/000",
+        "orbit/001",
+        "orbit/002",
+    ]
     assert all(torch.equal(x.camera_to_worlds, y.camera_to_worlds) for (_, x), (_, y) in zip(a, b))

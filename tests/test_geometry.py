@@ -34,9 +34,16 @@ from gsticker_plugin.verify import cli as V
 BIN = Path(sys.executable).parent
 MESSAGE = TINY_MESSAGE
 OTHER_MESSAGE = "010011000111000011110000011111000000111111000000"  # the complement: 0 matches with MESSAGE
-NERFACTO_TINY = ["gsticker-nerfacto-small", "--pipeline.model.num-nerf-samples-per-ray", "16",
-                 "--pipeline.model.num-proposal-samples-per-ray", "32", "16",
-                 "--pipeline.datamanager.train-num-rays-per-batch", "256"]
+NERFACTO_TINY = [
+    "gsticker-nerfacto-small",
+    "--pipeline.model.num-nerf-samples-per-ray",
+    "16",
+    "--pipeline.model.num-proposal-samples-per-ray",
+    "32",
+    "16",
+    "--pipeline.datamanager.train-num-rays-per-batch",
+    "256",
+]
 COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
 VIEWS = "6"
 
@@ -161,8 +168,12 @@ def test_per_ray_jacobian_equals_forward_mode_ad(signals):
     closed = G.change_jacobian(ref, st, s0)
     assert closed.shape == ad.shape == (len(signals) * 80, 48)
     assert torch.allclose(closed, ad, atol=1e-6, rtol=1e-4) and float(closed.abs().max()) > 1e-3
-    cref = CM.ColorReferenceView(view=ref, psi=ref.psi_scale / 2.0, weights=S.render_weights(ref.density, ref.deltas),
-                                 base_rgb=torch.rand(80, 3) * 0.98)
+    cref = CM.ColorReferenceView(
+        view=ref,
+        psi=ref.psi_scale / 2.0,
+        weights=S.render_weights(ref.density, ref.deltas),
+        base_rgb=torch.rand(80, 3) * 0.98,
+    )
     ad_c = FIT.jacobian(lambda s: CM.predict_color_change(cref, st, s, 0.3).reshape(-1), s0)
     closed_c = CM.color_change_jacobian(cref, st, s0, 0.3)
     assert closed_c.shape == ad_c.shape == (80 * 3, 48)
@@ -177,8 +188,9 @@ def ws(tmp_path_factory) -> Path:
 
 
 def _train(cmd: List[str], cwd: Path) -> None:
-    proc = subprocess.run([str(BIN / "ns-train"), *cmd], capture_output=True, text=True, env=_env(), cwd=cwd,
-                          timeout=600)
+    proc = subprocess.run(
+        [str(BIN / "ns-train"), *cmd], capture_output=True, text=True, env=_env(), cwd=cwd, timeout=600
+    )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
 
 
@@ -205,22 +217,65 @@ def runs(tiny_sticker, ws) -> Dict[str, Path]:
     (other / "config.yml").write_text(yaml.dump(cfg))
     # another scene (seed 1), its own base
     scene2 = ws / "scene2"
-    proc = subprocess.run([sys.executable, "-m", "gsticker_plugin.scene", "--output-dir", str(scene2), "--resolution",
-                           "32", "--num-train", "6", "--num-val", "2", "--num-test", "2", "--seed", "1"],
-                          capture_output=True, text=True, timeout=300, env=_env())
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "gsticker_plugin.scene",
+            "--output-dir",
+            str(scene2),
+            "--resolution",
+            "32",
+            "--num-train",
+            "6",
+            "--num-val",
+            "2",
+            "--num-test",
+            "2",
+            "--seed",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=_env(),
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    _train([*NERFACTO_TINY, *COMMON, "--output-dir", str(out / "scene2"), "--experiment-name", "nerfacto",
-            "--timestamp", "base", "--max-num-iterations", "2", "--steps-per-save", "2",
-            "blender-data", "--data", str(scene2)], ws)
-    return {"base": base / "config.yml", "run": run / "config.yml", "key": key,
-            "other_msg": other / "config.yml",
-            "scene2": out / "scene2" / "nerfacto" / "gsticker-nerfacto-small" / "base" / "config.yml"}
+    _train(
+        [
+            *NERFACTO_TINY,
+            *COMMON,
+            "--output-dir",
+            str(out / "scene2"),
+            "--experiment-name",
+            "nerfacto",
+            "--timestamp",
+            "base",
+            "--max-num-iterations",
+            "2",
+            "--steps-per-save",
+            "2",
+            "blender-data",
+            "--data",
+            str(scene2),
+        ],
+        ws,
+    )
+    return {
+        "base": base / "config.yml",
+        "run": run / "config.yml",
+        "key": key,
+        "other_msg": other / "config.yml",
+        "scene2": out / "scene2" / "nerfacto" / "gsticker-nerfacto-small" / "base" / "config.yml",
+    }
 
 
 def _geo(runs, ws, capsys, suspect: Path, name: str, *extra: str):
     out = ws / f"rep-{name}"
-    status, stdout, err = run_cli(["--load-config", str(suspect), "--key", str(runs["key"]), "--output", str(out),
-                                   "--num-views", VIEWS, *extra], capsys)
+    status, stdout, err = run_cli(
+        ["--load-config", str(suspect), "--key", str(runs["key"]), "--output", str(out), "--num-views", VIEWS, *extra],
+        capsys,
+    )
     assert status != 2, err[-2000:]  # no error; each caller asserts the exact verdict and status
     rep = report_of(out)
     assert rep["decoder"]["kind"] == "geometry" and rep["decoder"]["informed"] is True
@@ -246,7 +301,9 @@ def test_key_holds_the_geometry_reference_and_loads_weights_only(runs):
 def test_watermarked_run_is_owned_48_of_48(runs, ws, capsys):
     status, stdout, r = _geo(runs, ws, capsys, runs["run"], "wm")
     assert status == 0 and r["verdict"] == "owned"
-    assert all(v["matches"] == 48 and v["decoded"] == MESSAGE for v in r["per_view"]), [v["matches"] for v in r["per_view"]]
+    assert all(v["matches"] == 48 and v["decoded"] == MESSAGE for v in r["per_view"]), [
+        v["matches"] for v in r["per_view"]
+    ]
     assert all(v["geometry"]["undetermined"] == 0 and v["geometry"]["explained"] > 0.99 for v in r["per_view"])
     assert all(v["score"] is None for v in r["per_view"]) and "classifier not used" in stdout
 
@@ -255,8 +312,11 @@ def test_watermarked_run_is_owned_48_of_48(runs, ws, capsys):
 def test_recolored_runs_are_owned(runs, ws, capsys, edit):
     from gsticker_plugin.recolor import cli
 
-    args = {"palette": ["palette", "--set", "0=blue"], "hue": ["hue", "--shift", "0.25"],
-            "finetune": ["finetune", "--set", "0=blue", "--steps", "10"]}[edit]
+    args = {
+        "palette": ["palette", "--set", "0=blue"],
+        "hue": ["hue", "--shift", "0.25"],
+        "finetune": ["finetune", "--set", "0=blue", "--steps", "10"],
+    }[edit]
     dest = ws / f"recolored-{edit}"
     assert cli.run([*args, "--load-config", str(runs["run"]), "--output-dir", str(dest)]) == 0
     (cfg,) = dest.glob("**/config.yml")
@@ -270,8 +330,9 @@ def test_unwatermarked_base_and_another_scene_are_not_shown_near_chance(runs, ws
     status, _, r = _geo(runs, ws, capsys, runs["base"], "base")
     assert status == 1 and r["verdict"] == "not shown"
     # zero residual: every bit undetermined, counted as a mismatch (never a shared coin flip)
-    assert all(v["geometry"]["undetermined"] == 48 and v["matches"] == 0 and v["decoded"] == "?" * 48
-               for v in r["per_view"]), [v["matches"] for v in r["per_view"]]
+    assert all(
+        v["geometry"]["undetermined"] == 48 and v["matches"] == 0 and v["decoded"] == "?" * 48 for v in r["per_view"]
+    ), [v["matches"] for v in r["per_view"]]
     status, _, r = _geo(runs, ws, capsys, runs["scene2"], "scene2")
     assert status == 1 and r["verdict"] == "not shown"
     m = [v["matches"] for v in r["per_view"]]
@@ -289,27 +350,70 @@ def test_another_message_on_the_same_base_decodes_to_that_message(runs, ws, caps
 
 def test_auto_decoder_and_explicit_extractor(runs, ws, capsys):
     out = ws / "rep-extractor"
-    status, stdout, _ = run_cli(["--load-config", str(runs["run"]), "--key", str(runs["key"]), "--output", str(out),
-                                 "--num-views", "2", "--decode", "extractor"], capsys)
+    status, stdout, _ = run_cli(
+        [
+            "--load-config",
+            str(runs["run"]),
+            "--key",
+            str(runs["key"]),
+            "--output",
+            str(out),
+            "--num-views",
+            "2",
+            "--decode",
+            "extractor",
+        ],
+        capsys,
+    )
     # the blind extractor cannot read a 10-step run (docs/geometrysticker.md): exactly "not shown"
     assert status == 1 and report_of(out)["decoder"]["kind"] == "extractor" and "decoder: extractor (blind" in stdout
     # auto without a reachable base: the extractor, and the report says why
-    moved = rewrite_key(runs["key"], ws / "moved-base.gskey",
-                        base={**OwnerKey.load(runs["key"]).base, "config": str(ws / "nowhere" / "config.yml")})
+    moved = rewrite_key(
+        runs["key"],
+        ws / "moved-base.gskey",
+        base={**OwnerKey.load(runs["key"]).base, "config": str(ws / "nowhere" / "config.yml")},
+    )
     out = ws / "rep-auto-moved"
-    status, _, _ = run_cli(["--load-config", str(runs["run"]), "--key", str(moved), "--output", str(out),
-                            "--num-views", "2"], capsys)
+    status, _, _ = run_cli(
+        ["--load-config", str(runs["run"]), "--key", str(moved), "--output", str(out), "--num-views", "2"], capsys
+    )
     dec = report_of(out)["decoder"]
     assert status == 1 and dec["kind"] == "extractor" and "--base-config" in dec["notes"][0]
     # ... and --base-config brings the geometry decoder back
     out = ws / "rep-base-config"
-    status, _, _ = run_cli(["--load-config", str(runs["run"]), "--key", str(moved), "--output", str(out),
-                            "--num-views", "2", "--base-config", str(runs["base"])], capsys)
+    status, _, _ = run_cli(
+        [
+            "--load-config",
+            str(runs["run"]),
+            "--key",
+            str(moved),
+            "--output",
+            str(out),
+            "--num-views",
+            "2",
+            "--base-config",
+            str(runs["base"]),
+        ],
+        capsys,
+    )
     assert status == 0 and report_of(out)["decoder"]["kind"] == "geometry"
     # attacks are image-level: skipped with a note under geometric decoding
     out = ws / "rep-attack"
-    status, stdout, _ = run_cli(["--load-config", str(runs["run"]), "--key", str(runs["key"]), "--output", str(out),
-                                 "--num-views", "2", "--attack", "noise=0.1"], capsys)
+    status, stdout, _ = run_cli(
+        [
+            "--load-config",
+            str(runs["run"]),
+            "--key",
+            str(runs["key"]),
+            "--output",
+            str(out),
+            "--num-views",
+            "2",
+            "--attack",
+            "noise=0.1",
+        ],
+        capsys,
+    )
     assert status == 0 and "not applied" in " ".join(report_of(out)["decoder"]["notes"]) and "not applied" in stdout
 
 
@@ -322,14 +426,17 @@ def test_v1_key_loads_says_how_to_add_geometry_and_export_key_upgrades_it(runs, 
     torch.save(v1, path)
     key = OwnerKey.load(path)
     assert key.version == 1 and key.geometry is None and torch.equal(key.message, parse_message(MESSAGE))
-    status, _, err = run_cli(["--load-config", str(runs["run"]), "--key", str(path), "--output", str(ws / "r"),
-                              "--decode", "geometry"], capsys)
+    status, _, err = run_cli(
+        ["--load-config", str(runs["run"]), "--key", str(path), "--output", str(ws / "r"), "--decode", "geometry"],
+        capsys,
+    )
     line = one_error_line(err)
     assert status == 2 and "no geometry reference" in line and "export-key" in line
     # auto with a v1 key: the extractor, with the reason
     out = ws / "rep-v1-auto"
-    status, _, _ = run_cli(["--load-config", str(runs["run"]), "--key", str(path), "--output", str(out),
-                            "--num-views", "2"], capsys)
+    status, _, _ = run_cli(
+        ["--load-config", str(runs["run"]), "--key", str(path), "--output", str(out), "--num-views", "2"], capsys
+    )
     assert status == 1 and report_of(out)["decoder"]["kind"] == "extractor"
     # a shared (folded) run holds no message: nothing to export from it
     status, _, err = run_cli(["export-key", "--load-config", str(runs["run"]), "--key", str(path)], capsys)
@@ -348,16 +455,29 @@ def test_v1_key_loads_says_how_to_add_geometry_and_export_key_upgrades_it(runs, 
         assert torch.equal(up.geometry["sticker_state"][k], v)
     for suspect, name in ((runs["run"], "shared"), (legacy, "legacy")):
         out = ws / f"rep-v1-upgraded-{name}"
-        status, _, _ = run_cli(["--load-config", str(suspect), "--key", str(path), "--output", str(out),
-                                "--num-views", "2"], capsys)
+        status, _, _ = run_cli(
+            ["--load-config", str(suspect), "--key", str(path), "--output", str(out), "--num-views", "2"], capsys
+        )
         assert status == 0 and report_of(out)["decoder"]["kind"] == "geometry", name
 
 
 def test_calibrate_geometry_stores_its_own_null(runs, ws, capsys):
     key = ws / "calib.gskey"
     shutil.copy(runs["key"], key)
-    status, stdout, err = run_cli(["calibrate", "--key", str(key), "--decode", "geometry", "--num-views", "3",
-                                   "--load-config", str(runs["scene2"])], capsys)
+    status, stdout, err = run_cli(
+        [
+            "calibrate",
+            "--key",
+            str(key),
+            "--decode",
+            "geometry",
+            "--num-views",
+            "3",
+            "--load-config",
+            str(runs["scene2"]),
+        ],
+        capsys,
+    )
     assert status == 0, err
     k = OwnerKey.load(key)
     assert k.null is None  # the extractor's null is untouched
@@ -365,8 +485,9 @@ def test_calibrate_geometry_stores_its_own_null(runs, ws, capsys):
     assert len(null["matches"]) == 6 and null["decoder"] == "geometry" and max(null["matches"]) < 41
     assert null["sources"][0]["source"] == str(runs["base"])
     out = ws / "rep-calibrated"
-    status, stdout, _ = run_cli(["--load-config", str(runs["run"]), "--key", str(key), "--output", str(out),
-                                 "--num-views", "2"], capsys)
+    status, stdout, _ = run_cli(
+        ["--load-config", str(runs["run"]), "--key", str(key), "--output", str(out), "--num-views", "2"], capsys
+    )
     t = report_of(out)["keys"][0]["thresholds"]
     assert status == 0 and t["empirical"] == max(null["matches"]) + 1 and t["used"] == 41
 
@@ -374,18 +495,48 @@ def test_calibrate_geometry_stores_its_own_null(runs, ws, capsys):
 def test_bad_input_is_one_line_exit_2(runs, ws, capsys, tiny_scene):
     cases = []
     # geometry from images
-    cases.append((["--images", str(tiny_scene / "train"), "--key", str(runs["key"]), "--decode", "geometry"],
-                  "--load-config"))
+    cases.append(
+        (["--images", str(tiny_scene / "train"), "--key", str(runs["key"]), "--decode", "geometry"], "--load-config")
+    )
     # the base is missing
-    moved = rewrite_key(runs["key"], ws / "bad-moved.gskey",
-                        base={**OwnerKey.load(runs["key"]).base, "config": str(ws / "nowhere" / "config.yml")})
+    moved = rewrite_key(
+        runs["key"],
+        ws / "bad-moved.gskey",
+        base={**OwnerKey.load(runs["key"]).base, "config": str(ws / "nowhere" / "config.yml")},
+    )
     cases.append((["--load-config", str(runs["run"]), "--key", str(moved), "--decode", "geometry"], "--base-config"))
     # a base run whose checkpoint is not the one the key was made on
-    cases.append((["--load-config", str(runs["run"]), "--key", str(runs["key"]), "--decode", "geometry",
-                   "--base-config", str(runs["scene2"])], "sha256"))
+    cases.append(
+        (
+            [
+                "--load-config",
+                str(runs["run"]),
+                "--key",
+                str(runs["key"]),
+                "--decode",
+                "geometry",
+                "--base-config",
+                str(runs["scene2"]),
+            ],
+            "sha256",
+        )
+    )
     # the watermarked run given as the base
-    cases.append((["--load-config", str(runs["run"]), "--key", str(runs["key"]), "--decode", "geometry",
-                   "--base-config", str(runs["run"])], "not in"))
+    cases.append(
+        (
+            [
+                "--load-config",
+                str(runs["run"]),
+                "--key",
+                str(runs["key"]),
+                "--decode",
+                "geometry",
+                "--base-config",
+                str(runs["run"]),
+            ],
+            "not in",
+        )
+    )
     # a tampered geometry reference (fingerprint kept)
     p = torch.load(runs["key"], weights_only=True)
     p["geometry"]["sticker_state"]["pos_in.bias"] = p["geometry"]["sticker_state"]["pos_in.bias"] + 1.0
@@ -402,8 +553,9 @@ def test_demo_verify_stage_reports_both_decoders(runs, ws):
 
     logs = ws / "demo-logs"
     logs.mkdir()
-    verdicts = verify_stage(ws / "demo-verify", logs, runs["key"], {"watermarked": runs["run"]},
-                            {"geometry": 2, "extractor": 1})
+    verdicts = verify_stage(
+        ws / "demo-verify", logs, runs["key"], {"watermarked": runs["run"]}, {"geometry": 2, "extractor": 1}
+    )
     assert verdicts["watermarked"]["geometry"]["verdict"] == "owned"
     assert verdicts["watermarked"]["geometry"]["summary"].startswith("VERDICT: OWNED")
     ext = json.loads(Path(verdicts["watermarked"]["extractor"]["report"]).read_text())
@@ -422,8 +574,9 @@ def test_bench_targets_decodes_every_test_view_and_resumes(runs, ws, tiny_scene)
     wm.with_name("watermarked.gskey").symlink_to(runs["key"])
     base_ckpt = max((runs["base"].parent / "nerfstudio_models").glob("step-*.ckpt"))
     page = out / "page" / "bench-targets.md"
-    cfg = BenchTargetsConfig(load_checkpoint=base_ckpt, data=tiny_scene, output_dir=out, output=page, chunk=1,
-                             progress=False)
+    cfg = BenchTargetsConfig(
+        load_checkpoint=base_ckpt, data=tiny_scene, output_dir=out, output=page, chunk=1, progress=False
+    )
     v = main(cfg)["views"]
     assert v["views"] == v["split_views"] == 2  # the tiny scene's test split
     assert v["bit_acc"] == 1.0 and v["targets"]["bit_acc >= 99.5 %"] is True
@@ -445,11 +598,18 @@ def test_bench_decode_times_whole_and_read_ray_renders_with_the_same_bits(runs, 
     from gsticker_plugin.bench.decode import BenchDecodeConfig, main
 
     out = ws / "bench-decode" / "decode.md"
-    res = main(BenchDecodeConfig(key=runs["key"], load_config=runs["run"], data=tiny_scene, num_views=2,
-                                 sampled_share=0.5, output=out))
+    res = main(
+        BenchDecodeConfig(
+            key=runs["key"], load_config=runs["run"], data=tiny_scene, num_views=2, sampled_share=0.5, output=out
+        )
+    )
     rows = res["rows"]
-    assert [(r["sticker"], r["renders"]) for r in rows] == [("on", "whole views"), ("on", "read rays only"),
-                                                            ("off", "whole views"), ("off", "read rays only")]
+    assert [(r["sticker"], r["renders"]) for r in rows] == [
+        ("on", "whole views"),
+        ("on", "read rays only"),
+        ("off", "whole views"),
+        ("off", "read rays only"),
+    ]
     assert all(r["bits_identical_to_whole"] for r in rows) and all(r["seconds"] > 0 for r in rows)
     # sticker on: every bit fitted (none undetermined), so "identical" compares two real decodes
     assert rows[0]["matches"] == rows[1]["matches"] == [48, 48]
@@ -481,7 +641,10 @@ def test_image_decoder_reads_8_bit_renders_of_the_watermarked_run_at_their_camer
     cache: dict = {}
     dec = decode_posed_images(key, ref, q(on), cams, seed=0, ref_cache=cache)
     assert dec["scores"] is None and len(dec["image"]) == 4 and len(cache) == 4
-    assert min(dec["matches"].tolist()) >= 41, (dec["matches"].tolist(), [(d["degradation"], d["rays"], round(d["explained"], 3)) for d in dec["image"]])
+    assert min(dec["matches"].tolist()) >= 41, (
+        dec["matches"].tolist(),
+        [(d["degradation"], d["rays"], round(d["explained"], 3)) for d in dec["image"]],
+    )
     null = decode_posed_images(key, ref, q(off), cams, seed=0, ref_cache=cache)  # 8-bit rounding is all it holds
     assert max(null["matches"].tolist()) < 41 and all(d["degradation"] == "none" for d in null["image"])
     exact = decode_posed_images(key, ref, off.clamp(0, 1), cams, seed=0, ref_cache=cache)  # the base render itself
@@ -509,7 +672,9 @@ def test_verify_images_at_known_cameras_with_the_image_decoder(runs, ws, capsys,
     images.mkdir()
     for i in range(2):
         cam = camera_for_image(frames[f"test/r_{i}"], 32, 32)
-        assert torch.allclose(cam.camera_to_worlds, own.camera_to_worlds[i: i + 1]) and torch.allclose(cam.fx.double(), own.fx[i: i + 1].double())
+        assert torch.allclose(cam.camera_to_worlds, own.camera_to_worlds[i : i + 1]) and torch.allclose(
+            cam.fx.double(), own.fx[i : i + 1].double()
+        )
         with torch.no_grad():
             rgb = pipe.model.get_outputs_for_camera(cam)["rgb"].clamp(0, 1)
         imageio.imwrite(images / f"r_{i}.png", (rgb * 255).round().to(torch.uint8).numpy())
@@ -517,12 +682,15 @@ def test_verify_images_at_known_cameras_with_the_image_decoder(runs, ws, capsys,
     imageio.imwrite(images / "stray.png", torch.zeros(32, 32, 3, dtype=torch.uint8).numpy())  # no camera for it
     cams = ["--cameras", str(tiny_scene / "transforms_test.json")]
     out = ws / "rep-images-posed"
-    status, stdout, err = run_cli(["--images", str(images), *cams, "--key", str(runs["key"]), "--output", str(out)],
-                                  capsys)
+    status, stdout, err = run_cli(
+        ["--images", str(images), *cams, "--key", str(runs["key"]), "--output", str(out)], capsys
+    )
     rep = report_of(out)
     (r,) = rep["keys"]
     assert status == 0 and rep["decoder"]["kind"] == "image" and r["decoder"] == "image", (stdout, err[-1500:])
-    assert [v["name"] for v in r["per_view"]] == ["r_0.png", "r_1.png"] and min(v["matches"] for v in r["per_view"]) >= 41
+    assert [v["name"] for v in r["per_view"]] == ["r_0.png", "r_1.png"] and min(
+        v["matches"] for v in r["per_view"]
+    ) >= 41
     assert all(v["image_fit"]["signals"] == ["rgb"] for v in r["per_view"]) and "decoder: image (informed" in stdout
     assert {s["name"] for s in rep["input"]["skipped"]} == {"notes.txt", "stray.png"}
     # the ground-truth photos at the same cameras: unmarked, a null the key stores for this decoder
@@ -530,19 +698,27 @@ def test_verify_images_at_known_cameras_with_the_image_decoder(runs, ws, capsys,
     shutil.copytree(tiny_scene / "test", gt)
     k2 = ws / "image-null.gskey"
     shutil.copy2(runs["key"], k2)
-    assert V.main(["calibrate", "--key", str(k2), "--decode", "image", "--images", str(gt), *cams, "--no-progress"]) == 0
+    assert (
+        V.main(["calibrate", "--key", str(k2), "--decode", "image", "--images", str(gt), *cams, "--no-progress"]) == 0
+    )
     cal = capsys.readouterr().out
     null = OwnerKey.load(k2).geometry["image_null"]
     assert len(null["matches"]) == 2 and max(null["matches"]) < 41 and "image decoder" in cal, cal
-    status, stdout, err = run_cli(["--images", str(gt), *cams, "--key", str(k2), "--output", str(ws / "rep-gt")], capsys)
+    status, stdout, err = run_cli(
+        ["--images", str(gt), *cams, "--key", str(k2), "--output", str(ws / "rep-gt")], capsys
+    )
     (r,) = report_of(ws / "rep-gt")["keys"]
     assert status == 1 and r["empirical_null"]["n"] == 2 and r["thresholds"]["empirical"] is not None, stdout
     # without cameras auto falls back to the extractor and says why; bad input: one line, exit 2
-    status, stdout, _ = run_cli(["--images", str(images), "--key", str(runs["key"]), "--output", str(ws / "rep-ex")], capsys)
+    status, stdout, _ = run_cli(
+        ["--images", str(images), "--key", str(runs["key"]), "--output", str(ws / "rep-ex")], capsys
+    )
     assert report_of(ws / "rep-ex")["decoder"]["kind"] == "extractor" and "--cameras" in stdout
-    for argv, msg in ((["--images", str(images), "--decode", "image"], "--cameras"),
-                      (["--load-config", str(runs["run"]), *cams], "drop --cameras"),
-                      (["--images", str(images), "--cameras", str(ws / "missing.json")], "does not exist"),
-                      (["--images", str(ws / "rep-ex"), *cams], "none of the")):
+    for argv, msg in (
+        (["--images", str(images), "--decode", "image"], "--cameras"),
+        (["--load-config", str(runs["run"]), *cams], "drop --cameras"),
+        (["--images", str(images), "--cameras", str(ws / "missing.json")], "does not exist"),
+        (["--images", str(ws / "rep-ex"), *cams], "none of the"),
+    ):
         status, _, err = run_cli([*argv, "--key", str(runs["key"]), "--output", str(ws / "rep-bad")], capsys)
         assert status == 2 and msg in one_error_line(err), err[-800:]

@@ -12,6 +12,9 @@ with the stock ``eval_setup`` and renders with and without the sticker. Then, on
 the message loss, ``ns-render dataset`` renders the run, resuming continues from the saved step, and every
 bad input stops ``ns-train`` before training with one line ``error: ...`` and exit status 2 (through
 ``ns-train``'s entry point in this process, and once through the console script).
+
+Over 600 lines on purpose: every test here shares the module's three bases and three sticker runs (minutes of
+training); a second module would train them again or need them as session fixtures for all the other tests too.
 """
 
 from __future__ import annotations
@@ -41,25 +44,40 @@ GS_STEPS = 10  # ns-train geometrysticker saves step-000000009.ckpt
 BASE_ARGS: Dict[str, List[str]] = {
     "nerfacto": [
         "gsticker-nerfacto-small",
-        "--pipeline.model.num-nerf-samples-per-ray", "16",
-        "--pipeline.model.num-proposal-samples-per-ray", "32", "16",
-        "--pipeline.datamanager.train-num-rays-per-batch", "256",
+        "--pipeline.model.num-nerf-samples-per-ray",
+        "16",
+        "--pipeline.model.num-proposal-samples-per-ray",
+        "32",
+        "16",
+        "--pipeline.datamanager.train-num-rays-per-batch",
+        "256",
     ],
     "vanilla-nerf": [
         "vanilla-nerf",
-        "--pipeline.model.num-coarse-samples", "16",
-        "--pipeline.model.num-importance-samples", "16",
-        "--pipeline.datamanager.train-num-rays-per-batch", "256",
-        "--pipeline.model.eval-num-rays-per-chunk", "1024",
+        "--pipeline.model.num-coarse-samples",
+        "16",
+        "--pipeline.model.num-importance-samples",
+        "16",
+        "--pipeline.datamanager.train-num-rays-per-batch",
+        "256",
+        "--pipeline.model.eval-num-rays-per-chunk",
+        "1024",
     ],
     "tensorf": [
         "gsticker-tensorf-small",
-        "--pipeline.model.init-resolution", "32",
-        "--pipeline.model.num-samples", "32",
-        "--pipeline.model.num-uniform-samples", "16",
-        "--pipeline.datamanager.train-num-rays-per-batch", "256",
+        "--pipeline.model.init-resolution",
+        "32",
+        "--pipeline.model.num-samples",
+        "32",
+        "--pipeline.model.num-uniform-samples",
+        "16",
+        "--pipeline.datamanager.train-num-rays-per-batch",
+        "256",
         # grow the grids during the base's 2 steps (32 -> 40), as every real TensoRF run does (2000, 3000, ...):
-        "--pipeline.model.upsampling-iters", "1", "--pipeline.model.final-resolution", "40",
+        "--pipeline.model.upsampling-iters",
+        "1",
+        "--pipeline.model.final-resolution",
+        "40",
     ],
 }
 # A distinct 48-bit message per base.
@@ -70,12 +88,18 @@ MESSAGES = {
 }
 # The small sticker stage: a 4 + 1 view pool, 2 views per step, narrow heads.
 GS_FLAGS = [
-    "--pipeline.pool-train-views", "2",
-    "--pipeline.pool-novel-views", "2",
-    "--pipeline.monitor-views", "1",
-    "--pipeline.steps-per-monitor", "5",
-    "--pipeline.views-per-step", "2",
-    "--pipeline.heads.width", "8",
+    "--pipeline.pool-train-views",
+    "2",
+    "--pipeline.pool-novel-views",
+    "2",
+    "--pipeline.monitor-views",
+    "1",
+    "--pipeline.steps-per-monitor",
+    "5",
+    "--pipeline.views-per-step",
+    "2",
+    "--pipeline.heads.width",
+    "8",
 ]
 COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
 
@@ -103,9 +127,25 @@ def fail_msg(proc: subprocess.CompletedProcess) -> str:
 
 
 def gs_command(base_ckpt: Path, output_dir: Path, message: str, *extra: str) -> List[str]:
-    return [str(console_script("ns-train")), "geometrysticker", "--load-checkpoint", str(base_ckpt), *COMMON,
-            "--output-dir", str(output_dir), "--experiment-name", "gs", "--timestamp", "run",
-            "--max-num-iterations", str(GS_STEPS), "--pipeline.message", message, *GS_FLAGS, *extra]
+    return [
+        str(console_script("ns-train")),
+        "geometrysticker",
+        "--load-checkpoint",
+        str(base_ckpt),
+        *COMMON,
+        "--output-dir",
+        str(output_dir),
+        "--experiment-name",
+        "gs",
+        "--timestamp",
+        "run",
+        "--max-num-iterations",
+        str(GS_STEPS),
+        "--pipeline.message",
+        message,
+        *GS_FLAGS,
+        *extra,
+    ]
 
 
 # ---------------------------------------------------------------------------------------------- fixtures
@@ -121,9 +161,24 @@ def base_runs(tiny_scene: Path, work: Path) -> Dict[str, Path]:
     """Each base trained BASE_STEPS steps by the real ``ns-train`` (the three concurrently)."""
     out = work / "bases"
     commands = [
-        [str(console_script("ns-train")), *BASE_ARGS[b], *COMMON, "--output-dir", str(out), "--experiment-name", b,
-         "--timestamp", "base", "--max-num-iterations", str(BASE_STEPS), "--steps-per-save", str(BASE_STEPS),
-         "blender-data", "--data", str(tiny_scene)]
+        [
+            str(console_script("ns-train")),
+            *BASE_ARGS[b],
+            *COMMON,
+            "--output-dir",
+            str(out),
+            "--experiment-name",
+            b,
+            "--timestamp",
+            "base",
+            "--max-num-iterations",
+            str(BASE_STEPS),
+            "--steps-per-save",
+            str(BASE_STEPS),
+            "blender-data",
+            "--data",
+            str(tiny_scene),
+        ]
         for b in BASES
     ]
     runs = {}
@@ -140,16 +195,30 @@ def gs_runs(base_runs: Dict[str, Path], work: Path) -> Dict[str, dict]:
     commands, outs = [], {}
     for b in BASES:
         outs[b] = work / "gs" / b
-        commands.append(gs_command(ckpt_of(base_runs[b]), outs[b], MESSAGES[b],
-                                   "--pipeline.pool-cache", str(work / f"pool-{b}.pt"),
-                                   "--pipeline.key-path", str(work / "keys" / f"{b}.gskey")))
+        commands.append(
+            gs_command(
+                ckpt_of(base_runs[b]),
+                outs[b],
+                MESSAGES[b],
+                "--pipeline.pool-cache",
+                str(work / f"pool-{b}.pt"),
+                "--pipeline.key-path",
+                str(work / "keys" / f"{b}.gskey"),
+            )
+        )
     runs = {}
     for b, proc in zip(BASES, run_parallel(commands, work / "logs-gs")):
         assert proc.returncode == 0, f"ns-train geometrysticker on {b} failed: {fail_msg(proc)}"
         run_dir = outs[b] / "gs" / "geometrysticker" / "run"
-        runs[b] = {"run_dir": run_dir, "config": run_dir / "config.yml", "ckpt": ckpt_of(run_dir),
-                   "key": work / "keys" / f"{b}.gskey", "base_ckpt": ckpt_of(base_runs[b]),
-                   "message": MESSAGES[b], "stdout": proc.stdout}
+        runs[b] = {
+            "run_dir": run_dir,
+            "config": run_dir / "config.yml",
+            "ckpt": ckpt_of(run_dir),
+            "key": work / "keys" / f"{b}.gskey",
+            "base_ckpt": ckpt_of(base_runs[b]),
+            "message": MESSAGES[b],
+            "stdout": proc.stdout,
+        }
     return runs
 
 
@@ -260,7 +329,9 @@ def test_wrap_changes_density_only_where_the_gate_is_open(gs_runs, val_pipeline,
                         continue
                     psi = wrap.gate(off)
                     closed = psi <= wrap.gate_threshold
-                    assert torch.equal(on[closed], off[closed]), f"{wrap.name}: density changed where the gate is closed"
+                    assert torch.equal(on[closed], off[closed]), (
+                        f"{wrap.name}: density changed where the gate is closed"
+                    )
                     n_open += int((~closed).sum())
                     n_changed += int((on != off).sum())
                     # on = relu(off + psi * scale * sticker(gamma(x), M)) at the open samples
@@ -323,7 +394,10 @@ def test_with_the_head_losses_off_no_step_runs_the_heads(gs_runs, val_pipeline):
     cfg.msg_weight = cfg.negative_weight = cfg.cls_weight = 0.0
     _zero_grads(pipeline)
     calls = []
-    hooks = [m.register_forward_hook(lambda *a: calls.append(1)) for m in (pipeline.heads.extractor, pipeline.heads.classifier)]
+    hooks = [
+        m.register_forward_hook(lambda *a: calls.append(1))
+        for m in (pipeline.heads.extractor, pipeline.heads.classifier)
+    ]
     try:
         assert not pipeline.trains_heads
         _, loss_dict, metrics_dict = pipeline.get_train_loss_dict(10**6)
@@ -380,10 +454,17 @@ def test_relinearized_view_at_the_true_message_predicts_the_marked_render(gs_run
     pipeline = val_pipeline(base)
     model = pipeline.model
     camera0 = pipeline.datamanager.train_dataset.cameras[0:1]
-    ref0 = R.BaseReference(config_path=gs_runs[base]["config"], checkpoint=gs_runs[base]["ckpt"], method=base,
-                           pipeline=pipeline, model=model)
+    ref0 = R.BaseReference(
+        config_path=gs_runs[base]["config"],
+        checkpoint=gs_runs[base]["ckpt"],
+        method=base,
+        pipeline=pipeline,
+        model=model,
+    )
     with torch.no_grad():
-        out0 = {k: v.float().cpu() for k, v in model.get_outputs_for_camera(camera0).items() if isinstance(v, torch.Tensor)}
+        out0 = {
+            k: v.float().cpu() for k, v in model.get_outputs_for_camera(camera0).items() if isinstance(v, torch.Tensor)
+        }
         view0 = R.reference_view(ref0, "cam0", camera0, False)
         st0 = R.cpu_sticker(model)
         signs0 = model.message.float() * 2 - 1
@@ -400,13 +481,20 @@ def test_relinearized_view_at_the_true_message_predicts_the_marked_render(gs_run
 
 def _relinearized_checks(gs_runs, pipeline, model, base):
 
-    ref = R.BaseReference(config_path=gs_runs[base]["config"], checkpoint=gs_runs[base]["ckpt"], method=base,
-                          pipeline=pipeline, model=model)
+    ref = R.BaseReference(
+        config_path=gs_runs[base]["config"],
+        checkpoint=gs_runs[base]["ckpt"],
+        method=base,
+        pipeline=pipeline,
+        model=model,
+    )
     camera = pipeline.datamanager.train_dataset.cameras[0:1]
     message = model.message.clone()
     st = R.cpu_sticker(model)
     with torch.no_grad():
-        out = {k: v.float().cpu() for k, v in model.get_outputs_for_camera(camera).items() if isinstance(v, torch.Tensor)}
+        out = {
+            k: v.float().cpu() for k, v in model.get_outputs_for_camera(camera).items() if isinstance(v, torch.Tensor)
+        }
     signs = message.float() * 2 - 1
 
     def residual(view):
@@ -436,11 +524,17 @@ def test_decoding_from_the_read_rays_only_equals_decoding_whole_renders(gs_runs,
 
     pipeline = val_pipeline(base)
     model = pipeline.model
-    ref = R.BaseReference(config_path=gs_runs[base]["config"], checkpoint=gs_runs[base]["ckpt"], method=base,
-                          pipeline=pipeline, model=model, samples_follow_sticker=base != "nerfacto")
+    ref = R.BaseReference(
+        config_path=gs_runs[base]["config"],
+        checkpoint=gs_runs[base]["ckpt"],
+        method=base,
+        pipeline=pipeline,
+        model=model,
+        samples_follow_sticker=base != "nerfacto",
+    )
     key = OwnerKey.load(gs_runs[base]["key"])
     cams = pipeline.datamanager.train_dataset.cameras
-    cameras = [(f"cam{i}", cams[i: i + 1]) for i in range(3)]
+    cameras = [(f"cam{i}", cams[i : i + 1]) for i in range(3)]
     with torch.no_grad():
         whole = model.get_outputs_for_camera(cams[0:1])
     rays = torch.tensor([0, 5, 17, whole["rgb"].shape[0] * whole["rgb"].shape[1] - 1])
@@ -460,8 +554,18 @@ def test_decoding_from_the_read_rays_only_equals_decoding_whole_renders(gs_runs,
     for full in (True, False):
         for sticker in (True, False):
             cache: dict = {}
-            dec, views = G.decode_suspect(key, ref, model, len(cameras), 0.0, 0, sticker=sticker, cameras=cameras,
-                                          ref_cache=cache, full_renders=full)
+            dec, views = G.decode_suspect(
+                key,
+                ref,
+                model,
+                len(cameras),
+                0.0,
+                0,
+                sticker=sticker,
+                cameras=cameras,
+                ref_cache=cache,
+                full_renders=full,
+            )
             assert len(views) == (len(cameras) if full else 0)
             results[full, sticker] = dec
     for sticker in (True, False):
@@ -477,10 +581,12 @@ def test_decoding_from_the_read_rays_only_equals_decoding_whole_renders(gs_runs,
     assert plain.signals == derived.signals == ("accumulation",)
     assert torch.equal(plain.rays, derived.rays) and torch.equal(plain.base_signal, derived.base_signal)
     # the color decoder reads the same pixels either way
-    c_full, _ = decode_color_suspect(key, ref, model, len(cameras), 0.0, 0, amplitude=0.5, sticker=True,
-                                     full_renders=True)
-    c_part, v_part = decode_color_suspect(key, ref, model, len(cameras), 0.0, 0, amplitude=0.5, sticker=True,
-                                          full_renders=False)
+    c_full, _ = decode_color_suspect(
+        key, ref, model, len(cameras), 0.0, 0, amplitude=0.5, sticker=True, full_renders=True
+    )
+    c_part, v_part = decode_color_suspect(
+        key, ref, model, len(cameras), 0.0, 0, amplitude=0.5, sticker=True, full_renders=False
+    )
     assert torch.equal(c_full["bits"], c_part["bits"]) and v_part == []
 
 
@@ -489,19 +595,31 @@ def test_a_base_without_expected_depth_reads_a_suspect_that_has_it(gs_runs, val_
     with the vanilla-nerf owner's key): the reference keeps accumulation only, and so does the suspect's signal."""
 
     pipeline = val_pipeline("vanilla-nerf")
-    ref = R.BaseReference(config_path=gs_runs["vanilla-nerf"]["config"], checkpoint=gs_runs["vanilla-nerf"]["ckpt"],
-                          method="vanilla-nerf", pipeline=pipeline, model=pipeline.model)
+    ref = R.BaseReference(
+        config_path=gs_runs["vanilla-nerf"]["config"],
+        checkpoint=gs_runs["vanilla-nerf"]["ckpt"],
+        method="vanilla-nerf",
+        pipeline=pipeline,
+        model=pipeline.model,
+    )
     camera = pipeline.datamanager.train_dataset.cameras[0:1]
     suspect = val_pipeline("nerfacto").model
     with torch.no_grad():
-        out = {k: v.float().cpu() for k, v in suspect.get_outputs_for_camera(camera).items() if isinstance(v, torch.Tensor)}
+        out = {
+            k: v.float().cpu() for k, v in suspect.get_outputs_for_camera(camera).items() if isinstance(v, torch.Tensor)
+        }
     assert R.has_expected_depth(out)
     view = R.reference_view(ref, "cam0", camera, use_depth=R.has_expected_depth(out))
     assert view.signals == ("accumulation",) and view.base_signal.shape[0] == 1
     assert G.suspect_signal(out, view).shape == view.base_signal.shape
     own = val_pipeline("nerfacto")
-    ref_n = R.BaseReference(config_path=gs_runs["nerfacto"]["config"], checkpoint=gs_runs["nerfacto"]["ckpt"],
-                            method="nerfacto", pipeline=own, model=own.model)
+    ref_n = R.BaseReference(
+        config_path=gs_runs["nerfacto"]["config"],
+        checkpoint=gs_runs["nerfacto"]["ckpt"],
+        method="nerfacto",
+        pipeline=own,
+        model=own.model,
+    )
     assert R.reference_view(ref_n, "cam0", camera, use_depth=True).signals == ("accumulation", "expected_depth")
 
 
@@ -509,8 +627,8 @@ def test_a_base_without_expected_depth_reads_a_suspect_that_has_it(gs_runs, val_
 def test_base_weights_are_bit_identical_after_training(gs_runs, base):
     ours = load_raw(gs_runs[base]["ckpt"])["pipeline"]
     theirs = load_raw(gs_runs[base]["base_ckpt"])["pipeline"]
-    base_keys = {k[len("_model."):] for k in theirs if k.startswith("_model.")}
-    our_base_keys = {k[len("_model.base."):] for k in ours if k.startswith("_model.base.")}
+    base_keys = {k[len("_model.") :] for k in theirs if k.startswith("_model.")}
+    our_base_keys = {k[len("_model.base.") :] for k in ours if k.startswith("_model.base.")}
     assert base_keys and base_keys == our_base_keys
     for k in sorted(base_keys):
         a, b = ours["_model.base." + k], theirs["_model." + k]
@@ -647,9 +765,25 @@ def test_short_training_lowers_the_message_loss(gs_runs):
 
 def test_ns_render_dataset_renders_the_run(gs_runs, work):
     out = work / "render"
-    proc = subprocess.run([str(console_script("ns-render")), "dataset", "--load-config", str(gs_runs["nerfacto"]["config"]),
-                           "--split", "test", "--rendered-output-names", "rgb", "--output-path", str(out)],
-                          capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=work)
+    proc = subprocess.run(
+        [
+            str(console_script("ns-render")),
+            "dataset",
+            "--load-config",
+            str(gs_runs["nerfacto"]["config"]),
+            "--split",
+            "test",
+            "--rendered-output-names",
+            "rgb",
+            "--output-path",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=subprocess_env(),
+        cwd=work,
+    )
     assert proc.returncode == 0, fail_msg(proc)
     images = sorted(out.rglob("*.jpg")) + sorted(out.rglob("*.png"))
     assert len(images) == 2, sorted(out.rglob("*"))
@@ -666,11 +800,33 @@ def test_resume_continues_from_the_saved_step(gs_runs, work):
     shutil.copy2(run["key"], copy_key)
     out = work / "resumed"
     # Shapes (heads width, sticker size) come from the run being resumed: no need to repeat them.
-    cmd = [str(console_script("ns-train")), "geometrysticker", "--load-dir", str(copy_dir / "nerfstudio_models"), *COMMON,
-           "--output-dir", str(out), "--experiment-name", "gs", "--timestamp", "resumed",
-           "--max-num-iterations", "3", "--pipeline.key-path", str(copy_key),
-           "--pipeline.pool-train-views", "2", "--pipeline.pool-novel-views", "2", "--pipeline.monitor-views", "1",
-           "--pipeline.views-per-step", "2", "--pipeline.pool-cache", str(work / "pool-nerfacto.pt")]
+    cmd = [
+        str(console_script("ns-train")),
+        "geometrysticker",
+        "--load-dir",
+        str(copy_dir / "nerfstudio_models"),
+        *COMMON,
+        "--output-dir",
+        str(out),
+        "--experiment-name",
+        "gs",
+        "--timestamp",
+        "resumed",
+        "--max-num-iterations",
+        "3",
+        "--pipeline.key-path",
+        str(copy_key),
+        "--pipeline.pool-train-views",
+        "2",
+        "--pipeline.pool-novel-views",
+        "2",
+        "--pipeline.monitor-views",
+        "1",
+        "--pipeline.views-per-step",
+        "2",
+        "--pipeline.pool-cache",
+        str(work / "pool-nerfacto.pt"),
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=400, env=subprocess_env(), cwd=work)
     assert proc.returncode == 0, fail_msg(proc)
     assert "pool reused" in proc.stdout  # same base, cameras, sizes and gate: the cached pool
@@ -686,7 +842,7 @@ def test_resume_continues_from_the_saved_step(gs_runs, work):
     theirs = load_raw(run["base_ckpt"])["pipeline"]
     for k, v in theirs.items():
         if k.startswith("_model."):
-            assert torch.equal(state["pipeline"]["_model.base." + k[len("_model."):]], v), k
+            assert torch.equal(state["pipeline"]["_model.base." + k[len("_model.") :]], v), k
 
 
 # ---------------------------------------------------------------------------------------------- bad input
@@ -709,8 +865,13 @@ def bad_inputs(base_runs, work) -> Dict[str, Path]:
     lonely.parent.mkdir(parents=True)
     shutil.copy2(base_ckpt, lonely)
     four_views = bad / "scene4"
-    assert scene.main(scene.SceneConfig(output_dir=four_views, resolution=32, num_train=4, num_val=1, num_test=1,
-                                        seed=1), progress=False) == 0
+    assert (
+        scene.main(
+            scene.SceneConfig(output_dir=four_views, resolution=32, num_train=4, num_val=1, num_test=1, seed=1),
+            progress=False,
+        )
+        == 0
+    )
     return {"dir": bad, "base": base_ckpt, "truncated": truncated, "lonely": lonely, "scene4": four_views}
 
 
@@ -728,8 +889,16 @@ BAD_CASES = {
 def _bad_args(case: str, paths: Dict[str, Path]) -> List[str]:
     args, _, _ = BAD_CASES[case]
     out_dir = paths["dir"] / "out" / case
-    return ["geometrysticker", *COMMON, "--output-dir", str(out_dir), "--max-num-iterations", "2", *GS_FLAGS,
-            *[a.format(**paths) for a in args]]
+    return [
+        "geometrysticker",
+        *COMMON,
+        "--output-dir",
+        str(out_dir),
+        "--max-num-iterations",
+        "2",
+        *GS_FLAGS,
+        *[a.format(**paths) for a in args],
+    ]
 
 
 def _check_one_line_error(case: str, code, stdout: str, stderr: str, out_dir: Path) -> None:
@@ -761,6 +930,12 @@ def test_bad_input_stops_ns_train_before_training_with_one_line_error(bad_inputs
 def test_bad_input_through_the_ns_train_console_script(bad_inputs, work):
     """The same, once, through the real console script: exit status 2 and one line on stderr."""
     case = "message"
-    proc = subprocess.run([str(console_script("ns-train")), *_bad_args(case, bad_inputs)], capture_output=True, text=True,
-                          timeout=300, env=subprocess_env(), cwd=work)
+    proc = subprocess.run(
+        [str(console_script("ns-train")), *_bad_args(case, bad_inputs)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=subprocess_env(),
+        cwd=work,
+    )
     _check_one_line_error(case, proc.returncode, proc.stdout, proc.stderr, bad_inputs["dir"] / "out" / case)

@@ -23,8 +23,9 @@ def _view(st: Sticker, r: int = 600, s: int = 24, seed: int = 0) -> I.ImageRefer
     base = synthetic_reference_view(st, r, s, seed, with_rgb=True)
     bg = torch.ones(3)
     image = composite(base.density, base.rgb, base.deltas, bg)[0].clamp(0, 1)  # [R 3]: the base render at the rays
-    view = dataclasses.replace(base, base_signal=torch.zeros(1, r), signals=("accumulation",),
-                               image=image.T.reshape(3, 1, r))
+    view = dataclasses.replace(
+        base, base_signal=torch.zeros(1, r), signals=("accumulation",), image=image.T.reshape(3, 1, r)
+    )
     return I.image_reference(view, bg)
 
 
@@ -35,7 +36,12 @@ def test_prediction_at_zero_is_the_base_render_and_the_jacobian_is_ad():
     with torch.no_grad():
         assert torch.allclose(I.predict_image_change(ref, st, torch.zeros(48)), ref.base_rgb, atol=1e-6)
         # a message changes the colour (through the density only)
-        assert float((I.predict_image_change(ref, st, message_to_signs(parse_message(MESSAGE))) - ref.base_rgb).abs().max()) > 1e-3
+        assert (
+            float(
+                (I.predict_image_change(ref, st, message_to_signs(parse_message(MESSAGE))) - ref.base_rgb).abs().max()
+            )
+            > 1e-3
+        )
     s0 = torch.rand(48) * 1.6 - 0.8
     ad = FIT.jacobian(lambda s: I.predict_image_change(ref, st, s).reshape(-1), s0)
     closed = I.image_change_jacobian(ref, st, s0)
@@ -102,7 +108,9 @@ def test_a_blurred_rotated_or_resized_image_is_matched_from_the_base_alone_and_d
     ref.base_rgb = base.permute(1, 2, 0).reshape(-1, 3)
     msg = parse_message(MESSAGE)
     with torch.no_grad():
-        change = (I.predict_image_change(ref, st, message_to_signs(msg)) - I.predict_image_change(ref, st, torch.zeros(48)))
+        change = I.predict_image_change(ref, st, message_to_signs(msg)) - I.predict_image_change(
+            ref, st, torch.zeros(48)
+        )
     marked = (base.permute(1, 2, 0).reshape(-1, 3) + change).reshape(h, w, 3).permute(2, 0, 1)[None]
     for deg in (I.Degradation("blur", 1.0), I.Degradation("rotate", 10.0), I.Degradation("resize", 0.5)):
         x = deg.apply(marked)[0].permute(1, 2, 0)
@@ -145,7 +153,9 @@ def test_the_fit_with_the_smaller_residual_is_kept_when_a_degradation_was_matche
     ref.view.image, ref.view.hw, ref.base_rgb = base, (h, w), base.permute(1, 2, 0).reshape(-1, 3)
     msg = parse_message(MESSAGE)
     with torch.no_grad():
-        change = I.predict_image_change(ref, st, message_to_signs(msg)) - I.predict_image_change(ref, st, torch.zeros(48))
+        change = I.predict_image_change(ref, st, message_to_signs(msg)) - I.predict_image_change(
+            ref, st, torch.zeros(48)
+        )
     marked = (ref.base_rgb + change).reshape(h, w, 3)
     wrong = I.decode_selected(ref, st, marked, I.Degradation("jpeg", 10.0), torch.Generator().manual_seed(0))
     assert wrong["degradation"] == "none" and int((wrong["bits"] == msg).sum()) == 48
@@ -168,11 +178,27 @@ def test_cameras_file_frames_names_and_intrinsics_at_the_image_size(tmp_path):
 
     c2w = [[1, 0, 0, 0.5], [0, 1, 0, -1], [0, 0, 1, 4], [0, 0, 0, 1]]
     path = tmp_path / "transforms.json"
-    path.write_text(json.dumps({"camera_angle_x": 0.6, "frames": [
-        {"file_path": "./test/r_0", "transform_matrix": c2w},
-        {"file_path": "./train/r_0.png", "transform_matrix": c2w},
-        {"file_path": "shots/a.jpg", "transform_matrix": c2w[:3], "fl_x": 100.0, "fl_y": 90.0, "cx": 40.0,
-         "cy": 30.0, "w": 80, "h": 60}]}))
+    path.write_text(
+        json.dumps(
+            {
+                "camera_angle_x": 0.6,
+                "frames": [
+                    {"file_path": "./test/r_0", "transform_matrix": c2w},
+                    {"file_path": "./train/r_0.png", "transform_matrix": c2w},
+                    {
+                        "file_path": "shots/a.jpg",
+                        "transform_matrix": c2w[:3],
+                        "fl_x": 100.0,
+                        "fl_y": 90.0,
+                        "cx": 40.0,
+                        "cy": 30.0,
+                        "w": 80,
+                        "h": 60,
+                    },
+                ],
+            }
+        )
+    )
     frames = I.read_cameras_file(path)
     assert sorted(frames) == ["shots/a", "test/r_0", "train/r_0"]
     assert I.match_frame("test/r_0.png", frames) == "test/r_0" and I.match_frame("a.PNG", frames) == "shots/a"
@@ -186,11 +212,16 @@ def test_cameras_file_frames_names_and_intrinsics_at_the_image_size(tmp_path):
     assert [float(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy)] == [50.0, 45.0, 20.0, 15.0]
     with pytest.raises(GStickerError, match="aspect ratio"):
         I.camera_for_image(frames["shots/a"], 40, 40)
-    for text, msg in (("not json", "not readable JSON"), (json.dumps({"frames": []}), "no 'frames' list"),
-                      (json.dumps({"frames": [{"file_path": "a", "transform_matrix": c2w}]}), "no intrinsics"),
-                      (json.dumps({"camera_angle_x": 1, "frames": [{"file_path": "a", "transform_matrix": [[1]]}]}),
-                       "4x4 camera-to-world"),
-                      (json.dumps({"frames": [{"file_path": "a", "transform_matrix": c2w, "fl_x": 9}]}), "w, h")):
+    for text, msg in (
+        ("not json", "not readable JSON"),
+        (json.dumps({"frames": []}), "no 'frames' list"),
+        (json.dumps({"frames": [{"file_path": "a", "transform_matrix": c2w}]}), "no intrinsics"),
+        (
+            json.dumps({"camera_angle_x": 1, "frames": [{"file_path": "a", "transform_matrix": [[1]]}]}),
+            "4x4 camera-to-world",
+        ),
+        (json.dumps({"frames": [{"file_path": "a", "transform_matrix": c2w, "fl_x": 9}]}), "w, h"),
+    ):
         path.write_text(text)
         with pytest.raises(GStickerError, match=msg):
             I.read_cameras_file(path)

@@ -13,14 +13,23 @@ from gsticker_plugin.key import OwnerKey, message_from_owner_id
 
 def test_key_with_numpy_state_loads_without_allow_list(tmp_path):
     heads = Heads(HeadConfig(width=8, depth=2), 48)
-    key = OwnerKey(owner_id="alice", message=message_from_owner_id("alice"), heads_config=vars(HeadConfig(width=8, depth=2)),
-                   heads_state=heads.state_dict(),
-                   training_state={"step": np.int64(7), "heads_optimizer": {"param_groups": [{"lr": np.float64(1e-3)}]},
-                                   "arr": np.arange(3)})
+    key = OwnerKey(
+        owner_id="alice",
+        message=message_from_owner_id("alice"),
+        heads_config=vars(HeadConfig(width=8, depth=2)),
+        heads_state=heads.state_dict(),
+        training_state={
+            "step": np.int64(7),
+            "heads_optimizer": {"param_groups": [{"lr": np.float64(1e-3)}]},
+            "arr": np.arange(3),
+        },
+    )
     path = key.save(tmp_path / "k.gskey")
     # a fresh interpreter: no gsticker compat allow-list installed
-    code = ("import torch,sys; p=torch.load(sys.argv[1], weights_only=True); "
-            "print(type(p['training_state']['step']).__name__, p['training_state']['heads_optimizer']['param_groups'][0]['lr'])")
+    code = (
+        "import torch,sys; p=torch.load(sys.argv[1], weights_only=True); "
+        "print(type(p['training_state']['step']).__name__, p['training_state']['heads_optimizer']['param_groups'][0]['lr'])"
+    )
     out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ["int", "0.001"]

@@ -27,9 +27,15 @@ def small_key(message=None, **kw) -> OwnerKey:
     heads = Heads(cfg, 48)
     sticker = Sticker(48, 2, 16, 2, 0.5, "bilinear")
     msg = random_message() if message is None else message
-    return OwnerKey(owner_id="alice", message=msg, heads_config=vars(cfg), heads_state=heads.state_dict(),
-                    base={"checkpoint_sha256": "ab" * 32},
-                    geometry={"sticker_state": sticker.state_dict(), "null": None}, **kw)
+    return OwnerKey(
+        owner_id="alice",
+        message=msg,
+        heads_config=vars(cfg),
+        heads_state=heads.state_dict(),
+        base={"checkpoint_sha256": "ab" * 32},
+        geometry={"sticker_state": sticker.state_dict(), "null": None},
+        **kw,
+    )
 
 
 @pytest.mark.parametrize("kind", ["bilinear", "concat"])
@@ -98,7 +104,10 @@ def test_keys_whose_null_is_not_exact_say_why():
 def test_default_key_path_is_in_the_per_user_keys_folder(monkeypatch, tmp_path):
     monkeypatch.setenv("GSTICKER_KEYS_DIR", str(tmp_path / "keys"))
     assert keys_dir() == tmp_path / "keys"
-    assert default_key_path("lego", "geometrysticker", "2026-12-03_1") == tmp_path / "keys" / "lego-geometrysticker-2026-12-03_1.gskey"
+    assert (
+        default_key_path("lego", "geometrysticker", "2026-12-03_1")
+        == tmp_path / "keys" / "lego-geometrysticker-2026-12-03_1.gskey"
+    )
     monkeypatch.delenv("GSTICKER_KEYS_DIR")
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "xdg"))
     assert keys_dir() == tmp_path / "xdg" / "gsticker" / "keys"
@@ -120,9 +129,16 @@ from gsticker_plugin.verify import cli as V  # noqa: E402
 
 BIN = Path(sys.executable).parent
 COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
-NERFACTO_TINY = ["gsticker-nerfacto-small", "--pipeline.model.num-nerf-samples-per-ray", "16",
-                 "--pipeline.model.num-proposal-samples-per-ray", "32", "16",
-                 "--pipeline.datamanager.train-num-rays-per-batch", "256"]
+NERFACTO_TINY = [
+    "gsticker-nerfacto-small",
+    "--pipeline.model.num-nerf-samples-per-ray",
+    "16",
+    "--pipeline.model.num-proposal-samples-per-ray",
+    "32",
+    "16",
+    "--pipeline.datamanager.train-num-rays-per-batch",
+    "256",
+]
 
 
 def _train(args, cwd: Path) -> subprocess.CompletedProcess:
@@ -159,14 +175,46 @@ def shared_run(tiny_base, tmp_path_factory, owner_keys_dir):
     out = ws / "outputs"
     base = tiny_base.parent
     ckpt = max((base / "nerfstudio_models").glob("step-*.ckpt"))
-    proc = _train(["geometrysticker", "--load-checkpoint", str(ckpt), *COMMON, "--output-dir", str(out),
-                   "--experiment-name", "shared", "--timestamp", "run", "--max-num-iterations", "10",
-                   "--pipeline.owner-id", "alice", "--pipeline.pool-train-views", "2", "--pipeline.pool-novel-views",
-                   "2", "--pipeline.monitor-views", "1", "--pipeline.steps-per-monitor", "5",
-                   "--pipeline.views-per-step", "2", "--pipeline.heads.width", "8"], ws)
+    proc = _train(
+        [
+            "geometrysticker",
+            "--load-checkpoint",
+            str(ckpt),
+            *COMMON,
+            "--output-dir",
+            str(out),
+            "--experiment-name",
+            "shared",
+            "--timestamp",
+            "run",
+            "--max-num-iterations",
+            "10",
+            "--pipeline.owner-id",
+            "alice",
+            "--pipeline.pool-train-views",
+            "2",
+            "--pipeline.pool-novel-views",
+            "2",
+            "--pipeline.monitor-views",
+            "1",
+            "--pipeline.steps-per-monitor",
+            "5",
+            "--pipeline.views-per-step",
+            "2",
+            "--pipeline.heads.width",
+            "8",
+        ],
+        ws,
+    )
     key = default_key_path("shared", "geometrysticker", "run")
-    return {"ws": ws, "out": out, "base": base / "config.yml", "run": out / "shared" / "geometrysticker" / "run",
-            "key": key, "stdout": proc.stdout}
+    return {
+        "ws": ws,
+        "out": out,
+        "base": base / "config.yml",
+        "run": out / "shared" / "geometrysticker" / "run",
+        "key": key,
+        "stdout": proc.stdout,
+    }
 
 
 @pytest.mark.slow
@@ -187,8 +235,14 @@ def test_the_shared_output_folder_holds_no_message_no_key_and_no_key_path(shared
         assert not [n for n in names if n.endswith(".gskey")], names
         blobs = {n: z.read(n) for n in names}
     assert any(n.endswith(".ckpt") for n in names) and any("events.out.tfevents" in n for n in names)
-    secrets_as_bytes = [message.encode(), str(key_path).encode(), key_path.name.encode(), key.secret.encode(),
-                        key.salt.encode(), b"alice"]
+    secrets_as_bytes = [
+        message.encode(),
+        str(key_path).encode(),
+        key_path.name.encode(),
+        key.secret.encode(),
+        key.salt.encode(),
+        b"alice",
+    ]
     for n, blob in blobs.items():
         for s in secrets_as_bytes:
             assert s not in blob, f"{n} holds {s[:20]!r}"
@@ -221,8 +275,21 @@ def test_decoded_bits_do_not_depend_on_the_key_message_and_a_commitment_is_check
     decoded = {}
     for name, k in (("own", key_path), ("other", other)):
         out = ws / f"rep-{name}"
-        status, stdout, err = run_cli(["--load-config", str(shared_run["run"] / "config.yml"), "--key", str(k),
-                                       "--output", str(out), "--num-views", "3", "--decode", "geometry"], capsys)
+        status, stdout, err = run_cli(
+            [
+                "--load-config",
+                str(shared_run["run"] / "config.yml"),
+                "--key",
+                str(k),
+                "--output",
+                str(out),
+                "--num-views",
+                "3",
+                "--decode",
+                "geometry",
+            ],
+            capsys,
+        )
         assert status in (V.EXIT_OWNED, V.EXIT_NOT_SHOWN), err
         rep = json.loads((out / "report.json").read_text())
         decoded[name] = [v["decoded"] for v in rep["keys"][0]["per_view"]]
@@ -235,14 +302,42 @@ def test_decoded_bits_do_not_depend_on_the_key_message_and_a_commitment_is_check
     hex_ = stdout.strip()
     assert status == 0 and len(hex_) == 64 and hex_ == commitment(OwnerKey.load(key_path))
     out = ws / "rep-committed"
-    status, stdout, err = run_cli(["--load-config", str(shared_run["run"] / "config.yml"), "--key", str(key_path),
-                                   "--output", str(out), "--num-views", "2", "--decode", "geometry",
-                                   "--commitment", hex_], capsys)
+    status, stdout, err = run_cli(
+        [
+            "--load-config",
+            str(shared_run["run"] / "config.yml"),
+            "--key",
+            str(key_path),
+            "--output",
+            str(out),
+            "--num-views",
+            "2",
+            "--decode",
+            "geometry",
+            "--commitment",
+            hex_,
+        ],
+        capsys,
+    )
     rep = json.loads((out / "report.json").read_text())
     assert rep["commitment"]["matches"] is True and "commitment" in stdout
-    status, _, err = run_cli(["--load-config", str(shared_run["run"] / "config.yml"), "--key", str(other),
-                              "--output", str(ws / "rep-x"), "--num-views", "2", "--decode", "geometry",
-                              "--commitment", hex_], capsys)
+    status, _, err = run_cli(
+        [
+            "--load-config",
+            str(shared_run["run"] / "config.yml"),
+            "--key",
+            str(other),
+            "--output",
+            str(ws / "rep-x"),
+            "--num-views",
+            "2",
+            "--decode",
+            "geometry",
+            "--commitment",
+            hex_,
+        ],
+        capsys,
+    )
     assert status == 2 and "does not match the commitment" in one_error_line(err)
 
 
@@ -281,12 +376,26 @@ def test_every_verification_failure_is_one_error_line_and_exit_2(shared_run, cap
         assert status == 2, (argv, stdout[-500:], err[-2000:])
         assert words in one_error_line(err), (argv, err[-2000:])
     assert not flag.exists()
+
     # a crash inside decoding is an error, never "not shown"
     def boom(*a, **k):
         raise RuntimeError("simulated failure in the fit")
 
     monkeypatch.setattr(FIT, "fit_message", boom)
-    status, stdout, err = run_cli(["--load-config", str(run_cfg), "--key", key, "--output", str(ws / "rep-crash"),
-                                   "--num-views", "2", "--decode", "geometry"], capsys)
+    status, stdout, err = run_cli(
+        [
+            "--load-config",
+            str(run_cfg),
+            "--key",
+            key,
+            "--output",
+            str(ws / "rep-crash"),
+            "--num-views",
+            "2",
+            "--decode",
+            "geometry",
+        ],
+        capsys,
+    )
     line = one_error_line(err)
     assert status == 2 and "no verdict" in line and "simulated failure" in line and "VERDICT" not in stdout

@@ -43,9 +43,27 @@ def test_preset_trains_with_ns_train_and_loads_back(preset, tiny_scene, tmp_path
     ns_train = Path(sys.executable).parent / "ns-train"
     assert ns_train.exists(), f"ns-train is not installed next to {sys.executable}"
     out = tmp_path / "runs"
-    cmd = [str(ns_train), preset, "--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", str(out),
-           "--experiment-name", "tiny", "--timestamp", "t", "--max-num-iterations", "3", "--steps-per-save", "3",
-           "blender-data", "--data", str(tiny_scene)]
+    cmd = [
+        str(ns_train),
+        preset,
+        "--machine.device-type",
+        "cpu",
+        "--vis",
+        "tensorboard",
+        "--output-dir",
+        str(out),
+        "--experiment-name",
+        "tiny",
+        "--timestamp",
+        "t",
+        "--max-num-iterations",
+        "3",
+        "--steps-per-save",
+        "3",
+        "blender-data",
+        "--data",
+        str(tiny_scene),
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=_env(), cwd=tmp_path)
     assert proc.returncode == 0, _tail(proc)
     base = out / "tiny" / preset / "t"
@@ -58,7 +76,6 @@ def test_preset_trains_with_ns_train_and_loads_back(preset, tiny_scene, tmp_path
     from nerfstudio.utils.eval_utils import eval_setup
 
     from gsticker_plugin import compat
-
 
     compat.apply()  # the host fixes the ns-* commands apply
 
@@ -81,7 +98,6 @@ def test_small_vanilla_nerf_builds_stock_fields_of_the_configured_size(monkeypat
     from nerfstudio.models.vanilla_nerf import NeRFModel
 
     from gsticker_plugin import compat
-
 
     compat.apply()  # the host fixes the ns-* commands apply
     from gsticker_plugin.small_nerf import SmallNeRFModel, SmallNeRFModelConfig
@@ -108,9 +124,14 @@ def test_small_vanilla_nerf_builds_stock_fields_of_the_configured_size(monkeypat
     from nerfstudio.cameras.rays import RayBundle
 
     n = 5
-    rays = RayBundle(origins=torch.tensor([[0.0, 0.0, 4.0]]).repeat(n, 1), directions=torch.tensor([[0.0, 0.0, -1.0]]).repeat(n, 1),
-                     pixel_area=torch.ones(n, 1), camera_indices=torch.zeros(n, 1, dtype=torch.long),
-                     nears=torch.full((n, 1), 2.0), fars=torch.full((n, 1), 6.0))
+    rays = RayBundle(
+        origins=torch.tensor([[0.0, 0.0, 4.0]]).repeat(n, 1),
+        directions=torch.tensor([[0.0, 0.0, -1.0]]).repeat(n, 1),
+        pixel_area=torch.ones(n, 1),
+        camera_indices=torch.zeros(n, 1, dtype=torch.long),
+        nears=torch.full((n, 1), 2.0),
+        fars=torch.full((n, 1), 6.0),
+    )
     out = model.get_outputs(rays)
     assert out["rgb_fine"].shape == (n, 3) and out["rgb_coarse"].shape == (n, 3)
 
@@ -152,9 +173,22 @@ def test_count_parameters_excludes_lpips():
 def test_bench_rejects_bad_input_with_one_line(tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
-    proc = subprocess.run([sys.executable, "-m", "gsticker_plugin.bench.presets", "--data", str(empty),
-                           "--output", str(tmp_path / "p.md")], capture_output=True, text=True, timeout=300,
-                          env=_env(), cwd=REPO_ROOT)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "gsticker_plugin.bench.presets",
+            "--data",
+            str(empty),
+            "--output",
+            str(tmp_path / "p.md"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=_env(),
+        cwd=REPO_ROOT,
+    )
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines()[-1].startswith("error: ") and "transforms_train.json" in proc.stderr
     assert not (tmp_path / "p.md").exists()
@@ -171,10 +205,27 @@ def test_bench_rejects_bad_input_with_one_line(tmp_path):
 @pytest.mark.slow
 def test_bench_quick_end_to_end(tiny_scene, tmp_path, monkeypatch):
     md = tmp_path / "docs" / "presets.md"
-    args = ["--data", str(tiny_scene), "--presets", "gsticker-nerfacto-small", "--output", str(md),
-            "--output-dir", str(tmp_path / "runs"), "--quick", "--threads", "1"]
-    proc = subprocess.run([sys.executable, "-m", "gsticker_plugin.bench.presets", *args], capture_output=True,
-                          text=True, timeout=600, env=_env(), cwd=REPO_ROOT)
+    args = [
+        "--data",
+        str(tiny_scene),
+        "--presets",
+        "gsticker-nerfacto-small",
+        "--output",
+        str(md),
+        "--output-dir",
+        str(tmp_path / "runs"),
+        "--quick",
+        "--threads",
+        "1",
+    ]
+    proc = subprocess.run(
+        [sys.executable, "-m", "gsticker_plugin.bench.presets", *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=_env(),
+        cwd=REPO_ROOT,
+    )
     assert proc.returncode == 0, _tail(proc)
     assert "[bench-presets]" in proc.stdout and "test view 1/2" in proc.stdout  # progress on the terminal
 

@@ -31,17 +31,50 @@ BIN = Path(sys.executable).parent
 MESSAGE = "101100111000111100001111100000111111000000111111"
 COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
 BASE_ARGS: Dict[str, List[str]] = {
-    "tensorf": ["gsticker-tensorf-small", "--pipeline.model.init-resolution", "32", "--pipeline.model.num-samples", "32",
-                "--pipeline.model.num-uniform-samples", "16", "--pipeline.datamanager.train-num-rays-per-batch", "256",
-                "--max-num-iterations", "300", "--steps-per-save", "300"],
-    "nerfacto": ["gsticker-nerfacto-small", "--pipeline.model.num-nerf-samples-per-ray", "16",
-                 "--pipeline.model.num-proposal-samples-per-ray", "32", "16",
-                 "--pipeline.datamanager.train-num-rays-per-batch", "256", "--max-num-iterations", "2",
-                 "--steps-per-save", "2"],
-    "vanilla-nerf": ["vanilla-nerf", "--pipeline.model.num-coarse-samples", "16", "--pipeline.model.num-importance-samples",
-                     "16", "--pipeline.datamanager.train-num-rays-per-batch", "256",
-                     "--pipeline.model.eval-num-rays-per-chunk", "1024", "--max-num-iterations", "2",
-                     "--steps-per-save", "2"],
+    "tensorf": [
+        "gsticker-tensorf-small",
+        "--pipeline.model.init-resolution",
+        "32",
+        "--pipeline.model.num-samples",
+        "32",
+        "--pipeline.model.num-uniform-samples",
+        "16",
+        "--pipeline.datamanager.train-num-rays-per-batch",
+        "256",
+        "--max-num-iterations",
+        "300",
+        "--steps-per-save",
+        "300",
+    ],
+    "nerfacto": [
+        "gsticker-nerfacto-small",
+        "--pipeline.model.num-nerf-samples-per-ray",
+        "16",
+        "--pipeline.model.num-proposal-samples-per-ray",
+        "32",
+        "16",
+        "--pipeline.datamanager.train-num-rays-per-batch",
+        "256",
+        "--max-num-iterations",
+        "2",
+        "--steps-per-save",
+        "2",
+    ],
+    "vanilla-nerf": [
+        "vanilla-nerf",
+        "--pipeline.model.num-coarse-samples",
+        "16",
+        "--pipeline.model.num-importance-samples",
+        "16",
+        "--pipeline.datamanager.train-num-rays-per-batch",
+        "256",
+        "--pipeline.model.eval-num-rays-per-chunk",
+        "1024",
+        "--max-num-iterations",
+        "2",
+        "--steps-per-save",
+        "2",
+    ],
 }
 BASES = ("tensorf", "nerfacto", "vanilla-nerf")
 
@@ -79,18 +112,57 @@ def work(tmp_path_factory) -> Path:
 def runs(tiny_scene: Path, work: Path) -> Dict[str, Path]:
     """{base: RUN/config.yml} for the three bases, and "gs": a geometrysticker run on the TensoRF."""
     out = work / "bases"
-    cmds = [[str(console_script("ns-train")), *BASE_ARGS[b], *COMMON, "--output-dir", str(out), "--experiment-name", b,
-             "--timestamp", "base", "blender-data", "--data", str(tiny_scene)] for b in BASES]
+    cmds = [
+        [
+            str(console_script("ns-train")),
+            *BASE_ARGS[b],
+            *COMMON,
+            "--output-dir",
+            str(out),
+            "--experiment-name",
+            b,
+            "--timestamp",
+            "base",
+            "blender-data",
+            "--data",
+            str(tiny_scene),
+        ]
+        for b in BASES
+    ]
     found: Dict[str, Path] = {}
     for b, proc in zip(BASES, run_parallel(cmds, work / "logs")):
         assert proc.returncode == 0, f"ns-train {b}: {_fail(proc)}"
         (found[b],) = list((out / b).glob("*/base/config.yml"))
     ckpt = sorted((found["tensorf"].parent / "nerfstudio_models").glob("*.ckpt"))[-1]
-    gs = [str(console_script("ns-train")), "geometrysticker", "--load-checkpoint", str(ckpt), *COMMON, "--output-dir",
-          str(work / "gs"), "--experiment-name", "gs", "--timestamp", "run", "--max-num-iterations", "3",
-          "--pipeline.message", MESSAGE, "--pipeline.pool-train-views", "2", "--pipeline.pool-novel-views", "2",
-          "--pipeline.monitor-views", "1", "--pipeline.steps-per-monitor", "5", "--pipeline.views-per-step", "2",
-          "--pipeline.heads.width", "8"]
+    gs = [
+        str(console_script("ns-train")),
+        "geometrysticker",
+        "--load-checkpoint",
+        str(ckpt),
+        *COMMON,
+        "--output-dir",
+        str(work / "gs"),
+        "--experiment-name",
+        "gs",
+        "--timestamp",
+        "run",
+        "--max-num-iterations",
+        "3",
+        "--pipeline.message",
+        MESSAGE,
+        "--pipeline.pool-train-views",
+        "2",
+        "--pipeline.pool-novel-views",
+        "2",
+        "--pipeline.monitor-views",
+        "1",
+        "--pipeline.steps-per-monitor",
+        "5",
+        "--pipeline.views-per-step",
+        "2",
+        "--pipeline.heads.width",
+        "8",
+    ]
     (proc,) = run_parallel([gs], work / "logs-gs")
     assert proc.returncode == 0, f"ns-train geometrysticker: {_fail(proc)}"
     found["gs"] = work / "gs" / "gs" / "geometrysticker" / "run" / "config.yml"
@@ -114,7 +186,7 @@ def load(config: Path):
 @torch.no_grad()
 def render(pipeline, n: int = 3, keys=("rgb", "depth", "accumulation")) -> Dict[str, torch.Tensor]:
     cams = pipeline.datamanager.train_dataparser_outputs.cameras
-    outs = [pipeline.model.get_outputs_for_camera(cams[i: i + 1]) for i in range(n)]
+    outs = [pipeline.model.get_outputs_for_camera(cams[i : i + 1]) for i in range(n)]
     res = {}
     for k in keys:
         kk = k if k in outs[0] else f"{k}_fine"
@@ -130,8 +202,11 @@ def dataset_palette(tiny_scene: Path, k=None):
 
     from gsticker_plugin.recolor import palette as P
 
-    ims = [torch.from_numpy(np.asarray(Image.open(p))).float() / 255 for p in sorted((tiny_scene / "train").glob("r_*.png"))
-           if not p.stem.endswith("depth")]
+    ims = [
+        torch.from_numpy(np.asarray(Image.open(p))).float() / 255
+        for p in sorted((tiny_scene / "train").glob("r_*.png"))
+        if not p.stem.endswith("depth")
+    ]
     px = torch.cat([im[..., :3][im[..., 3] > 0.5] for im in ims])
     return P.extract_palette(px, k=k), px
 
@@ -179,8 +254,12 @@ def test_palette_of_the_same_pixels_is_extracted_once_per_process(monkeypatch):
     from gsticker_plugin.recolor import palette as P
 
     g = torch.Generator().manual_seed(0)
-    px = torch.cat([torch.rand(400, 3, generator=g) * 0.1 + torch.tensor(c) for c in
-                    ([0.8, 0.1, 0.1], [0.1, 0.7, 0.2], [0.1, 0.2, 0.8], [0.9, 0.9, 0.9])]).clamp(0, 1)
+    px = torch.cat(
+        [
+            torch.rand(400, 3, generator=g) * 0.1 + torch.tensor(c)
+            for c in ([0.8, 0.1, 0.1], [0.1, 0.7, 0.2], [0.1, 0.2, 0.8], [0.9, 0.9, 0.9])
+        ]
+    ).clamp(0, 1)
     first = P.extract_palette(px, seed=3)
     calls = []
     real = P._kmeans_palette
@@ -205,14 +284,16 @@ def test_color_parsing_presets_and_recolor_identity():
         P.parse_color(name)
     assert P.parse_edits(["2=#1E90FF", "0=red"], [], 4) == {2: P.parse_color("#1E90FF"), 0: (1.0, 0.0, 0.0)}
     assert set(P.parse_edits([], ["keep", "blue", "-", "cyan"], 4)) == {1, 3}
-    for bad, words in [(lambda: P.parse_color("reddish"), "unknown color name"),
-                       (lambda: P.parse_color("#12G45Z"), "malformed hex"),
-                       (lambda: P.parse_color("#12345"), "malformed hex"),
-                       (lambda: P.parse_edits(["5=red"], [], 5), "out of range"),
-                       (lambda: P.parse_edits(["x=red"], [], 5), "INDEX=COLOR"),
-                       (lambda: P.parse_edits([], ["red"], 3), "exactly 3"),
-                       (lambda: P.check_k(9), "outside 3..8"),
-                       (lambda: P.check_k(2), "outside 3..8")]:
+    for bad, words in [
+        (lambda: P.parse_color("reddish"), "unknown color name"),
+        (lambda: P.parse_color("#12G45Z"), "malformed hex"),
+        (lambda: P.parse_color("#12345"), "malformed hex"),
+        (lambda: P.parse_edits(["5=red"], [], 5), "out of range"),
+        (lambda: P.parse_edits(["x=red"], [], 5), "INDEX=COLOR"),
+        (lambda: P.parse_edits([], ["red"], 3), "exactly 3"),
+        (lambda: P.check_k(9), "outside 3..8"),
+        (lambda: P.check_k(2), "outside 3..8"),
+    ]:
         with pytest.raises(GStickerError, match=words):
             bad()
     rgb = torch.rand(100, 3)
@@ -230,7 +311,9 @@ def palette_edit(runs, work, tiny_scene) -> Dict[str, object]:
     red = index_near(pal, (1.0, 0.0, 0.0))
     out = {}
     for name in ("tensorf", "gs"):
-        recolor("palette", "--load-config", runs[name], "--output-dir", work / f"palette-{name}", "--set", f"{red}=blue")
+        recolor(
+            "palette", "--load-config", runs[name], "--output-dir", work / f"palette-{name}", "--set", f"{red}=blue"
+        )
         out[name] = run_config(work / f"palette-{name}")
     return {"red": red, "palette": pal, **out}
 
@@ -267,7 +350,9 @@ def test_edit_moves_only_the_chosen_region(palette_edit, runs):
     assert g["psnr_region"] > 28.0, g  # the green torus is left alone (measured 32 dB)
     # the recolored run records its edit (config) and its palette (buffers) consistently
     model = load(palette_edit["tensorf"]).model
-    assert model.config.palette_target[red] == "#0000FF" and torch.equal(model.palette_target[red], torch.tensor([0.0, 0, 1]))
+    assert model.config.palette_target[red] == "#0000FF" and torch.equal(
+        model.palette_target[red], torch.tensor([0.0, 0, 1])
+    )
     assert (Path(palette_edit["tensorf"]).parent / "palette.png").is_file()
 
 
@@ -347,8 +432,22 @@ def test_model_level_hue_matches_image_level_hue(runs, work):
 
 def test_image_level_hue_jitter_writes_jittered_renders(runs, work):
     out = work / "jitter"
-    recolor("hue", "--load-config", runs["tensorf"], "--output-dir", out, "--image-level", "--shift", "0.5",
-            "--split", "train", "--limit", "4", "--seed", "3")
+    recolor(
+        "hue",
+        "--load-config",
+        runs["tensorf"],
+        "--output-dir",
+        out,
+        "--image-level",
+        "--shift",
+        "0.5",
+        "--split",
+        "train",
+        "--limit",
+        "4",
+        "--seed",
+        "3",
+    )
     meta = json.loads((out / "hue_jitter.json").read_text())
     shifts = [im["hue_shift_turns"] for im in meta["images"]]
     assert len(shifts) == 4 and all(abs(s) <= 0.5 for s in shifts) and len(set(shifts)) == 4
@@ -357,9 +456,25 @@ def test_image_level_hue_jitter_writes_jittered_renders(runs, work):
 
 def test_ns_render_renders_a_recolored_run(palette_edit, work):
     out = work / "render"
-    proc = subprocess.run([str(console_script("ns-render")), "dataset", "--load-config", str(palette_edit["tensorf"]), "--split",
-                           "test", "--rendered-output-names", "rgb", "--output-path", str(out)],
-                          capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=work)
+    proc = subprocess.run(
+        [
+            str(console_script("ns-render")),
+            "dataset",
+            "--load-config",
+            str(palette_edit["tensorf"]),
+            "--split",
+            "test",
+            "--rendered-output-names",
+            "rgb",
+            "--output-path",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=subprocess_env(),
+        cwd=work,
+    )
     assert proc.returncode == 0, _fail(proc)
     assert len(sorted(out.rglob("*.jpg")) + sorted(out.rglob("*.png"))) == 2
 
@@ -391,11 +506,34 @@ def test_finetune_changes_only_color_parameters(runs, work, base):
         target = ["--hue-shift", "0.4"]
     else:  # a folder of edited images: the renders' image-level hue jitter, one per training view, in order
         jit = work / "targets-vanilla"
-        recolor("hue", "--load-config", runs[base], "--output-dir", jit, "--image-level", "--fixed", "--shift", "0.4",
-                "--split", "train")
+        recolor(
+            "hue",
+            "--load-config",
+            runs[base],
+            "--output-dir",
+            jit,
+            "--image-level",
+            "--fixed",
+            "--shift",
+            "0.4",
+            "--split",
+            "train",
+        )
         target = ["--targets", str(jit)]
-    recolor("finetune", "--load-config", runs[base], "--output-dir", out, *target, "--steps", "8",
-            "--rays-per-step", "256", "--lr", "1e-2")
+    recolor(
+        "finetune",
+        "--load-config",
+        runs[base],
+        "--output-dir",
+        out,
+        *target,
+        "--steps",
+        "8",
+        "--rays-per-step",
+        "256",
+        "--lr",
+        "1e-2",
+    )
     cfg = run_config(out)
     info = json.loads((cfg.parent / "finetune.json").read_text())
     color = {"_model." + n for n in info["color_parameters"]}
@@ -428,7 +566,9 @@ def test_finetune_save_at_writes_the_runs_a_shorter_finetune_writes(runs, work):
     short, snap2, snap3, long = (weights(work / n) for n in ["ft-short", "ft-long-step2", "ft-long-step3", "ft-long"])
     assert set(short) == set(snap2) == set(long)
     assert all(torch.equal(short[k], snap2[k]) for k in short)
-    assert any(not torch.equal(snap2[k], snap3[k]) for k in short) and any(not torch.equal(snap3[k], long[k]) for k in short)
+    assert any(not torch.equal(snap2[k], snap3[k]) for k in short) and any(
+        not torch.equal(snap3[k], long[k]) for k in short
+    )
     assert json.loads((run_config(work / "ft-long-step3").parent / "finetune.json").read_text())["steps"] == 3
 
 
@@ -446,7 +586,9 @@ def test_ray_targets_are_the_full_renders_pixels_and_train_the_same(runs):
     sched = ray_schedule(3, hw, steps=4, rays_per_step=64, seed=5)
     assert sched.shape == (4, 64, 3) and int(sched[..., 0].max()) < 3
     assert int(sched[..., 1].max()) < hw[0] and int(sched[..., 2].max()) < hw[1]
-    assert torch.equal(sched, ray_schedule(3, hw, 4, 64, seed=5)) and not torch.equal(sched, ray_schedule(3, hw, 4, 64, 6))
+    assert torch.equal(sched, ray_schedule(3, hw, 4, 64, seed=5)) and not torch.equal(
+        sched, ray_schedule(3, hw, 4, 64, 6)
+    )
     full = torch.stack(R.render_views(model, cams, range(3), progress=False)["rgb"])
     sparse = render_ray_targets(model, cams, sched, chunk=50, progress=False)
     assert torch.allclose(sparse.values, full[sched[..., 0], sched[..., 1], sched[..., 2]], atol=1e-5)
@@ -475,10 +617,16 @@ BAD = {
     "contains-input": (["hue", "--output-dir", "{base_root}", "--overwrite"], "contains the input run", "--output-dir"),
     "hue-range": (["hue", "--output-dir", "{out}", "--shift", "0.7"], "outside [-0.5, 0.5]", "--shift"),
     "no-targets": (["finetune", "--output-dir", "{out}"], "exactly one kind of target", "--targets"),
-    "save-at-range": (["finetune", "--output-dir", "{out}", "--hue-shift", "0.2", "--steps", "4", "--save-at", "4"],
-                      "must be between 1 and --steps", "--output-dir itself"),
-    "missing-config": (["hue", "--output-dir", "{out}", "--load-config", "{work}/nowhere/config.yml"], "does not exist",
-                       "--load-config"),
+    "save-at-range": (
+        ["finetune", "--output-dir", "{out}", "--hue-shift", "0.2", "--steps", "4", "--save-at", "4"],
+        "must be between 1 and --steps",
+        "--output-dir itself",
+    ),
+    "missing-config": (
+        ["hue", "--output-dir", "{out}", "--load-config", "{work}/nowhere/config.yml"],
+        "does not exist",
+        "--load-config",
+    ),
 }
 
 
@@ -490,8 +638,13 @@ def test_bad_input_is_one_line_naming_the_fix(runs, work, case, capsys):
     exists = work / "exists"
     exists.mkdir(exist_ok=True)
     run_dir = Path(runs["tensorf"]).parent
-    paths = {"out": work / "bad" / case, "exists": exists, "run": run_dir, "work": work,
-             "base_root": run_dir.parent.parent}
+    paths = {
+        "out": work / "bad" / case,
+        "exists": exists,
+        "run": run_dir,
+        "work": work,
+        "base_root": run_dir.parent.parent,
+    }
     argv = [a.format(**paths) for a in argv]
     if "--load-config" not in argv:
         argv = [argv[0], "--load-config", str(runs["tensorf"]), *argv[1:]]
@@ -515,9 +668,23 @@ def test_model_without_color_output_is_refused():
 
 
 def test_bad_input_through_the_console_script(runs, work):
-    proc = subprocess.run([str(console_script("ns-recolor")), "palette", "--load-config", str(runs["tensorf"]), "--output-dir",
-                           str(work / "bad-script"), "--set", "0=notacolor"], capture_output=True, text=True,
-                          timeout=300, env=subprocess_env(), cwd=work)
+    proc = subprocess.run(
+        [
+            str(console_script("ns-recolor")),
+            "palette",
+            "--load-config",
+            str(runs["tensorf"]),
+            "--output-dir",
+            str(work / "bad-script"),
+            "--set",
+            "0=notacolor",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=subprocess_env(),
+        cwd=work,
+    )
     assert proc.returncode == 2, _fail(proc)
     errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
     assert len(errors) == 1 and "unknown color name" in errors[0], _fail(proc)

@@ -21,8 +21,14 @@ METHODS = ("geometrysticker", "gsticker-nerfacto-small", "gsticker-tensorf-small
 
 
 def test_ns_train_help_lists_plugin_methods():
-    proc = subprocess.run([str(console_script("ns-train")), "--help"], capture_output=True, text=True, timeout=300,
-                          env=subprocess_env(), cwd=REPO_ROOT)
+    proc = subprocess.run(
+        [str(console_script("ns-train")), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=subprocess_env(),
+        cwd=REPO_ROOT,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     # The usage line's subcommand choices name every registered method exactly.
     choices = set()
@@ -63,8 +69,13 @@ def test_presets_are_cpu_sized_blender_recipes():
 
 
 def test_ns_gsticker_scene_help():
-    proc = subprocess.run([str(console_script("ns-gsticker-scene")), "--help"], capture_output=True, text=True, timeout=120,
-                          env=subprocess_env())
+    proc = subprocess.run(
+        [str(console_script("ns-gsticker-scene")), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=subprocess_env(),
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "--output-dir" in proc.stdout and "--resolution" in proc.stdout
 
@@ -95,8 +106,14 @@ def test_importing_method_configs_needs_no_cuda_and_no_network():
         print("HOST %.2f PLUGIN %.2f" % (t1 - t0, t2 - t1))
         """
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                          env=subprocess_env(0, CUDA_VISIBLE_DEVICES=""), cwd=REPO_ROOT)
+    proc = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=subprocess_env(0, CUDA_VISIBLE_DEVICES=""),
+        cwd=REPO_ROOT,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     host, plugin = (float(x) for x in proc.stdout.split()[1::2])
     # Beyond the host's own imports, the plugin's configs cost seconds at most (a loaded 2-core box included).

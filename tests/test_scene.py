@@ -21,15 +21,22 @@ SPOT = Path("/work/shared/assets/spot")
 
 
 def _config(out: Path, **kw) -> SceneConfig:
-    base = dict(output_dir=out, resolution=RES, num_train=COUNTS["train"], num_val=COUNTS["val"],
-                num_test=COUNTS["test"], seed=0)
+    base = dict(
+        output_dir=out,
+        resolution=RES,
+        num_train=COUNTS["train"],
+        num_val=COUNTS["val"],
+        num_test=COUNTS["test"],
+        seed=0,
+    )
     base.update(kw)
     return SceneConfig(**base)
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "gsticker_plugin.scene", *args], capture_output=True, text=True,
-                          timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "gsticker_plugin.scene", *args], capture_output=True, text=True, timeout=120
+    )
 
 
 def _read(path: Path) -> np.ndarray:
@@ -98,8 +105,7 @@ def test_render_matches_pinhole_projection():
 
 
 def test_dataset_format(dataset: Path):
-    assert sorted(p.name for p in dataset.iterdir()) == sorted(
-        [*COUNTS, *(f"transforms_{s}.json" for s in COUNTS)])
+    assert sorted(p.name for p in dataset.iterdir()) == sorted([*COUNTS, *(f"transforms_{s}.json" for s in COUNTS)])
     for split, n in COUNTS.items():
         meta = json.loads((dataset / f"transforms_{split}.json").read_text())
         assert meta["camera_angle_x"] == pytest.approx(scene.CAMERA_ANGLE_X)
@@ -114,7 +120,8 @@ def test_dataset_format(dataset: Path):
             assert (alpha == 0).any() and (alpha == 255).any()
             assert (rgba[..., :3][alpha == 0] == 0).all()
         assert sorted(p.name for p in (dataset / split).iterdir()) == sorted(
-            [f"r_{i}.png" for i in range(n)] + [f"r_{i}_depth.exr" for i in range(n)])
+            [f"r_{i}.png" for i in range(n)] + [f"r_{i}_depth.exr" for i in range(n)]
+        )
 
 
 def test_depth_present_and_sane(dataset: Path):
@@ -144,8 +151,11 @@ def test_at_least_three_distinct_dominant_colors(dataset: Path):
     opaque = pixels[pixels[:, 3] == 255, :3]
     hsv = rgb2hsv(opaque[None].astype(np.float64) / 255)[0]
     vivid = hsv[(hsv[:, 1] > 0.5) & (hsv[:, 2] > 0.2), 0] * 360
-    bins = {"red": (vivid < 15) | (vivid > 345), "green": (vivid > 90) & (vivid < 150),
-            "blue": (vivid > 210) & (vivid < 250)}
+    bins = {
+        "red": (vivid < 15) | (vivid > 345),
+        "green": (vivid > 90) & (vivid < 150),
+        "blue": (vivid > 210) & (vivid < 250),
+    }
     for name, mask in bins.items():
         assert mask.sum() > 0.02 * len(opaque), f"{name} is not a dominant color: {mask.sum()} of {len(opaque)}"
 
@@ -220,8 +230,18 @@ def _bad_inputs(tmp: Path):
     }
 
 
-@pytest.mark.parametrize("case", ["missing mesh", "garbage mesh", "broken mesh", "unreadable texture", "zero views",
-                                  "unwritable output", "existing output"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "missing mesh",
+        "garbage mesh",
+        "broken mesh",
+        "unreadable texture",
+        "zero views",
+        "unwritable output",
+        "existing output",
+    ],
+)
 def test_bad_input_exits_2_with_one_line_and_no_partial_output(tmp_path: Path, case: str):
     args, needle = _bad_inputs(tmp_path)[case]
     work = tmp_path / "work"
@@ -266,6 +286,14 @@ def test_interrupt_leaves_no_partial_dataset(tmp_path: Path, monkeypatch, capsys
 def test_help_lists_flags():
     result = _cli("--help")
     assert result.returncode == 0
-    for flag in ("--output-dir", "--resolution", "--num-train", "--num-val", "--num-test", "--seed", "--mesh",
-                 "--overwrite"):
+    for flag in (
+        "--output-dir",
+        "--resolution",
+        "--num-train",
+        "--num-val",
+        "--num-test",
+        "--seed",
+        "--mesh",
+        "--overwrite",
+    ):
         assert flag in result.stdout

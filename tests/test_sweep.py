@@ -7,29 +7,54 @@ from gsticker_plugin.bench.sweep import VARIANTS, SweepConfig, cost_lines, markd
 
 def test_train_seconds_reads_pool_and_monitor_lines(tmp_path):
     log = tmp_path / "x.log"
-    log.write_text("\x1b[1m[gsticker] pool: 16 views + 2 held out, 40 MiB, 83 s; gate mu=21.3, beta=2.13\x1b[0m\n"
-                   "[gsticker] step 50: held-out bit acc 0.5260 (clean renders: 0.500), PSNR marked/clean 15.99 dB, 17 s\n"
-                   "[gsticker] step 100: held-out bit acc 0.5521 (clean renders: 0.448), PSNR marked/clean 36.10 dB, 36 s\n")
+    log.write_text(
+        "\x1b[1m[gsticker] pool: 16 views + 2 held out, 40 MiB, 83 s; gate mu=21.3, beta=2.13\x1b[0m\n"
+        "[gsticker] step 50: held-out bit acc 0.5260 (clean renders: 0.500), PSNR marked/clean 15.99 dB, 17 s\n"
+        "[gsticker] step 100: held-out bit acc 0.5521 (clean renders: 0.448), PSNR marked/clean 36.10 dB, 36 s\n"
+    )
     pool, steps = train_seconds(log)
     assert pool == 83.0 and steps == {50: 17.0, 100: 36.0}
     assert train_seconds(tmp_path / "missing.log") == (None, {})
 
 
 def _row(name, params, acc, psnr, bits=48, size=100):
-    return {"name": name, "sticker_params": params, "num_bits": bits, "size": [size, size],
-            "points": [{"step": 150, "train_seconds": 100.0, "bit_acc": acc, "psnr_vs_unwm": psnr, "psnr_vs_gt": 25.0,
-                        "matches": [48, 48], "views_passing": 2, "decode_seconds_per_view": 3.0}]}
+    return {
+        "name": name,
+        "sticker_params": params,
+        "num_bits": bits,
+        "size": [size, size],
+        "points": [
+            {
+                "step": 150,
+                "train_seconds": 100.0,
+                "bit_acc": acc,
+                "psnr_vs_unwm": psnr,
+                "psnr_vs_gt": 25.0,
+                "matches": [48, 48],
+                "views_passing": 2,
+                "decode_seconds_per_view": 3.0,
+            }
+        ],
+    }
 
 
 def test_smallest_meeting_needs_both_targets_and_48_bits_at_the_base_resolution():
-    rows = [_row("default", 9000, 1.0, 40.0), _row("width-16", 2000, 0.7, 45.0), _row("width-32", 5000, 1.0, 34.0),
-            _row("bits-16", 100, 1.0, 50.0, bits=16), _row("res-200", 50, 1.0, 50.0, size=200)]
+    rows = [
+        _row("default", 9000, 1.0, 40.0),
+        _row("width-16", 2000, 0.7, 45.0),
+        _row("width-32", 5000, 1.0, 34.0),
+        _row("bits-16", 100, 1.0, 50.0, bits=16),
+        _row("res-200", 50, 1.0, 50.0, size=200),
+    ]
     assert smallest_meeting(rows, 0.99, 35.0)["name"] == "default"
     rows.append(_row("width-24", 4000, 0.995, 36.0))
     assert smallest_meeting(rows, 0.99, 35.0)["name"] == "width-24"
     assert smallest_meeting(rows[1:2], 0.99, 35.0) is None
     # trained heads count toward the size: the same sticker without heads in the loop is smaller
-    heads = [dict(_row("default", 9000, 1.0, 40.0), heads_params=280000), dict(_row("heads-none", 9000, 1.0, 40.0), heads_params=0)]
+    heads = [
+        dict(_row("default", 9000, 1.0, 40.0), heads_params=280000),
+        dict(_row("heads-none", 9000, 1.0, 40.0), heads_params=0),
+    ]
     assert smallest_meeting(heads, 0.99, 35.0)["name"] == "heads-none"
     assert {"heads-none", "heads-8", "heads-vgg16"} <= set(VARIANTS)
     assert "--pipeline.msg-weight" in VARIANTS["heads-none"][0]

@@ -6,9 +6,19 @@ from gsticker_plugin.bench.targets import chart, page, report, summarize
 
 
 def _rows(matches, psnr_clean=40.0, marked_gt=26.0, clean_gt=26.1):
-    return [{"index": i, "matches": m, "bit_acc": m / 48, "pvalue": 0.5, "psnr_vs_clean_db": psnr_clean,
-             "psnr_marked_vs_gt_db": marked_gt, "psnr_clean_vs_gt_db": clean_gt, "decode_s": 5.0}
-            for i, m in enumerate(matches)]
+    return [
+        {
+            "index": i,
+            "matches": m,
+            "bit_acc": m / 48,
+            "pvalue": 0.5,
+            "psnr_vs_clean_db": psnr_clean,
+            "psnr_marked_vs_gt_db": marked_gt,
+            "psnr_clean_vs_gt_db": clean_gt,
+            "decode_s": 5.0,
+        }
+        for i, m in enumerate(matches)
+    ]
 
 
 def test_all_views_all_bits_meets_every_target():
@@ -47,9 +57,19 @@ def test_page_prints_only_numbers_the_summary_holds():
     v = summarize(rows, 48, {"wall_s": 155.0}, split_size=3)
     assert v["bits_matched"] == 143 and v["bits_total"] == 144
     assert v["views_below_all_bits"] == [{"index": 1, "matches": 47}] and v["train_wall_s"] == 155.0
-    assert abs(v["psnr_change_per_view_db"]["min"] + 0.1) < 1e-9 and abs(v["psnr_change_per_view_db"]["max"] - 0.1) < 1e-9
-    run = {"command": "python -m gsticker_plugin.bench.targets --x", "date": "d", "cpu": "c", "threads": 2, "steps": 300,
-           "pool_views": 16, "warmup_steps": 50, "owner_id": "o"}
+    assert (
+        abs(v["psnr_change_per_view_db"]["min"] + 0.1) < 1e-9 and abs(v["psnr_change_per_view_db"]["max"] - 0.1) < 1e-9
+    )
+    run = {
+        "command": "python -m gsticker_plugin.bench.targets --x",
+        "date": "d",
+        "cpu": "c",
+        "threads": 2,
+        "steps": 300,
+        "pool_views": 16,
+        "warmup_steps": 50,
+        "owner_id": "o",
+    }
     md = page({"run": run, "train": {"wall_s": 155.0}, "views": v}, "bench-targets.json", "bench-targets.png")
     assert "**99.31 %** (143 of 144 bits; 2 views 48/48; view 1 47/48)" in md
     assert "per view -0.10..+0.10" in md and "**2.6 min** (155 s wall" in md and "3 of 3; decoding 5.0 s" in md

@@ -1,5 +1,7 @@
 """Tests of ``ns-verify-owner`` (gsticker_plugin/verify/) and the statistics it adds to ``metrics``.
 
+Over 600 lines on purpose: the tests share one hand-built key and its image folders (module fixtures).
+
 The verdict logic is tested with a *hand-built* owner key whose extractor truly reads bits from images in a
 known way: a 7 x 7 grid of cells, cell ``i`` brighter than the image's average cell means bit ``i`` = 1 (a
 1x1 "convolution" to luminance, GroupNorm, GELU, 7 x 7 grid pooling and a linear read-out, all set by hand).
@@ -45,8 +47,12 @@ from gsticker_plugin.verify import cli as V
 
 BIN = Path(sys.executable).parent
 G, CELL = 7, 8  # 7 x 7 cells (48 bits + 1 neutral cell) of 8 px: 56 px images
-PALETTES = [((0.05, 0.1, 0.45), (1.0, 0.85, 0.2)), ((0.35, 0.05, 0.4), (0.2, 1.0, 0.6)),
-            ((0.3, 0.05, 0.05), (1.0, 0.6, 0.85)), ((0.0, 0.25, 0.3), (1.0, 0.55, 0.1))]
+PALETTES = [
+    ((0.05, 0.1, 0.45), (1.0, 0.85, 0.2)),
+    ((0.35, 0.05, 0.4), (0.2, 1.0, 0.6)),
+    ((0.3, 0.05, 0.05), (1.0, 0.6, 0.85)),
+    ((0.0, 0.25, 0.3), (1.0, 0.55, 0.1)),
+]
 
 
 # ---------------------------------------------------------------------------------------------- helpers
@@ -226,16 +232,22 @@ def test_owned_on_marked_and_recolored_images(alice, dirs, ws, capsys, case):
     folder = dirs["palette" if case == "palette+hue-attack" else case]
     out = ws / f"rep-{case}"
     extra = ["--attack", "hue=0.3"] if case == "palette+hue-attack" else []
-    status, stdout, _ = run_cli(["--images", str(folder), "--key", str(alice["path"]), "--output", str(out), *extra],
-                                capsys)
+    status, stdout, _ = run_cli(
+        ["--images", str(folder), "--key", str(alice["path"]), "--output", str(out), *extra], capsys
+    )
     assert status == 0, stdout
     assert stdout.startswith("VERDICT: OWNED by alice")
     rep = report_of(out)
     assert rep["verdict"] == "owned" and rep["exit_status"] == 0 and rep["owned_by"] == ["alice"]
     (r,) = rep["keys"]
     assert r["views"] == 6 and r["views_passing"] == 6 and r["share_passing"] == 1.0
-    assert r["thresholds"] == {"theoretical": 41, "empirical": None, "used": 41, "per_view_fpr_target": 1e-6,
-                               "per_view_fpr_at_used": pytest.approx(direct_tail(41), rel=1e-12)}
+    assert r["thresholds"] == {
+        "theoretical": 41,
+        "empirical": None,
+        "used": 41,
+        "per_view_fpr_target": 1e-6,
+        "per_view_fpr_at_used": pytest.approx(direct_tail(41), rel=1e-12),
+    }
     assert min(v["matches"] for v in r["per_view"]) >= 46
     assert (out / "report.png").stat().st_size > 10_000
 
@@ -286,22 +298,37 @@ def test_min_share_vote_and_fpr_option(alice, dirs, ws, capsys):
     status, _, _ = run_cli(["--images", str(mixed), "--key", str(alice["path"]), "--output", str(out)], capsys)
     r = report_of(out)["keys"][0]
     assert status == 1 and r["views_passing"] == 2 and r["views_needed"] == 3  # 2/6 < 50 %
-    status, _, _ = run_cli(["--images", str(mixed), "--key", str(alice["path"]), "--output", str(out),
-                            "--min-share", "0.3"], capsys)
+    status, _, _ = run_cli(
+        ["--images", str(mixed), "--key", str(alice["path"]), "--output", str(out), "--min-share", "0.3"], capsys
+    )
     r = report_of(out)["keys"][0]
     assert status == 0 and r["views_needed"] == 2 and r["model_fpr_bound"] == pytest.approx(direct_tail(41) / 0.3)
-    status, _, _ = run_cli(["--images", str(dirs["near44"]), "--key", str(alice["path"]), "--output", str(out),
-                            "--fpr", "1e-9"], capsys)  # 44 matches: passes at 1e-9 (>= 44)
+    status, _, _ = run_cli(
+        ["--images", str(dirs["near44"]), "--key", str(alice["path"]), "--output", str(out), "--fpr", "1e-9"], capsys
+    )  # 44 matches: passes at 1e-9 (>= 44)
     assert status == 0 and report_of(out)["keys"][0]["thresholds"]["used"] == 44
 
 
 def test_attack_option(alice, dirs, ws, capsys):
     out = ws / "rep-attack"
-    status, _, _ = run_cli(["--images", str(dirs["marked"]), "--key", str(alice["path"]), "--output", str(out),
-                            "--attack", "noise=0.05,blur=1,jpeg=50"], capsys)
+    status, _, _ = run_cli(
+        [
+            "--images",
+            str(dirs["marked"]),
+            "--key",
+            str(alice["path"]),
+            "--output",
+            str(out),
+            "--attack",
+            "noise=0.05,blur=1,jpeg=50",
+        ],
+        capsys,
+    )
     assert status == 0 and report_of(out)["settings"]["attack"] == "noise=0.05,blur=1,jpeg=50"
-    status, _, err = run_cli(["--images", str(dirs["marked"]), "--key", str(alice["path"]), "--output", str(out),
-                              "--attack", "bogus=1"], capsys)
+    status, _, err = run_cli(
+        ["--images", str(dirs["marked"]), "--key", str(alice["path"]), "--output", str(out), "--attack", "bogus=1"],
+        capsys,
+    )
     assert status == 2 and "unknown attack" in one_error_line(err)
 
 
@@ -314,8 +341,10 @@ def test_many_keys_are_corrected_for_multiple_testing(alice, dirs, ws, capsys):
         make_key(msg(10 + i), name).save(kdir / f"{name}.gskey")
     for correction in ("holm", "bonferroni"):
         out = ws / f"rep-many-{correction}"
-        status, stdout, _ = run_cli(["--images", str(dirs["marked"]), "--keys", str(kdir), "--output", str(out),
-                                     "--correction", correction], capsys)
+        status, stdout, _ = run_cli(
+            ["--images", str(dirs["marked"]), "--keys", str(kdir), "--output", str(out), "--correction", correction],
+            capsys,
+        )
         assert status == 0 and stdout.startswith("VERDICT: OWNED by alice")
         rep = report_of(out)
         assert rep["owned_by"] == ["alice"] and len(rep["keys"]) == 5
@@ -340,8 +369,9 @@ def test_calibrate_stores_the_null_and_verify_uses_the_stricter_threshold(alice,
     status, _, _ = run_cli(["--images", str(dirs["near44"]), "--key", str(key), "--output", str(out)], capsys)
     assert status == 0
     # a null in which unmarked views reach 44 matches: the empirical threshold (45) is stricter
-    status, stdout, _ = run_cli(["calibrate", "--key", str(key), "--images", str(dirs["near44"]),
-                                 "--random-images", "32"], capsys)
+    status, stdout, _ = run_cli(
+        ["calibrate", "--key", str(key), "--images", str(dirs["near44"]), "--random-images", "32"], capsys
+    )
     assert status == 0, stdout
     assert "calibrated" in stdout and "empirical 45" in stdout
     # the null says how many distinct sources it rests on (views of one source are not independent)
@@ -387,19 +417,27 @@ def test_key_errors_wrong_format_version_tampered_missing(alice, dirs, ws, capsy
     forged["fingerprint"] = fingerprint(forged)
     torch.save(forged, bad / "forged.gskey")
     (bad / "text.gskey").write_text("not a key")
-    expect = {"format.gskey": "wrong format", "version.gskey": "version 99", "tampered.gskey": "integrity check",
-              "forged.gskey": "integrity check",
-              "text.gskey": "not a readable", "missing.gskey": "does not exist"}
+    expect = {
+        "format.gskey": "wrong format",
+        "version.gskey": "version 99",
+        "tampered.gskey": "integrity check",
+        "forged.gskey": "integrity check",
+        "text.gskey": "not a readable",
+        "missing.gskey": "does not exist",
+    }
     for name, words in expect.items():
-        status, stdout, err = run_cli(["--images", str(dirs["marked"]), "--key", str(bad / name),
-                                       "--output", str(ws / "rep-bad")], capsys)
+        status, stdout, err = run_cli(
+            ["--images", str(dirs["marked"]), "--key", str(bad / name), "--output", str(ws / "rep-bad")], capsys
+        )
         assert status == 2 and words in one_error_line(err) and "VERDICT" not in stdout, (name, err)
     # a tampered key among many stops the run (the family of keys must be intact)
-    status, _, err = run_cli(["--images", str(dirs["marked"]), "--keys", str(bad), "--output", str(ws / "rep-bad")],
-                             capsys)
+    status, _, err = run_cli(
+        ["--images", str(dirs["marked"]), "--keys", str(bad), "--output", str(ws / "rep-bad")], capsys
+    )
     assert status == 2
-    status, _, err = run_cli(["--images", str(dirs["marked"]), "--keys", str(ws / "marked"),
-                              "--output", str(ws / "rep-bad")], capsys)
+    status, _, err = run_cli(
+        ["--images", str(dirs["marked"]), "--keys", str(ws / "marked"), "--output", str(ws / "rep-bad")], capsys
+    )
     assert status == 2 and "no *.gskey" in one_error_line(err)
 
 
@@ -433,8 +471,9 @@ def test_bad_images_are_skipped_with_reasons_or_refused(alice, dirs, ws, capsys)
     assert "downscaled from 20000x20000" in views["huge.png"]["note"]
     assert "3 skipped" in stdout
     # a pixel guard below the huge image's size: a documented skip, read from the header only
-    status, _, _ = run_cli(["--images", str(mixed), "--key", str(alice["path"]), "--output", str(out),
-                            "--max-pixels", "100000000"], capsys)
+    status, _, _ = run_cli(
+        ["--images", str(mixed), "--key", str(alice["path"]), "--output", str(out), "--max-pixels", "100000000"], capsys
+    )
     assert "too large" in {s["name"]: s["reason"] for s in report_of(out)["input"]["skipped"]}["huge.png"]
     # nothing usable: one line, exit 2, no verdict
     junk = ws / "junk"
@@ -444,8 +483,9 @@ def test_bad_images_are_skipped_with_reasons_or_refused(alice, dirs, ws, capsys)
     empty = ws / "empty"
     empty.mkdir()
     for folder, words in ((junk, "no usable image"), (empty, "holds no files"), (ws / "nope", "does not exist")):
-        status, stdout, err = run_cli(["--images", str(folder), "--key", str(alice["path"]),
-                                       "--output", str(ws / "rep-junk")], capsys)
+        status, stdout, err = run_cli(
+            ["--images", str(folder), "--key", str(alice["path"]), "--output", str(ws / "rep-junk")], capsys
+        )
         assert status == 2 and words in one_error_line(err) and "VERDICT" not in stdout
 
 
@@ -471,19 +511,44 @@ def test_console_script_exit_codes(alice, dirs, ws):
         pytest.fail(f"console script ns-verify-owner is not installed next to {sys.executable} (pip install -e .)")
     env = dict(os.environ, OMP_NUM_THREADS="1", GSTICKER_NO_DOWNLOAD="1")
     for folder, code, first in ((dirs["marked"], 0, "VERDICT: OWNED"), (dirs["random"], 1, "VERDICT: NOT SHOWN")):
-        proc = subprocess.run([str(script), "--images", str(folder), "--key", str(alice["path"]), "--output",
-                               str(ws / "rep-script"), "--no-progress"], capture_output=True, text=True, env=env,
-                              timeout=120)
+        proc = subprocess.run(
+            [
+                str(script),
+                "--images",
+                str(folder),
+                "--key",
+                str(alice["path"]),
+                "--output",
+                str(ws / "rep-script"),
+                "--no-progress",
+            ],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=120,
+        )
         assert proc.returncode == code and proc.stdout.startswith(first), proc.stdout + proc.stderr
-    proc = subprocess.run([str(script), "verify", "--images", str(ws / "nope"), "--key", str(alice["path"])],
-                          capture_output=True, text=True, env=env, timeout=120)
+    proc = subprocess.run(
+        [str(script), "verify", "--images", str(ws / "nope"), "--key", str(alice["path"])],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert proc.returncode == 2 and one_error_line(proc.stderr)
 
 
 # ---------------------------------------------------------------------------------------------- real runs (slow)
-NERFACTO_TINY = ["gsticker-nerfacto-small", "--pipeline.model.num-nerf-samples-per-ray", "16",
-                 "--pipeline.model.num-proposal-samples-per-ray", "32", "16",
-                 "--pipeline.datamanager.train-num-rays-per-batch", "256"]
+NERFACTO_TINY = [
+    "gsticker-nerfacto-small",
+    "--pipeline.model.num-nerf-samples-per-ray",
+    "16",
+    "--pipeline.model.num-proposal-samples-per-ray",
+    "32",
+    "16",
+    "--pipeline.datamanager.train-num-rays-per-batch",
+    "256",
+]
 COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
 MESSAGE = TINY_MESSAGE
 
@@ -518,16 +583,38 @@ def _check_model_report(rep: dict, n_views: int) -> dict:
 def test_real_watermarked_run_is_owned_by_geometric_decoding(real_runs, ws, capsys):
     """The default decoder for a model (the key is version 2, its base is here): informed, from the geometry."""
     out = ws / "rep-real-geometry"
-    status, stdout, err = run_cli(["--load-config", str(real_runs["run"]), "--key", str(real_runs["key"]),
-                                   "--output", str(out), "--num-views", "8"], capsys)
+    status, stdout, err = run_cli(
+        [
+            "--load-config",
+            str(real_runs["run"]),
+            "--key",
+            str(real_runs["key"]),
+            "--output",
+            str(out),
+            "--num-views",
+            "8",
+        ],
+        capsys,
+    )
     assert status == 0 and stdout.startswith("VERDICT: OWNED"), err[-2000:]
     rep = report_of(out)
     assert rep["decoder"]["kind"] == "geometry" and "informed" in stdout
     r = _check_model_report(rep, 8)
     assert r["verdict"] == "owned" and r["matches_min"] >= 41
     out_b = ws / "rep-real-geometry-base"
-    status, _, _ = run_cli(["--load-config", str(real_runs["base"]), "--key", str(real_runs["key"]),
-                            "--output", str(out_b), "--num-views", "8"], capsys)
+    status, _, _ = run_cli(
+        [
+            "--load-config",
+            str(real_runs["base"]),
+            "--key",
+            str(real_runs["key"]),
+            "--output",
+            str(out_b),
+            "--num-views",
+            "8",
+        ],
+        capsys,
+    )
     assert status == 1
     assert _check_model_report(report_of(out_b), 8)["matches_max"] < 41
 
@@ -548,8 +635,19 @@ def test_real_watermarked_run_end_to_end(real_runs, ws, capsys):
     """The blind extractor on renders (--decode extractor) of a 10-step run, which it cannot read yet: exactly
     "not shown" (exit 1) at chance, on the watermarked run and on its unmarked base alike; report files written."""
     out = ws / "rep-real"
-    status, stdout, err = run_cli(["--load-config", str(real_runs["run"]), "--key", str(real_runs["key"]),
-                                   "--output", str(out), "--decode", "extractor"], capsys)
+    status, stdout, err = run_cli(
+        [
+            "--load-config",
+            str(real_runs["run"]),
+            "--key",
+            str(real_runs["key"]),
+            "--output",
+            str(out),
+            "--decode",
+            "extractor",
+        ],
+        capsys,
+    )
     assert status == 1 and stdout.startswith("VERDICT: NOT SHOWN"), stdout[-2000:] + err[-2000:]
     rep = report_of(out)
     _check_extractor_at_chance(rep, 24)
@@ -557,8 +655,21 @@ def test_real_watermarked_run_end_to_end(real_runs, ws, capsys):
     assert (out / "report.png").is_file()
     # the stock base (nerfacto, never marked) with the run's key: not shown
     out_b = ws / "rep-real-base"
-    status, _, _ = run_cli(["--load-config", str(real_runs["base"]), "--key", str(real_runs["key"]),
-                            "--output", str(out_b), "--num-views", "8", "--decode", "extractor"], capsys)
+    status, _, _ = run_cli(
+        [
+            "--load-config",
+            str(real_runs["base"]),
+            "--key",
+            str(real_runs["key"]),
+            "--output",
+            str(out_b),
+            "--num-views",
+            "8",
+            "--decode",
+            "extractor",
+        ],
+        capsys,
+    )
     assert status == 1
     _check_extractor_at_chance(report_of(out_b), 8)
 
@@ -567,15 +678,28 @@ def test_real_watermarked_run_end_to_end(real_runs, ws, capsys):
 def test_real_run_calibrate_missing_checkpoint_and_other_scene(real_runs, ws, tiny_scene, capsys):
     key = ws / "real-calib.gskey"
     shutil.copy(real_runs["key"], key)
-    status, stdout, err = run_cli(["calibrate", "--key", str(key), "--num-views", "4", "--random-images", "8",
-                                   "--images", str(tiny_scene / "test")], capsys)
+    status, stdout, err = run_cli(
+        [
+            "calibrate",
+            "--key",
+            str(key),
+            "--num-views",
+            "4",
+            "--random-images",
+            "8",
+            "--images",
+            str(tiny_scene / "test"),
+        ],
+        capsys,
+    )
     assert status == 0, err
     null = OwnerKey.load(key).null
     # 4 base views + the test folder's 2 renders and 2 depth EXRs (any image OpenImageIO reads) + 8 random
     assert len(null["matches"]) == 4 + 4 + 8 and null["sources"][0]["kind"] == "model"
     assert null["sources"][0]["details"]["method"] == "gsticker-nerfacto-small"  # the key's recorded base
-    status, _, _ = run_cli(["--images", str(tiny_scene / "train"), "--key", str(key), "--output",
-                            str(ws / "rep-real-other")], capsys)
+    status, _, _ = run_cli(
+        ["--images", str(tiny_scene / "train"), "--key", str(key), "--output", str(ws / "rep-real-other")], capsys
+    )
     assert status == 1
     t = report_of(ws / "rep-real-other")["keys"][0]["thresholds"]
     assert t["used"] == max(t["theoretical"], t["empirical"])
@@ -587,8 +711,9 @@ def test_real_run_calibrate_missing_checkpoint_and_other_scene(real_runs, ws, ti
     cfg = yaml.load(real_runs["run"].read_text(), Loader=yaml.Loader)
     cfg.output_dir = moved / "elsewhere"
     (moved / "config.yml").write_text(yaml.dump(cfg))
-    status, stdout, err = run_cli(["--load-config", str(moved / "config.yml"), "--key", str(key),
-                                   "--output", str(ws / "rep-moved")], capsys)
+    status, stdout, err = run_cli(
+        ["--load-config", str(moved / "config.yml"), "--key", str(key), "--output", str(ws / "rep-moved")], capsys
+    )
     assert status == 2 and "no checkpoint" in one_error_line(err) and "VERDICT" not in stdout
 
 
@@ -604,18 +729,37 @@ def test_real_recolored_runs(real_runs, ws, capsys, edit):
     env = dict(os.environ, OMP_NUM_THREADS="1", GSTICKER_NO_DOWNLOAD="1", PYTHONWARNINGS="ignore")
     args = ["--set", "0=blue"] if edit == "palette" else ["--shift", "0.25"]
     out_dir = ws / f"recolored-{edit}"
-    proc = subprocess.run([str(script), edit, "--load-config", str(real_runs["run"]), "--output-dir", str(out_dir),
-                           *args], capture_output=True, text=True, env=env, timeout=300)
+    proc = subprocess.run(
+        [str(script), edit, "--load-config", str(real_runs["run"]), "--output-dir", str(out_dir), *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert proc.returncode == 0, f"ns-recolor {edit} failed: {proc.stdout[-1500:]}{proc.stderr[-1500:]}"
     (cfg,) = out_dir.glob("**/config.yml")
     out = ws / f"rep-recolored-{edit}"
-    status, stdout, err = run_cli(["--load-config", str(cfg), "--key", str(real_runs["key"]), "--output", str(out),
-                                   "--num-views", "8"], capsys)
+    status, stdout, err = run_cli(
+        ["--load-config", str(cfg), "--key", str(real_runs["key"]), "--output", str(out), "--num-views", "8"], capsys
+    )
     assert status == 0 and stdout.startswith("VERDICT: OWNED"), err[-2000:]  # geometric decoding (the default)
     r = _check_model_report(report_of(out), 8)
     assert report_of(out)["decoder"]["kind"] == "geometry" and r["matches_min"] >= 41
-    status, stdout, err = run_cli(["--load-config", str(cfg), "--key", str(real_runs["key"]), "--output", str(out),
-                                   "--num-views", "8", "--decode", "extractor"], capsys)
+    status, stdout, err = run_cli(
+        [
+            "--load-config",
+            str(cfg),
+            "--key",
+            str(real_runs["key"]),
+            "--output",
+            str(out),
+            "--num-views",
+            "8",
+            "--decode",
+            "extractor",
+        ],
+        capsys,
+    )
     assert status == 1 and stdout.startswith("VERDICT: NOT SHOWN"), stdout[-2000:] + err[-2000:]
     _check_extractor_at_chance(report_of(out), 8)
 
@@ -627,7 +771,6 @@ def test_load_run_keeps_stock_nerfacto_in_process(shared_dir):
 
     from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager
     from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManager
-
 
     assert RUNS.spawns_workers(ParallelDataManager) and not RUNS.spawns_workers(VanillaDataManager)
     config = shared_dir / "checkpoints" / "lego100-nerfacto-small" / "nerfacto" / "base" / "config.yml"

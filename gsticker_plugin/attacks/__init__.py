@@ -42,7 +42,29 @@ from gsticker_plugin.attacks.valuemetric import (
     jpeg,
 )
 
-__all__ = ["ATTACKS", "ATTACK_NAMES", "AttackFn", "Cropout", "GaussianBlur", "GaussianNoise", "HueShift", "JPEG",
-           "RandomDistortion", "RandomDistortionConfig", "Resize", "Rotate", "Strength", "apply_attacks",
-           "blur_kernel_size", "check_strength", "cropout", "gaussian_blur", "gaussian_noise", "hue_shift", "jpeg",
-           "parse_attack_spec", "resize", "rotate"]
+__all__ = [
+    "ATTACKS",
+    "ATTACK_NAMES",
+    "AttackFn",
+    "Cropout",
+    "GaussianBlur",
+    "GaussianNoise",
+    "HueShift",
+    "JPEG",
+    "RandomDistortion",
+    "RandomDistortionConfig",
+    "Resize",
+    "Rotate",
+    "Strength",
+    "apply_attacks",
+    "blur_kernel_size",
+    "check_strength",
+    "cropout",
+    "gaussian_blur",
+    "gaussian_noise",
+    "hue_shift",
+    "jpeg",
+    "parse_attack_spec",
+    "resize",
+    "rotate",
+]

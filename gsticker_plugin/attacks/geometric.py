@@ -22,8 +22,9 @@ from gsticker_plugin.attacks.common import (
 )
 
 
-def rotate(img: Float[Tensor, "B 3 H W"], degrees: Strength, fill: float = 1.0,
-           clamp: bool = True) -> Float[Tensor, "B 3 H W"]:
+def rotate(
+    img: Float[Tensor, "B 3 H W"], degrees: Strength, fill: float = 1.0, clamp: bool = True
+) -> Float[Tensor, "B 3 H W"]:
     """Rotate about the image centre by ``degrees`` (counter-clockwise, like ``torch.rot90``), keeping the size.
 
     The area that leaves the frame is lost; the area that enters it is ``fill`` (white by default: Blender

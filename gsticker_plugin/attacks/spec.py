@@ -76,9 +76,7 @@ def parse_attack_spec(spec: str) -> List[Tuple[str, float]]:
         try:
             value = float(raw)
         except ValueError:
-            raise ValueError(
-                f"attack {name!r}: {raw!r} is not a number; write e.g. '{_RANGES[name][2]}'"
-            ) from None
+            raise ValueError(f"attack {name!r}: {raw!r} is not a number; write e.g. '{_RANGES[name][2]}'") from None
         out.append((name, check_strength(name, value)))
     return out
 

@@ -37,6 +37,7 @@ from gsticker_plugin.runs import final_rgb, load_run
 @dataclass
 class BenchFuseConfig:
     """Fuse a watermarked run into a stock run and measure what the geometric decoder reads from it."""
+
     load_config: Path
     """The watermarked run's config.yml."""
     key: Path
@@ -57,25 +58,46 @@ class BenchFuseConfig:
     doc: Path = Path("docs/bench-fuse.md")
     """Markdown report; the JSON goes beside it."""
 
+
 def verify(config: Path, key: Path, out: Path, num_views: int, data: Optional[Path], reuse: bool) -> Dict[str, Any]:
     report = out / "report.json"
     t0 = time.time()
     rc = None
     if not (reuse and report.is_file()):
         exe = Path(sys.executable).with_name("ns-verify-owner")
-        cmd = [str(exe), "--load-config", str(config), "--key", str(key), "--decode", "geometry",
-               "--num-views", str(num_views), "--output", str(out), "--no-progress"]
+        cmd = [
+            str(exe),
+            "--load-config",
+            str(config),
+            "--key",
+            str(key),
+            "--decode",
+            "geometry",
+            "--num-views",
+            str(num_views),
+            "--output",
+            str(out),
+            "--no-progress",
+        ]
         if data is not None:
             cmd += ["--data", str(data)]
         print("[bench-fuse] " + " ".join(cmd), file=sys.stderr, flush=True)
         rc = subprocess.run(cmd, stdout=sys.stderr).returncode
     r = json.loads(report.read_text())["keys"][0]
-    return {"exit": rc, "seconds": time.time() - t0 if rc is not None else None, "verdict": r["verdict"],
-            "views_passing": r["views_passing"], "views": r["views"], "mean_bit_accuracy": r["mean_bit_accuracy"],
-            "matches_min": r["matches_min"], "matches_median": r["matches_median"], "matches_max": r["matches_max"],
-            "threshold": r["thresholds"]["used"],
-            "explained": [v.get("geometry", {}).get("explained") for v in r["per_view"]],
-            "per_view_matches": [v["matches"] for v in r["per_view"]]}
+    return {
+        "exit": rc,
+        "seconds": time.time() - t0 if rc is not None else None,
+        "verdict": r["verdict"],
+        "views_passing": r["views_passing"],
+        "views": r["views"],
+        "mean_bit_accuracy": r["mean_bit_accuracy"],
+        "matches_min": r["matches_min"],
+        "matches_median": r["matches_median"],
+        "matches_max": r["matches_max"],
+        "threshold": r["thresholds"]["used"],
+        "explained": [v.get("geometry", {}).get("explained") for v in r["per_view"]],
+        "per_view_matches": [v["matches"] for v in r["per_view"]],
+    }
 
 
 @torch.no_grad()
@@ -86,8 +108,17 @@ def psnr_table(wm_config: Path, fused_config: Path, data: Optional[Path], num: i
         fcfg, fused_pipe, _ = load_run(fused_config, data=data, device=dev)
     wm, fused = wm_pipe.model, fused_pipe.model
     ds = wm_pipe.datamanager.eval_dataset
-    rows: Dict[str, List[float]] = {k: [] for k in ("fused_vs_watermarked", "fused_vs_base", "watermarked_vs_base",
-                                                    "fused_vs_gt", "watermarked_vs_gt", "base_vs_gt")}
+    rows: Dict[str, List[float]] = {
+        k: []
+        for k in (
+            "fused_vs_watermarked",
+            "fused_vs_base",
+            "watermarked_vs_base",
+            "fused_vs_gt",
+            "watermarked_vs_gt",
+            "base_vs_gt",
+        )
+    }
     cams = eval_cameras(wm_pipe, num)
     for name, cam in cams:
         i = int(name.split("/")[1])
@@ -147,9 +178,11 @@ def write_doc(res: Dict[str, Any], doc: Path) -> None:
     for name, r in v.items():
         ex = sorted(x for x in r["explained"] if x is not None)
         med = ex[len(ex) // 2] if ex else None
-        lines.append(f"| {name} | {r['verdict']} | {r['views_passing']}/{r['views']} | {100 * r['mean_bit_accuracy']:.1f} % "
-                     f"| {r['matches_min']} / {r['matches_median']} / {r['matches_max']} | "
-                     f"{fmt(100 * med if med is not None else None, 1)} % | {fmt(r['seconds'], 0)} |")
+        lines.append(
+            f"| {name} | {r['verdict']} | {r['views_passing']}/{r['views']} | {100 * r['mean_bit_accuracy']:.1f} % "
+            f"| {r['matches_min']} / {r['matches_median']} / {r['matches_max']} | "
+            f"{fmt(100 * med if med is not None else None, 1)} % | {fmt(r['seconds'], 0)} |"
+        )
     lines += [
         "",
         f"## Renders ({p['views']} eval cameras, mean PSNR in dB)",
@@ -157,8 +190,14 @@ def write_doc(res: Dict[str, Any], doc: Path) -> None:
         "| pair | PSNR (dB) |",
         "|---|---|",
     ]
-    for k in ("fused_vs_watermarked", "fused_vs_base", "watermarked_vs_base", "fused_vs_gt", "watermarked_vs_gt",
-              "base_vs_gt"):
+    for k in (
+        "fused_vs_watermarked",
+        "fused_vs_base",
+        "watermarked_vs_base",
+        "fused_vs_gt",
+        "watermarked_vs_gt",
+        "base_vs_gt",
+    ):
         lines.append(f"| {k.replace('_vs_', ' vs ').replace('_', ' ')} | {p[k]:.2f} |")
     lines += ["", "## Conclusion", "", res["conclusion"], ""]
     doc.parent.mkdir(parents=True, exist_ok=True)
@@ -170,15 +209,21 @@ def conclusion(res: Dict[str, Any]) -> str:
     fz, wm = res["verify"]["fused"], res["verify"].get("watermarked")
     p = res["psnr"]
     acc = 100 * fz["mean_bit_accuracy"]
-    ref = f" (watermarked run: {100 * wm['mean_bit_accuracy']:.1f} %, {wm['views_passing']}/{wm['views']})" if wm else ""
+    ref = (
+        f" (watermarked run: {100 * wm['mean_bit_accuracy']:.1f} %, {wm['views_passing']}/{wm['views']})" if wm else ""
+    )
     if fz["verdict"] == "owned":
-        return (f"The geometric decoder reads the fused run: {fz['views_passing']}/{fz['views']} views pass, "
-                f"{acc:.1f} % of the bits{ref}; its renders are {p['fused_vs_watermarked']:.1f} dB from the "
-                f"watermarked ones and {p['fused_vs_base']:.1f} dB from the unwatermarked base's.")
-    return (f"The geometric decoder does not read the fused run well enough: {fz['views_passing']}/{fz['views']} views "
-            f"pass, {acc:.1f} % of the bits{ref}; renders {p['fused_vs_watermarked']:.1f} dB from the watermarked "
-            f"ones ({p['watermarked_vs_base']:.1f} dB is the sticker's own change). The wrapped run stays the default "
-            "export.")
+        return (
+            f"The geometric decoder reads the fused run: {fz['views_passing']}/{fz['views']} views pass, "
+            f"{acc:.1f} % of the bits{ref}; its renders are {p['fused_vs_watermarked']:.1f} dB from the "
+            f"watermarked ones and {p['fused_vs_base']:.1f} dB from the unwatermarked base's."
+        )
+    return (
+        f"The geometric decoder does not read the fused run well enough: {fz['views_passing']}/{fz['views']} views "
+        f"pass, {acc:.1f} % of the bits{ref}; renders {p['fused_vs_watermarked']:.1f} dB from the watermarked "
+        f"ones ({p['watermarked_vs_base']:.1f} dB is the sticker's own change). The wrapped run stays the default "
+        "export."
+    )
 
 
 def main(cfg: BenchFuseConfig) -> Dict[str, Any]:
@@ -198,19 +243,21 @@ def main(cfg: BenchFuseConfig) -> Dict[str, Any]:
         summary = fuse(fcfg)
     del summary_path
     fused_config = Path(summary["fused_config"])
-    res: Dict[str, Any] = {"settings": {k: (str(v) if isinstance(v, Path) else v)
-                                        for k, v in asdict(fcfg).items() if k != "losses"},
-                           "loss_weights": asdict(fcfg.losses),
-                           "fuse": {k: v for k, v in summary.items() if k not in ("log", "config")},
-                           "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores, torch threads "
-                                      f"{torch.get_num_threads()}",
-                           "command": "python -m gsticker_plugin.bench.fuse " + " ".join(sys.argv[1:]),
-                           "log": summary.get("log")}
-    res["verify"] = {"fused": verify(fused_config, cfg.key, cfg.output_dir / "verify-fused", cfg.num_views, cfg.data,
-                                     cfg.reuse)}
+    res: Dict[str, Any] = {
+        "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(fcfg).items() if k != "losses"},
+        "loss_weights": asdict(fcfg.losses),
+        "fuse": {k: v for k, v in summary.items() if k not in ("log", "config")},
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores, torch threads {torch.get_num_threads()}",
+        "command": "python -m gsticker_plugin.bench.fuse " + " ".join(sys.argv[1:]),
+        "log": summary.get("log"),
+    }
+    res["verify"] = {
+        "fused": verify(fused_config, cfg.key, cfg.output_dir / "verify-fused", cfg.num_views, cfg.data, cfg.reuse)
+    }
     if cfg.verify_watermarked:
-        res["verify"]["watermarked"] = verify(cfg.load_config, cfg.key, cfg.output_dir / "verify-watermarked",
-                                              cfg.num_views, cfg.data, cfg.reuse)
+        res["verify"]["watermarked"] = verify(
+            cfg.load_config, cfg.key, cfg.output_dir / "verify-watermarked", cfg.num_views, cfg.data, cfg.reuse
+        )
     res["psnr"] = psnr_table(cfg.load_config, fused_config, cfg.data, cfg.psnr_views)
     res["conclusion"] = conclusion(res)
     write_doc(res, cfg.doc)

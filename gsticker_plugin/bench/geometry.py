@@ -92,21 +92,53 @@ def _run(cmd: List[str], log: Path, ok=(0,)) -> Dict[str, Any]:
     return {"command": cmd, "exit": proc.returncode, "wall_s": wall}
 
 
-def train_sticker(cfg: StickerRunConfig, out: Path, base_ckpt: Path, data: List[str], logs: Path) -> Optional[Dict[str, Any]]:
+def train_sticker(
+    cfg: StickerRunConfig, out: Path, base_ckpt: Path, data: List[str], logs: Path
+) -> Optional[Dict[str, Any]]:
     """``ns-train geometrysticker`` into ``out/bench/geometrysticker/watermarked`` (skipped, returning None, when
     its checkpoint and key exist)."""
     wm = out / "bench" / "geometrysticker" / "watermarked"
     if wm.with_name("watermarked.gskey").exists() and list((wm / "nerfstudio_models").glob("step-*.ckpt")):
         print("    (exists)")
         return None
-    return _run([console_script("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
-                 "--output-dir", str(out), "--experiment-name", "bench", "--timestamp", "watermarked",
-                 "--max-num-iterations", str(cfg.steps), "--steps-per-save", str(cfg.steps),
-                 "--pipeline.owner-id", cfg.owner_id, "--pipeline.key-path", str(wm.with_name("watermarked.gskey")),
-                 "--pipeline.pool-train-views", str(cfg.pool_views),
-                 "--pipeline.pool-novel-views", str(cfg.pool_views), "--pipeline.monitor-views", "4",
-                 "--pipeline.steps-per-monitor", "50", "--pipeline.warmup-steps", str(cfg.warmup_steps),
-                 "--load-checkpoint", str(base_ckpt), *data], logs / "train.log")
+    return _run(
+        [
+            console_script("ns-train"),
+            "geometrysticker",
+            "--machine.device-type",
+            "cpu",
+            "--vis",
+            "tensorboard",
+            "--output-dir",
+            str(out),
+            "--experiment-name",
+            "bench",
+            "--timestamp",
+            "watermarked",
+            "--max-num-iterations",
+            str(cfg.steps),
+            "--steps-per-save",
+            str(cfg.steps),
+            "--pipeline.owner-id",
+            cfg.owner_id,
+            "--pipeline.key-path",
+            str(wm.with_name("watermarked.gskey")),
+            "--pipeline.pool-train-views",
+            str(cfg.pool_views),
+            "--pipeline.pool-novel-views",
+            str(cfg.pool_views),
+            "--pipeline.monitor-views",
+            "4",
+            "--pipeline.steps-per-monitor",
+            "50",
+            "--pipeline.warmup-steps",
+            str(cfg.warmup_steps),
+            "--load-checkpoint",
+            str(base_ckpt),
+            *data,
+        ],
+        logs / "train.log",
+    )
 
 
 def _config_under(folder: Path) -> Path:
@@ -123,9 +155,11 @@ def psnr_watermarked_vs_clean(config: Path, views: int) -> Dict[str, float]:
     pipe = load_pipeline(config)
     on = render_split(pipe, "test", views, sticker=True, progress=False)
     off = render_split(pipe, "test", views, sticker=False, progress=False)
-    return {"vs_clean": float(psnr_nhw3(on["rgb"], off["rgb"]).mean()),
-            "marked_vs_gt": float(psnr_nhw3(on["rgb"], on["gt"]).mean()),
-            "clean_vs_gt": float(psnr_nhw3(off["rgb"], off["gt"]).mean())}
+    return {
+        "vs_clean": float(psnr_nhw3(on["rgb"], off["rgb"]).mean()),
+        "marked_vs_gt": float(psnr_nhw3(on["rgb"], on["gt"]).mean()),
+        "clean_vs_gt": float(psnr_nhw3(off["rgb"], off["gt"]).mean()),
+    }
 
 
 def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
@@ -143,8 +177,11 @@ def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
     psnr = psnr_watermarked_vs_clean(wm / "config.yml", cfg.psnr_views)
     results["psnr_watermarked_vs_clean_db"] = psnr["vs_clean"]
     results["psnr_vs_ground_truth_db"] = {"watermarked": psnr["marked_vs_gt"], "unwatermarked": psnr["clean_vs_gt"]}
-    print(f"    {psnr['vs_clean']:.2f} dB; against ground truth: watermarked {psnr['marked_vs_gt']:.2f} dB, "
-          f"unwatermarked {psnr['clean_vs_gt']:.2f} dB", flush=True)
+    print(
+        f"    {psnr['vs_clean']:.2f} dB; against ground truth: watermarked {psnr['marked_vs_gt']:.2f} dB, "
+        f"unwatermarked {psnr['clean_vs_gt']:.2f} dB",
+        flush=True,
+    )
 
     print("[3/4] ns-recolor", flush=True)
     recolors = {"palette": ["palette", "--set", "0=dodger blue", "1=magenta"], "hue": ["hue", "--shift", "0.3"]}
@@ -155,8 +192,17 @@ def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
         dest = out / f"recolor-{name}"
         if not list(dest.glob("**/config.yml")):
             results["stages"][f"recolor-{name}"] = _run(
-                [console_script("ns-recolor"), *args, "--load-config", str(wm / "config.yml"), "--output-dir", str(dest),
-                 "--overwrite"], logs / f"recolor-{name}.log")
+                [
+                    console_script("ns-recolor"),
+                    *args,
+                    "--load-config",
+                    str(wm / "config.yml"),
+                    "--output-dir",
+                    str(dest),
+                    "--overwrite",
+                ],
+                logs / f"recolor-{name}.log",
+            )
         else:
             print(f"    ({dest} exists)")
         suspects[f"{name}-recolored"] = _config_under(dest)
@@ -177,38 +223,75 @@ def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
         jobs.append(("watermarked", suspects["watermarked"], "extractor"))
     for name, cfgp, decoder in jobs:
         rep_dir = out / "verify" / f"{name.replace(' ', '-')}-{decoder}"
-        run = _run([console_script("ns-verify-owner"), "--load-config", str(cfgp), "--key", str(key), "--decode", decoder,
-                    "--num-views", str(cfg.num_views), "--output", str(rep_dir), "--no-progress", *data],
-                   logs / f"verify-{name.replace(' ', '-')}-{decoder}.log", ok=(0, 1))
+        run = _run(
+            [
+                console_script("ns-verify-owner"),
+                "--load-config",
+                str(cfgp),
+                "--key",
+                str(key),
+                "--decode",
+                decoder,
+                "--num-views",
+                str(cfg.num_views),
+                "--output",
+                str(rep_dir),
+                "--no-progress",
+                *data,
+            ],
+            logs / f"verify-{name.replace(' ', '-')}-{decoder}.log",
+            ok=(0, 1),
+        )
         rep = json.loads((rep_dir / "report.json").read_text())
         (r,) = rep["keys"]
         m = [v["matches"] for v in r["per_view"]]
-        row = {"suspect": name, "decoder": decoder, "verdict": rep["verdict"], "exit": run["exit"],
-               "views_passing": r["views_passing"], "views": r["views"], "matches": m,
-               "matches_min": min(m), "matches_median": sorted(m)[len(m) // 2], "matches_max": max(m),
-               "threshold": r["thresholds"]["used"], "model_pvalue": r["model_pvalue"], "wall_s": run["wall_s"],
-               "command": run["command"], "report": str(rep_dir / "report.json")}
+        row = {
+            "suspect": name,
+            "decoder": decoder,
+            "verdict": rep["verdict"],
+            "exit": run["exit"],
+            "views_passing": r["views_passing"],
+            "views": r["views"],
+            "matches": m,
+            "matches_min": min(m),
+            "matches_median": sorted(m)[len(m) // 2],
+            "matches_max": max(m),
+            "threshold": r["thresholds"]["used"],
+            "model_pvalue": r["model_pvalue"],
+            "wall_s": run["wall_s"],
+            "command": run["command"],
+            "report": str(rep_dir / "report.json"),
+        }
         if decoder == "geometry":
             g = [v["geometry"] for v in r["per_view"]]
             row["undetermined_bits_mean"] = sum(x["undetermined"] for x in g) / len(g)
             row["explained_min"] = min(x["explained"] for x in g)
         rows.append(row)
-        print(f"    {name:>20} [{decoder}]: {rep['verdict']}, matches min/median/max {row['matches_min']}/"
-              f"{row['matches_median']}/{row['matches_max']} of 48, {r['views_passing']}/{r['views']} views pass, "
-              f"{run['wall_s']:.0f} s", flush=True)
+        print(
+            f"    {name:>20} [{decoder}]: {rep['verdict']}, matches min/median/max {row['matches_min']}/"
+            f"{row['matches_median']}/{row['matches_max']} of 48, {r['views_passing']}/{r['views']} views pass, "
+            f"{run['wall_s']:.0f} s",
+            flush=True,
+        )
     results["verify"] = rows
     (out / "results.json").write_text(json.dumps(results, indent=2))
-    lines = ["| suspect | decoder | verdict (exit) | views passing | matches min / median / max (of 48) | "
-             "wall time |", "|---|---|---|---|---|---|"]
+    lines = [
+        "| suspect | decoder | verdict (exit) | views passing | matches min / median / max (of 48) | wall time |",
+        "|---|---|---|---|---|---|",
+    ]
     for row in rows:
-        lines.append(f"| {row['suspect']} | {row['decoder']} | {row['verdict']} ({row['exit']}) | "
-                     f"{row['views_passing']}/{row['views']} | {row['matches_min']} / {row['matches_median']} / "
-                     f"{row['matches_max']} | {row['wall_s']:.0f} s |")
+        lines.append(
+            f"| {row['suspect']} | {row['decoder']} | {row['verdict']} ({row['exit']}) | "
+            f"{row['views_passing']}/{row['views']} | {row['matches_min']} / {row['matches_median']} / "
+            f"{row['matches_max']} | {row['wall_s']:.0f} s |"
+        )
     lines.append("")
     lines.append(f"PSNR watermarked vs clean render (test views): {results['psnr_watermarked_vs_clean_db']:.2f} dB")
     gt = results["psnr_vs_ground_truth_db"]
-    lines.append(f"PSNR against ground truth (test views): watermarked {gt['watermarked']:.2f} dB, unwatermarked "
-                 f"{gt['unwatermarked']:.2f} dB")
+    lines.append(
+        f"PSNR against ground truth (test views): watermarked {gt['watermarked']:.2f} dB, unwatermarked "
+        f"{gt['unwatermarked']:.2f} dB"
+    )
     for name, p in results["psnr_recolored_watermarked_vs_clean_db"].items():
         lines.append(f"PSNR {name}-recolored watermarked vs the same edit on the unwatermarked model: {p:.2f} dB")
     (out / "results.md").write_text("\n".join(lines) + "\n")

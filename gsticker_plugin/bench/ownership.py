@@ -56,13 +56,27 @@ class BenchOwnershipConfig(StickerRunConfig):
     """Also write the results page here (and its JSON beside it, same stem)."""
 
 
-def verify_run(cfg: BenchOwnershipConfig, name: str, config: Path, key: Path, out: Path,
-               data: Optional[Path]) -> Dict[str, Any]:
+def verify_run(
+    cfg: BenchOwnershipConfig, name: str, config: Path, key: Path, out: Path, data: Optional[Path]
+) -> Dict[str, Any]:
     """``ns-verify-owner --decode geometry`` of one run (in this process); its report's numbers."""
     report_dir = out / "reports" / name
     if not (report_dir / "report.json").is_file():
-        argv = ["--load-config", str(config), "--key", str(key), "--decode", "geometry", "--num-views",
-                str(cfg.num_views), "--fpr", str(cfg.fpr), "--output", str(report_dir), "--no-progress"]
+        argv = [
+            "--load-config",
+            str(config),
+            "--key",
+            str(key),
+            "--decode",
+            "geometry",
+            "--num-views",
+            str(cfg.num_views),
+            "--fpr",
+            str(cfg.fpr),
+            "--output",
+            str(report_dir),
+            "--no-progress",
+        ]
         if data is not None:
             argv += ["--data", str(data)]
         if cfg.data is not None:
@@ -75,12 +89,20 @@ def verify_run(cfg: BenchOwnershipConfig, name: str, config: Path, key: Path, ou
     rep = json.loads((report_dir / "report.json").read_text())
     (r,) = rep["keys"]
     matches = [v["matches"] for v in r["per_view"]]
-    return {"name": name, "config": str(config), "verdict": r["verdict"], "views": r["views"],
-            "views_passing": r["views_passing"], "matches": matches, "bit_accuracy": r["mean_bit_accuracy"],
-            "threshold": r["thresholds"]["used"], "model_pvalue": r["model_pvalue"],
-            "undetermined_mean": sum(v["decoded"].count("?") for v in r["per_view"]) / max(1, len(matches)),
-            "null_caveats": r.get("null_caveats", []),
-            "seconds": float((report_dir / "seconds.txt").read_text())}
+    return {
+        "name": name,
+        "config": str(config),
+        "verdict": r["verdict"],
+        "views": r["views"],
+        "views_passing": r["views_passing"],
+        "matches": matches,
+        "bit_accuracy": r["mean_bit_accuracy"],
+        "threshold": r["thresholds"]["used"],
+        "model_pvalue": r["model_pvalue"],
+        "undetermined_mean": sum(v["decoded"].count("?") for v in r["per_view"]) / max(1, len(matches)),
+        "null_caveats": r.get("null_caveats", []),
+        "seconds": float((report_dir / "seconds.txt").read_text()),
+    }
 
 
 def train_nulls(cfg: BenchOwnershipConfig, out: Path, logs: Path) -> List[Dict[str, Any]]:
@@ -96,48 +118,88 @@ def train_nulls(cfg: BenchOwnershipConfig, out: Path, logs: Path) -> List[Dict[s
     if cfg.other_scene:
         scene = nulls / "scene"
         if not (scene / "transforms_train.json").is_file():
-            _run([console_script("ns-gsticker-scene"), "--output-dir", str(scene), "--resolution", "100", "--num-train", "100",
-                  "--num-val", "10", "--num-test", "20"], logs / "null-scene.log")
+            _run(
+                [
+                    console_script("ns-gsticker-scene"),
+                    "--output-dir",
+                    str(scene),
+                    "--resolution",
+                    "100",
+                    "--num-train",
+                    "100",
+                    "--num-val",
+                    "10",
+                    "--num-test",
+                    "20",
+                ],
+                logs / "null-scene.log",
+            )
         jobs.append(("scene", scene, []))
     found = []
     for name, data, extra in jobs:
         run = nulls / name / cfg.null_preset / "base"
         if not list((run / "nerfstudio_models").glob("step-*.ckpt")):
             print(f"    training null model {name} ({cfg.null_steps} steps)", flush=True)
-            _run([console_script("ns-train"), cfg.null_preset, "--machine.device-type", "cpu", "--vis", "tensorboard", *extra,
-                  "--output-dir", str(nulls), "--experiment-name", name, "--timestamp", "base",
-                  "--max-num-iterations", str(cfg.null_steps), "--steps-per-save", str(cfg.null_steps),
-                  "--data", str(data)], logs / f"null-{name}.log")
+            _run(
+                [
+                    console_script("ns-train"),
+                    cfg.null_preset,
+                    "--machine.device-type",
+                    "cpu",
+                    "--vis",
+                    "tensorboard",
+                    *extra,
+                    "--output-dir",
+                    str(nulls),
+                    "--experiment-name",
+                    name,
+                    "--timestamp",
+                    "base",
+                    "--max-num-iterations",
+                    str(cfg.null_steps),
+                    "--steps-per-save",
+                    str(cfg.null_steps),
+                    "--data",
+                    str(data),
+                ],
+                logs / f"null-{name}.log",
+            )
         steps = 1 + checkpoint_step(latest_checkpoint(run / "nerfstudio_models"))
-        found.append({"name": f"{name} ({cfg.null_preset}, {steps} steps)", "config": run / "config.yml",
-                      "data": data})
+        found.append({"name": f"{name} ({cfg.null_preset}, {steps} steps)", "config": run / "config.yml", "data": data})
     return found
 
 
 def page(res: Dict[str, Any]) -> str:
     wm = res["watermarked"]
-    lines = ["# Ownership on lego100: a random secret message, and distinct unwatermarked models",
-             "",
-             f"`{res['command']}` ({res['date']}). Numbers: `{res['json_name']}` beside this page.",
-             "",
-             f"Sticker: {res['config']['steps']} steps on `{res['config']['load_checkpoint']}`, message drawn with "
-             f"`secrets` (key `message_source`: **{res['key']['message_source']}**, null caveats: "
-             f"{', '.join(res['key']['null_caveats']) or 'none'}); PSNR watermarked vs unwatermarked render "
-             f"{res['psnr']['vs_clean']:.1f} dB, test PSNR {res['psnr']['marked_vs_gt']:.2f} dB (base "
-             f"{res['psnr']['clean_vs_gt']:.2f} dB). Geometric decoder, {res['config']['num_views']} views per model, "
-             f"per-view FPR {res['config']['fpr']:g} (>= {wm['threshold']}/48 matches).",
-             "",
-             "| model | watermarked | verdict | views passing | matches min / median / max | bit accuracy | undetermined bits / view | seconds |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "# Ownership on lego100: a random secret message, and distinct unwatermarked models",
+        "",
+        f"`{res['command']}` ({res['date']}). Numbers: `{res['json_name']}` beside this page.",
+        "",
+        f"Sticker: {res['config']['steps']} steps on `{res['config']['load_checkpoint']}`, message drawn with "
+        f"`secrets` (key `message_source`: **{res['key']['message_source']}**, null caveats: "
+        f"{', '.join(res['key']['null_caveats']) or 'none'}); PSNR watermarked vs unwatermarked render "
+        f"{res['psnr']['vs_clean']:.1f} dB, test PSNR {res['psnr']['marked_vs_gt']:.2f} dB (base "
+        f"{res['psnr']['clean_vs_gt']:.2f} dB). Geometric decoder, {res['config']['num_views']} views per model, "
+        f"per-view FPR {res['config']['fpr']:g} (>= {wm['threshold']}/48 matches).",
+        "",
+        "| model | watermarked | verdict | views passing | matches min / median / max | bit accuracy | undetermined bits / view | seconds |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for row in [wm, *res["nulls"]]:
         m = sorted(row["matches"])
-        lines.append(f"| {row['name']} | {'yes' if row is wm else 'no'} | {row['verdict'].upper()} | "
-                     f"{row['views_passing']}/{row['views']} | {m[0]} / {m[len(m) // 2]} / {m[-1]} | "
-                     f"{100 * row['bit_accuracy']:.2f} % | {row['undetermined_mean']:.1f} | {row['seconds']:.0f} |")
+        lines.append(
+            f"| {row['name']} | {'yes' if row is wm else 'no'} | {row['verdict'].upper()} | "
+            f"{row['views_passing']}/{row['views']} | {m[0]} / {m[len(m) // 2]} / {m[-1]} | "
+            f"{100 * row['bit_accuracy']:.2f} % | {row['undetermined_mean']:.1f} | {row['seconds']:.0f} |"
+        )
     n = res["distinct_null_models"]
-    lines += ["", f"{n} distinct unwatermarked models, {res['null_views']} null views: "
-              f"{res['null_views_passing']} pass; largest null count {res['null_max_matches']}/48. Undetermined bits "
-              "count as mismatches (a model the sticker does not change reads 0/48)."]
+    lines += [
+        "",
+        f"{n} distinct unwatermarked models, {res['null_views']} null views: "
+        f"{res['null_views_passing']} pass; largest null count {res['null_max_matches']}/48. Undetermined bits "
+        "count as mismatches (a model the sticker does not change reads 0/48).",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -153,14 +215,19 @@ def main(cfg: BenchOwnershipConfig) -> Dict[str, Any]:
     key_path = wm.with_name("watermarked.gskey")
     key = OwnerKey.load(key_path)
     res: Dict[str, Any] = {
-        "command": "python -m gsticker_plugin.bench.ownership " + " ".join(
-            [f"--load-checkpoint {cfg.load_checkpoint}"] + ([f"--data {cfg.data}"] if cfg.data else [])
+        "command": "python -m gsticker_plugin.bench.ownership "
+        + " ".join(
+            [f"--load-checkpoint {cfg.load_checkpoint}"]
+            + ([f"--data {cfg.data}"] if cfg.data else [])
             + [f"--steps {cfg.steps} --null-steps {cfg.null_steps} --num-views {cfg.num_views}"]
             + ([f"--nulls {' '.join(map(str, cfg.nulls))}"] if cfg.nulls else [])
-            + ([f"--doc {cfg.doc}"] if cfg.doc else [])),
+            + ([f"--doc {cfg.doc}"] if cfg.doc else [])
+        ),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "config": {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, list) else v)
-                   for k, v in vars(cfg).items()},
+        "config": {
+            k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, list) else v)
+            for k, v in vars(cfg).items()
+        },
         "train": trained,
         "key": {"message_source": key.message_source, "null_caveats": key.null_caveats()},
     }
@@ -173,8 +240,9 @@ def main(cfg: BenchOwnershipConfig) -> Dict[str, Any]:
         nulls.append(verify_run(cfg, n["name"], n["config"], key_path, out, n["data"]))
     for i, c in enumerate(cfg.nulls):
         d = cfg.null_data[i] if cfg.null_data else None
-        nulls.append(verify_run(cfg, f"null {i + 1}: {Path(c).parent.parent.parent.name}", Path(c).resolve(),
-                                key_path, out, d))
+        nulls.append(
+            verify_run(cfg, f"null {i + 1}: {Path(c).parent.parent.parent.name}", Path(c).resolve(), key_path, out, d)
+        )
     res["nulls"] = nulls
     res["distinct_null_models"] = len({n["config"] for n in nulls})
     res["null_views"] = sum(n["views"] for n in nulls)

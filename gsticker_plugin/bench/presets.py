@@ -295,8 +295,10 @@ def render_markdown(report: Dict[str, Any]) -> str:
     loads = [x for x in loads if x]
     if loads:
         worst = max(x[0] for x in loads)
-        lines.append(f"Load average (1 min) during the run: up to {worst:.1f} on {m['nproc']} cores"
-                     + (" (the machine was shared: timings are pessimistic)." if worst > m["nproc"] + 0.5 else "."))
+        lines.append(
+            f"Load average (1 min) during the run: up to {worst:.1f} on {m['nproc']} cores"
+            + (" (the machine was shared: timings are pessimistic)." if worst > m["nproc"] + 0.5 else ".")
+        )
     lines.append("")
     return "\n".join(lines)
 
@@ -323,8 +325,10 @@ def main(bench: BenchConfig, argv: Optional[List[str]] = None) -> int:
     report: Dict[str, Any] = {
         "command": command_line(argv),
         "machine": machine_info(),
-        "settings": {**{k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(bench).items()},
-                     "num_test_views": bench.test_views()},
+        "settings": {
+            **{k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(bench).items()},
+            "num_test_views": bench.test_views(),
+        },
         "results": [],
     }
     if bench.threads is not None:
@@ -338,14 +342,18 @@ def main(bench: BenchConfig, argv: Optional[List[str]] = None) -> int:
             return 2
         log(f"({k}/{len(bench.presets)}) training {preset}: {config.max_num_iterations} iterations on {data}")
         trained = train(config)
-        log(f"({k}/{len(bench.presets)}) {preset}: {trained['train_seconds'] / 60:.1f} min, "
-            f"{trained['seconds_per_iteration']:.3f} s/iteration; scoring {bench.test_views()} test views")
+        log(
+            f"({k}/{len(bench.presets)}) {preset}: {trained['train_seconds'] / 60:.1f} min, "
+            f"{trained['seconds_per_iteration']:.3f} s/iteration; scoring {bench.test_views()} test views"
+        )
         scored = evaluate(Path(trained["config"]), Path(trained["checkpoint"]), data, bench.test_views())
         result = {"preset": preset, **trained, **scored, "load_average_after": load_average()}
         report["results"].append(result)
         json_path = write_report(report, bench.output)  # after every preset: partial results survive a crash
-        log(f"({k}/{len(bench.presets)}) {preset}: test PSNR {_fmt_psnr(scored['test_psnr'])}, "
-            f"{scored['parameters']:,} parameters")
+        log(
+            f"({k}/{len(bench.presets)}) {preset}: test PSNR {_fmt_psnr(scored['test_psnr'])}, "
+            f"{scored['parameters']:,} parameters"
+        )
     log(f"wrote {bench.output} and {json_path}")
     return 0
 

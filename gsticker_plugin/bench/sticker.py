@@ -31,7 +31,9 @@ import tyro
 class StickerBenchConfig:
     """Compare training strategies of the sticker stage on one base."""
 
-    load_checkpoint: Path = Path("../shared/checkpoints/lego100-nerfacto-small/nerfacto/base/nerfstudio_models/step-000002999.ckpt")
+    load_checkpoint: Path = Path(
+        "../shared/checkpoints/lego100-nerfacto-small/nerfacto/base/nerfstudio_models/step-000002999.ckpt"
+    )
     """Base run checkpoint."""
     data: Optional[Path] = None
     """Dataset, if the base's recorded path does not exist from here."""
@@ -78,7 +80,11 @@ def run_variant(cfg: StickerBenchConfig, name: str) -> Dict[str, object]:
     tcfg.experiment_name = name
     tcfg.set_timestamp()
     p = tcfg.pipeline
-    p.pool_train_views, p.pool_novel_views, p.monitor_views = cfg.pool_train_views, cfg.pool_novel_views, cfg.monitor_views
+    p.pool_train_views, p.pool_novel_views, p.monitor_views = (
+        cfg.pool_train_views,
+        cfg.pool_novel_views,
+        cfg.monitor_views,
+    )
     p.steps_per_monitor = cfg.steps_per_monitor
     p.pool_cache = cfg.pool_cache
     for k, v in variant_overrides(name).items():
@@ -114,21 +120,34 @@ def run_variant(cfg: StickerBenchConfig, name: str) -> Dict[str, object]:
             elapsed = time.time() - t0
             m = pipe.monitor_metrics()
             curve.append({"step": step, "seconds": elapsed, **{k: float(v) for k, v in m.items()}})
-            print(f"  [{name}] step {step} {elapsed:.0f}s held-out bit acc {curve[-1]['heldout_bit_acc']:.4f} "
-                  f"(clean {curve[-1]['heldout_clean_bit_acc']:.4f}) psnr {curve[-1]['heldout_psnr']:.2f}", flush=True)
+            print(
+                f"  [{name}] step {step} {elapsed:.0f}s held-out bit acc {curve[-1]['heldout_bit_acc']:.4f} "
+                f"(clean {curve[-1]['heldout_clean_bit_acc']:.4f}) psnr {curve[-1]['heldout_psnr']:.2f}",
+                flush=True,
+            )
             if reached is None and curve[-1]["heldout_bit_acc"] >= 0.99:
                 reached = elapsed
     seconds = time.time() - t0
     return {
-        "variant": name, "steps": step, "train_seconds": seconds, "steps_per_second": step / max(seconds, 1e-9),
-        "pool_seconds": pool_seconds, "seconds_to_99": reached, "final": curve[-1] if curve else {},
-        "heads_parameters": sum(q.numel() for q in pipe.heads.parameters()), "curve": curve,
+        "variant": name,
+        "steps": step,
+        "train_seconds": seconds,
+        "steps_per_second": step / max(seconds, 1e-9),
+        "pool_seconds": pool_seconds,
+        "seconds_to_99": reached,
+        "final": curve[-1] if curve else {},
+        "heads_parameters": sum(q.numel() for q in pipe.heads.parameters()),
+        "curve": curve,
     }
 
 
 def write_report(cfg: StickerBenchConfig, results: List[Dict[str, object]]) -> None:
     cfg.output.parent.mkdir(parents=True, exist_ok=True)
-    dev = torch.cuda.get_device_name(0) if torch.cuda.is_available() else f"CPU ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)"
+    dev = (
+        torch.cuda.get_device_name(0)
+        if torch.cuda.is_available()
+        else f"CPU ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)"
+    )
     lines = [
         "# Sticker-stage speed: fast path vs naive vs paper-faithful",
         "",
@@ -145,9 +164,11 @@ def write_report(cfg: StickerBenchConfig, results: List[Dict[str, object]]) -> N
     for r in results:
         fin = r["final"] or {}
         t99 = f"{r['seconds_to_99']:.0f} s" if r["seconds_to_99"] is not None else "not reached"
-        lines.append(f"| {r['variant']} | {r['heads_parameters']:,} | {r['train_seconds']:.0f} | {r['steps_per_second']:.2f} | {r['steps']} | {t99} | "
-                     f"{fin.get('heldout_bit_acc', float('nan')):.4f} | {fin.get('heldout_clean_bit_acc', float('nan')):.4f} | "
-                     f"{fin.get('heldout_psnr', float('nan')):.2f} dB | {r['pool_seconds']:.0f} |")
+        lines.append(
+            f"| {r['variant']} | {r['heads_parameters']:,} | {r['train_seconds']:.0f} | {r['steps_per_second']:.2f} | {r['steps']} | {t99} | "
+            f"{fin.get('heldout_bit_acc', float('nan')):.4f} | {fin.get('heldout_clean_bit_acc', float('nan')):.4f} | "
+            f"{fin.get('heldout_psnr', float('nan')):.2f} dB | {r['pool_seconds']:.0f} |"
+        )
     cfg.output.write_text("\n".join(lines) + "\n")
     cfg.output.with_suffix(".json").write_text(json.dumps(results, indent=2))
     print("\n".join(lines))

@@ -57,7 +57,10 @@ VARIANTS: Dict[str, Tuple[List[str], Optional[str]]] = {
     "gate-0.75": (["--pipeline.model.gate-quantile", "0.75"], None),
     # the extractor and classifier in the training loop (the informed decoders do not read them): none, 8 wide,
     # the default 32 wide, the paper's VGG16 shape
-    "heads-none": (["--pipeline.msg-weight", "0", "--pipeline.negative-weight", "0", "--pipeline.cls-weight", "0"], None),
+    "heads-none": (
+        ["--pipeline.msg-weight", "0", "--pipeline.negative-weight", "0", "--pipeline.cls-weight", "0"],
+        None,
+    ),
     "heads-8": (["--pipeline.heads.width", "8"], None),
     "heads-vgg16": (["--pipeline.heads.backbone", "vgg16"], None),
     "res-200": ([], "200"),
@@ -68,14 +71,23 @@ VARIANTS: Dict[str, Tuple[List[str], Optional[str]]] = {
 @dataclass
 class SweepConfig:
     """Train sticker variants on one base and chart bit accuracy and PSNR against training time."""
+
     load_checkpoint: Path
     """The base run's checkpoint (RUN/nerfstudio_models/step-N.ckpt)."""
     data: Optional[Path] = None
     """The base's dataset folder (e.g. ../shared/data/lego100); ``res-200``/``res-400`` swap its trailing number for
     200/400 (the same scene at that resolution, e.g. ../shared/data/lego200, or ``ns-gsticker-scene --resolution 400``
     with the base's scene seed)."""
-    variants: Tuple[str, ...] = ("default", "width-16", "width-32", "bits-16", "bits-64", "gate-0.25", "gate-0.75",
-                                 "res-200")
+    variants: Tuple[str, ...] = (
+        "default",
+        "width-16",
+        "width-32",
+        "bits-16",
+        "bits-64",
+        "gate-0.25",
+        "gate-0.75",
+        "res-200",
+    )
     """Which of: default, width-16, width-32, width-128, bits-16, bits-32, bits-64, gate-0.25, gate-0.75, heads-none,
     heads-8, heads-vgg16, res-200, res-400."""
     steps: int = 150
@@ -102,6 +114,7 @@ class SweepConfig:
     extra: List[str] = field(default_factory=list)
     """More ns-train arguments for every variant."""
 
+
 _STEP = re.compile(r"step (\d+): held-out .* (\d+) s")
 _POOL = re.compile(r"pool: .* (\d+) s;")
 
@@ -113,12 +126,14 @@ def train_seconds(log: Path) -> Tuple[Optional[float], Dict[int, float]]:
     return (float(pool.group(1)) if pool else None), {int(m.group(1)): float(m.group(2)) for m in _STEP.finditer(text)}
 
 
-def decode_checkpoint(pipeline, key, base_config: Path, data: Optional[Path], num_views: int, psnr_views: int,
-                      threshold: int) -> Dict[str, Any]:
+def decode_checkpoint(
+    pipeline, key, base_config: Path, data: Optional[Path], num_views: int, psnr_views: int, threshold: int
+) -> Dict[str, Any]:
     """Geometric bit accuracy (the checkpoint's own sticker as the reference) and PSNR on/off, at the loaded state."""
     model = pipeline.model
-    ref_key = SimpleNamespace(geometry=geometry_reference(model), message=key.message, base=key.base,
-                              num_bits=key.num_bits)
+    ref_key = SimpleNamespace(
+        geometry=geometry_reference(model), message=key.message, base=key.base, num_bits=key.num_bits
+    )
     ref = load_base_reference(ref_key, "(checkpoint)", base_config, data, model.device)
     t0 = time.time()
     with contextlib.redirect_stdout(sys.stderr):
@@ -127,9 +142,14 @@ def decode_checkpoint(pipeline, key, base_config: Path, data: Optional[Path], nu
     on = render_split(pipeline, "test", psnr_views, sticker=True, progress=False)
     off = render_split(pipeline, "test", psnr_views, sticker=False, progress=False)
     m = dec["matches"]
-    return {"bit_acc": float(dec["bit_acc"].float().mean()), "matches": [int(x) for x in m],
-            "views_passing": int((m >= threshold).sum()), "psnr_vs_unwm": float(psnr_nhw3(on["rgb"], off["rgb"]).mean()),
-            "psnr_vs_gt": float(psnr_nhw3(on["rgb"], on["gt"]).mean()), "decode_seconds_per_view": round(per_view, 2)}
+    return {
+        "bit_acc": float(dec["bit_acc"].float().mean()),
+        "matches": [int(x) for x in m],
+        "views_passing": int((m >= threshold).sum()),
+        "psnr_vs_unwm": float(psnr_nhw3(on["rgb"], off["rgb"]).mean()),
+        "psnr_vs_gt": float(psnr_nhw3(on["rgb"], on["gt"]).mean()),
+        "decode_seconds_per_view": round(per_view, 2),
+    }
 
 
 def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
@@ -151,16 +171,48 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
     wall = None
     if not (key_path.is_file() and final.is_file()):
         t0 = time.time()
-        _run([console_script("ns-train"), "geometrysticker", "--machine.device-type", "cpu", "--vis", "tensorboard",
-              "--output-dir", str(out), "--experiment-name", name, "--timestamp", "watermarked",
-              "--max-num-iterations", str(cfg.steps), "--steps-per-save", str(cfg.save_every),
-              "--save-only-latest-checkpoint", "False", "--pipeline.owner-id", cfg.owner_id,
-              "--pipeline.key-path", str(key_path),
-              "--pipeline.pool-train-views", str(cfg.pool_views), "--pipeline.pool-novel-views", str(cfg.pool_views),
-              "--pipeline.monitor-views", "2", "--pipeline.steps-per-monitor", str(cfg.save_every),
-              "--pipeline.warmup-steps", str(cfg.warmup_steps), *overrides, *cfg.extra,
-              "--load-checkpoint", str(Path(cfg.load_checkpoint).resolve()),
-              *(["--data", str(Path(data).resolve())] if data is not None else [])], log)
+        _run(
+            [
+                console_script("ns-train"),
+                "geometrysticker",
+                "--machine.device-type",
+                "cpu",
+                "--vis",
+                "tensorboard",
+                "--output-dir",
+                str(out),
+                "--experiment-name",
+                name,
+                "--timestamp",
+                "watermarked",
+                "--max-num-iterations",
+                str(cfg.steps),
+                "--steps-per-save",
+                str(cfg.save_every),
+                "--save-only-latest-checkpoint",
+                "False",
+                "--pipeline.owner-id",
+                cfg.owner_id,
+                "--pipeline.key-path",
+                str(key_path),
+                "--pipeline.pool-train-views",
+                str(cfg.pool_views),
+                "--pipeline.pool-novel-views",
+                str(cfg.pool_views),
+                "--pipeline.monitor-views",
+                "2",
+                "--pipeline.steps-per-monitor",
+                str(cfg.save_every),
+                "--pipeline.warmup-steps",
+                str(cfg.warmup_steps),
+                *overrides,
+                *cfg.extra,
+                "--load-checkpoint",
+                str(Path(cfg.load_checkpoint).resolve()),
+                *(["--data", str(Path(data).resolve())] if data is not None else []),
+            ],
+            log,
+        )
         wall = round(time.time() - t0, 1)
     pool_s, step_s = train_seconds(log)
     key = OwnerKey.load(key_path)
@@ -170,7 +222,9 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
         _, pipeline, _ = load_run(run / "config.yml", data=data)
     params = sum(p.numel() for p in pipeline.model.sticker.parameters())
     # heads trained beside the sticker (none when their three loss weights are 0)
-    heads_params = sum(t.numel() for t in key.heads_state.values() if t.is_floating_point()) if pipeline.trains_heads else 0
+    heads_params = (
+        sum(t.numel() for t in key.heads_state.values() if t.is_floating_point()) if pipeline.trains_heads else 0
+    )
     points = []
     for ckpt in sorted((run / "nerfstudio_models").glob("step-*.ckpt")):
         n = int(ckpt.stem.split("-")[1])
@@ -183,20 +237,46 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
         pt = decode_checkpoint(pipeline, step_key, base_config, data, cfg.num_views, cfg.psnr_views, threshold)
         secs = step_s.get(step, step_s.get(n + 1))
         pt.update(step=step, train_seconds=None if secs is None or pool_s is None else pool_s + secs)
-        print(f"    {name} step {step}: bit acc {pt['bit_acc']:.3f} ({pt['views_passing']}/{cfg.num_views} views), "
-              f"PSNR vs unwm {pt['psnr_vs_unwm']:.2f} dB, t {pt['train_seconds']} s", flush=True)
+        print(
+            f"    {name} step {step}: bit acc {pt['bit_acc']:.3f} ({pt['views_passing']}/{cfg.num_views} views), "
+            f"PSNR vs unwm {pt['psnr_vs_unwm']:.2f} dB, t {pt['train_seconds']} s",
+            flush=True,
+        )
         points.append(pt)
-    h, w = int(pipeline.datamanager.train_dataset.cameras.height[0]), int(pipeline.datamanager.train_dataset.cameras.width[0])
-    return {"name": name, "overrides": overrides, "data": str(data) if data is not None else None, "size": [h, w],
-            "num_bits": key.num_bits, "threshold": threshold, "sticker_params": params, "heads_params": heads_params,
-            "pool_seconds": pool_s,
-            "wall_seconds": wall, "points": points}
+    h, w = (
+        int(pipeline.datamanager.train_dataset.cameras.height[0]),
+        int(pipeline.datamanager.train_dataset.cameras.width[0]),
+    )
+    return {
+        "name": name,
+        "overrides": overrides,
+        "data": str(data) if data is not None else None,
+        "size": [h, w],
+        "num_bits": key.num_bits,
+        "threshold": threshold,
+        "sticker_params": params,
+        "heads_params": heads_params,
+        "pool_seconds": pool_s,
+        "wall_seconds": wall,
+        "points": points,
+    }
 
 
 def smallest_meeting(rows: List[Dict[str, Any]], bit_acc: float, psnr: float) -> Optional[Dict[str, Any]]:
-    ok = [r for r in rows if r["points"] and r["points"][-1]["bit_acc"] >= bit_acc and r["points"][-1]["psnr_vs_unwm"] >= psnr
-          and r["num_bits"] == 48 and r["size"][0] == min(x["size"][0] for x in rows)]
-    return min(ok, key=lambda r: (r["sticker_params"] + r.get("heads_params", 0), r["points"][-1]["train_seconds"] or 0)) if ok else None
+    ok = [
+        r
+        for r in rows
+        if r["points"]
+        and r["points"][-1]["bit_acc"] >= bit_acc
+        and r["points"][-1]["psnr_vs_unwm"] >= psnr
+        and r["num_bits"] == 48
+        and r["size"][0] == min(x["size"][0] for x in rows)
+    ]
+    return (
+        min(ok, key=lambda r: (r["sticker_params"] + r.get("heads_params", 0), r["points"][-1]["train_seconds"] or 0))
+        if ok
+        else None
+    )
 
 
 def first_meeting(row: Dict[str, Any], bit_acc: float, psnr: float) -> Optional[Dict[str, Any]]:
@@ -206,17 +286,27 @@ def first_meeting(row: Dict[str, Any], bit_acc: float, psnr: float) -> Optional[
 
 def cost_lines(rows: List[Dict[str, Any]], bit_acc: float, psnr: float) -> List[str]:
     """How the cost of reaching the targets grows with image size and message length: a table row per variant."""
-    lines = [f"Cost to reach the targets (first checkpoint at >= {100 * bit_acc:g} % and >= {psnr:g} dB; "
-             "'not reached' within the run's steps):", "",
-             "| variant | image | bits | step | train s | decode s/view | pool s | s/step |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"Cost to reach the targets (first checkpoint at >= {100 * bit_acc:g} % and >= {psnr:g} dB; "
+        "'not reached' within the run's steps):",
+        "",
+        "| variant | image | bits | step | train s | decode s/view | pool s | s/step |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in sorted(rows, key=lambda r: (r["size"][0], r["num_bits"], r["sticker_params"])):
         p = first_meeting(r, bit_acc, psnr)
         decode = sum(x["decode_seconds_per_view"] for x in r["points"]) / max(len(r["points"]), 1)
         pool, per_step = step_cost(r)
-        lines.append(f"| {r['name']} | {r['size'][0]} px | {r['num_bits']} | "
-                     + (f"{p['step']} | {p['train_seconds'] if p['train_seconds'] is not None else '-'}" if p
-                        else "not reached | -") + f" | {decode:.2f} | {'-' if pool is None else f'{pool:g}'} | "
-                     f"{'-' if per_step is None else f'{per_step:.2f}'} |")
+        lines.append(
+            f"| {r['name']} | {r['size'][0]} px | {r['num_bits']} | "
+            + (
+                f"{p['step']} | {p['train_seconds'] if p['train_seconds'] is not None else '-'}"
+                if p
+                else "not reached | -"
+            )
+            + f" | {decode:.2f} | {'-' if pool is None else f'{pool:g}'} | "
+            f"{'-' if per_step is None else f'{per_step:.2f}'} |"
+        )
     return lines
 
 
@@ -230,31 +320,51 @@ def step_cost(row: Dict[str, Any]) -> Tuple[Optional[float], Optional[float]]:
 
 
 def markdown(cfg: SweepConfig, rows: List[Dict[str, Any]], when: str, machine: str) -> str:
-    lines = ["# Speed against accuracy: sticker variants on one base", "",
-             f"Command: `python -m gsticker_plugin.bench.sweep --load-checkpoint {cfg.load_checkpoint}"
-             + (f" --data {cfg.data}" if cfg.data else "") + f" --variants {' '.join(cfg.variants)} --steps {cfg.steps} "
-             f"--save-every {cfg.save_every} --output {cfg.output}`", f"Machine: {machine}. Date: {when}.", "",
-             f"Each variant: `ns-train geometrysticker` for {cfg.steps} steps ({cfg.pool_views}+{cfg.pool_views} pool views, "
-             f"warm-up {cfg.warmup_steps}); at every {cfg.save_every}-step checkpoint the informed geometric decoder on "
-             f"{cfg.num_views} cameras (the checkpoint's own sticker as the reference) and PSNR of watermarked vs "
-             f"unwatermarked renders on {cfg.psnr_views} test views. Time = pool build + training seconds logged at that "
-             "step (setup and checkpoint writing excluded).", "",
-             "| variant | image | bits | sticker params | trained heads params | step | train s | geometric bit acc | "
-             "views passing | PSNR wm vs unwm | PSNR wm vs GT | decode s/view |", "|" + "---|" * 12]
+    lines = [
+        "# Speed against accuracy: sticker variants on one base",
+        "",
+        f"Command: `python -m gsticker_plugin.bench.sweep --load-checkpoint {cfg.load_checkpoint}"
+        + (f" --data {cfg.data}" if cfg.data else "")
+        + f" --variants {' '.join(cfg.variants)} --steps {cfg.steps} "
+        f"--save-every {cfg.save_every} --output {cfg.output}`",
+        f"Machine: {machine}. Date: {when}.",
+        "",
+        f"Each variant: `ns-train geometrysticker` for {cfg.steps} steps ({cfg.pool_views}+{cfg.pool_views} pool views, "
+        f"warm-up {cfg.warmup_steps}); at every {cfg.save_every}-step checkpoint the informed geometric decoder on "
+        f"{cfg.num_views} cameras (the checkpoint's own sticker as the reference) and PSNR of watermarked vs "
+        f"unwatermarked renders on {cfg.psnr_views} test views. Time = pool build + training seconds logged at that "
+        "step (setup and checkpoint writing excluded).",
+        "",
+        "| variant | image | bits | sticker params | trained heads params | step | train s | geometric bit acc | "
+        "views passing | PSNR wm vs unwm | PSNR wm vs GT | decode s/view |",
+        "|" + "---|" * 12,
+    ]
     for r in rows:
         heads = f"{r['heads_params']:,}" if "heads_params" in r else "-"
         for p in r["points"]:
-            lines.append(f"| {r['name']} | {r['size'][0]} px | {r['num_bits']} | {r['sticker_params']:,} | {heads} | {p['step']} | "
-                         f"{p['train_seconds'] if p['train_seconds'] is not None else '-'} | {100 * p['bit_acc']:.1f} | "
-                         f"{p['views_passing']}/{len(p['matches'])} | {p['psnr_vs_unwm']:.2f} | {p['psnr_vs_gt']:.2f} | "
-                         f"{p['decode_seconds_per_view']} |")
+            lines.append(
+                f"| {r['name']} | {r['size'][0]} px | {r['num_bits']} | {r['sticker_params']:,} | {heads} | {p['step']} | "
+                f"{p['train_seconds'] if p['train_seconds'] is not None else '-'} | {100 * p['bit_acc']:.1f} | "
+                f"{p['views_passing']}/{len(p['matches'])} | {p['psnr_vs_unwm']:.2f} | {p['psnr_vs_gt']:.2f} | "
+                f"{p['decode_seconds_per_view']} |"
+            )
     best = smallest_meeting(rows, cfg.target_bit_acc, cfg.target_psnr)
-    lines += ["", f"Smallest 48-bit variant at the lowest resolution reaching >= {100 * cfg.target_bit_acc:g} % and >= "
-              f"{cfg.target_psnr:g} dB at its last checkpoint: "
-              + (f"**{best['name']}** ({best['sticker_params']:,} sticker parameters, {best.get('heads_params', 0):,} trained "
-                 f"heads parameters, {best['points'][-1]['train_seconds']} s)."
-                 if best else "none of the variants."), "", *cost_lines(rows, cfg.target_bit_acc, cfg.target_psnr), "",
-              f"Chart: `{cfg.output.with_suffix('.png').name}`.", ""]
+    lines += [
+        "",
+        f"Smallest 48-bit variant at the lowest resolution reaching >= {100 * cfg.target_bit_acc:g} % and >= "
+        f"{cfg.target_psnr:g} dB at its last checkpoint: "
+        + (
+            f"**{best['name']}** ({best['sticker_params']:,} sticker parameters, {best.get('heads_params', 0):,} trained "
+            f"heads parameters, {best['points'][-1]['train_seconds']} s)."
+            if best
+            else "none of the variants."
+        ),
+        "",
+        *cost_lines(rows, cfg.target_bit_acc, cfg.target_psnr),
+        "",
+        f"Chart: `{cfg.output.with_suffix('.png').name}`.",
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -271,7 +381,7 @@ def chart(rows: List[Dict[str, Any]], path: Path) -> None:
         if not pts:
             continue
         t = [p["train_seconds"] / 60 for p in pts]
-        line, = a1.plot(t, [100 * p["bit_acc"] for p in pts], "o-", label=r["name"])
+        (line,) = a1.plot(t, [100 * p["bit_acc"] for p in pts], "o-", label=r["name"])
         a2.plot(t, [p["psnr_vs_unwm"] for p in pts], "o-", color=line.get_color(), label=r["name"])
     a1.axhline(99, color="gray", ls=":", lw=0.8)
     a1.axhline(50, color="red", ls=":", lw=0.8)
@@ -299,8 +409,12 @@ def main(cfg: SweepConfig) -> List[Dict[str, Any]]:
         cfg.output.parent.mkdir(parents=True, exist_ok=True)
         cfg.output.with_suffix(".json").write_text(json.dumps(rows, indent=1))  # partial results survive a crash
     m = machine_info()
-    md = markdown(cfg, rows, time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                  f"{m['cpu']}, {m['cores']} cores, torch threads {m['torch_threads']}, CUDA {'yes' if m['cuda'] else 'no'}")
+    md = markdown(
+        cfg,
+        rows,
+        time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        f"{m['cpu']}, {m['cores']} cores, torch threads {m['torch_threads']}, CUDA {'yes' if m['cuda'] else 'no'}",
+    )
     cfg.output.write_text(md)
     chart(rows, cfg.output.with_suffix(".png"))
     print(md)

@@ -44,6 +44,7 @@ from gsticker_plugin.views import progress_bar
 @dataclass
 class BenchTargetsConfig(StickerRunConfig):
     """Train a sticker on a base and measure the issue's targets on every test view."""
+
     output_dir: Path = Path("outputs/bench-targets")
     """Where the run, the per-view rows and the training record are written."""
     output: Path = Path("docs/bench-targets.md")
@@ -58,6 +59,7 @@ class BenchTargetsConfig(StickerRunConfig):
     """Seed of the decoder's tie-breaking coin flips."""
     progress: bool = True
     """tqdm progress bars on stderr."""
+
 
 TARGETS = {"bit_acc": 0.995, "psnr_vs_clean_db": 35.0, "psnr_drop_db": 0.3, "train_minutes": 15.0}
 PER_VIEW_FPR = 1e-6  # the per-view false-positive rate of the threshold (ns-verify-owner's default --fpr)
@@ -99,11 +101,21 @@ def main(cfg: BenchTargetsConfig) -> Dict[str, Any]:
     todo = [i for i in range(n) if i not in done]
     ref_cache: Dict[Any, Any] = {}
     for start in progress_bar(range(0, len(todo), cfg.chunk), "test views (chunks)", cfg.progress):
-        idx = todo[start: start + cfg.chunk]
+        idx = todo[start : start + cfg.chunk]
         t0 = time.time()
-        cams = [(f"test/{i:03d}", dataset.cameras[i: i + 1]) for i in idx]
-        dec, views = decode_suspect(key, ref, pipe.model, len(cams), 0.0, cfg.seed, sticker=True, progress=False,
-                                    ref_cache=ref_cache, cameras=cams)
+        cams = [(f"test/{i:03d}", dataset.cameras[i : i + 1]) for i in idx]
+        dec, views = decode_suspect(
+            key,
+            ref,
+            pipe.model,
+            len(cams),
+            0.0,
+            cfg.seed,
+            sticker=True,
+            progress=False,
+            ref_cache=ref_cache,
+            cameras=cams,
+        )
         # the unwatermarked render: the owner's base at the same camera, rendered once by the decoder (its reference)
         base_images = {name: v.image for (name, _), v in ref_cache.items()}
         ref_cache.clear()  # every camera is decoded once
@@ -117,34 +129,52 @@ def main(cfg: BenchTargetsConfig) -> Dict[str, Any]:
                 gt = gt[..., :3] * gt[..., 3:] + (1.0 - gt[..., 3:])  # Blender scenes: white background
             gt = gt[..., :3].float()
             p = [float(psnr_nhw3(a[None], b[None])[0]) for a, b in ((marked, clean), (marked, gt), (clean, gt))]
-            rows.append({"index": i, "matches": int(dec["matches"][j]), "bit_acc": float(dec["bit_acc"][j]),
-                         "pvalue": float(dec["pvalues"][j]), "psnr_vs_clean_db": p[0], "psnr_marked_vs_gt_db": p[1],
-                         "psnr_clean_vs_gt_db": p[2], "decode_s": decode_s / len(idx)})
+            rows.append(
+                {
+                    "index": i,
+                    "matches": int(dec["matches"][j]),
+                    "bit_acc": float(dec["bit_acc"][j]),
+                    "pvalue": float(dec["pvalues"][j]),
+                    "psnr_vs_clean_db": p[0],
+                    "psnr_marked_vs_gt_db": p[1],
+                    "psnr_clean_vs_gt_db": p[2],
+                    "decode_s": decode_s / len(idx),
+                }
+            )
         with open(rows_path, "a") as f:
             for r in rows:
                 f.write(json.dumps(r) + "\n")
                 done[r["index"]] = r
     rows = [done[i] for i in sorted(done) if i < n]
     results["views"] = summarize(rows, key.num_bits, results.get("train"), len(dataset))
-    results["run"] = {"command": "python -m gsticker_plugin.bench.targets " + " ".join(sys.argv[1:]),
-                      "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                      "cpu": platform.processor() or platform.machine(), "threads": torch.get_num_threads(),
-                      "steps": cfg.steps, "pool_views": cfg.pool_views, "warmup_steps": cfg.warmup_steps,
-                      "owner_id": cfg.owner_id, "base_checkpoint": str(cfg.load_checkpoint),
-                      "views_jsonl": str(rows_path)}
+    results["run"] = {
+        "command": "python -m gsticker_plugin.bench.targets " + " ".join(sys.argv[1:]),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "cpu": platform.processor() or platform.machine(),
+        "threads": torch.get_num_threads(),
+        "steps": cfg.steps,
+        "pool_views": cfg.pool_views,
+        "warmup_steps": cfg.warmup_steps,
+        "owner_id": cfg.owner_id,
+        "base_checkpoint": str(cfg.load_checkpoint),
+        "views_jsonl": str(rows_path),
+    }
     res_path.write_text(json.dumps(results, indent=2))
     page_path = cfg.output.resolve()
     page_path.parent.mkdir(parents=True, exist_ok=True)
     png = chart(rows, key.num_bits, results["views"]["threshold"], page_path.with_suffix(".png"))
     md = page(results, page_path.with_suffix(".json").name, png.name if png is not None else None)
-    page_path.with_suffix(".json").write_text(json.dumps({"run": results["run"], "train": results.get("train"),
-                                                          "views": results["views"]}, indent=2))
+    page_path.with_suffix(".json").write_text(
+        json.dumps({"run": results["run"], "train": results.get("train"), "views": results["views"]}, indent=2)
+    )
     page_path.write_text(md)
     print(md)
     return results
 
 
-def summarize(rows: List[Dict[str, Any]], num_bits: int, train: Optional[Dict[str, Any]], split_size: int) -> Dict[str, Any]:
+def summarize(
+    rows: List[Dict[str, Any]], num_bits: int, train: Optional[Dict[str, Any]], split_size: int
+) -> Dict[str, Any]:
     """Totals over the decoded views and each target met or not (training time: None when not trained here)."""
     matches = [r["matches"] for r in rows]
     n = len(rows)
@@ -155,15 +185,29 @@ def summarize(rows: List[Dict[str, Any]], num_bits: int, train: Optional[Dict[st
     change = [r["psnr_marked_vs_gt_db"] - r["psnr_clean_vs_gt_db"] for r in rows]  # per view, watermarked - base
     minutes = train["wall_s"] / 60.0 if train else None
     return {
-        "views": n, "split_views": split_size, "num_bits": num_bits, "bit_acc": bit_acc,
-        "bits_matched": sum(matches), "bits_total": n * num_bits,
-        "matches_min": min(matches) if matches else None, "views_all_bits": sum(m == num_bits for m in matches),
-        "views_below_all_bits": [{"index": r["index"], "matches": r["matches"]} for r in rows if r["matches"] < num_bits],
-        "views_passing": sum(m >= thr for m in matches), "threshold": thr, "per_view_fpr": PER_VIEW_FPR,
-        "psnr_vs_clean_db": mean("psnr_vs_clean_db"), "psnr_vs_clean_min_db": min((r["psnr_vs_clean_db"] for r in rows), default=None),
-        "psnr_marked_vs_gt_db": mean("psnr_marked_vs_gt_db"), "psnr_clean_vs_gt_db": mean("psnr_clean_vs_gt_db"),
-        "psnr_drop_db": drop, "psnr_change_per_view_db": {"min": min(change, default=None), "max": max(change, default=None)},
-        "decode_s_per_view": mean("decode_s"), "train_wall_s": train["wall_s"] if train else None, "train_minutes": minutes,
+        "views": n,
+        "split_views": split_size,
+        "num_bits": num_bits,
+        "bit_acc": bit_acc,
+        "bits_matched": sum(matches),
+        "bits_total": n * num_bits,
+        "matches_min": min(matches) if matches else None,
+        "views_all_bits": sum(m == num_bits for m in matches),
+        "views_below_all_bits": [
+            {"index": r["index"], "matches": r["matches"]} for r in rows if r["matches"] < num_bits
+        ],
+        "views_passing": sum(m >= thr for m in matches),
+        "threshold": thr,
+        "per_view_fpr": PER_VIEW_FPR,
+        "psnr_vs_clean_db": mean("psnr_vs_clean_db"),
+        "psnr_vs_clean_min_db": min((r["psnr_vs_clean_db"] for r in rows), default=None),
+        "psnr_marked_vs_gt_db": mean("psnr_marked_vs_gt_db"),
+        "psnr_clean_vs_gt_db": mean("psnr_clean_vs_gt_db"),
+        "psnr_drop_db": drop,
+        "psnr_change_per_view_db": {"min": min(change, default=None), "max": max(change, default=None)},
+        "decode_s_per_view": mean("decode_s"),
+        "train_wall_s": train["wall_s"] if train else None,
+        "train_minutes": minutes,
         "targets": {
             "bit_acc >= 99.5 %": bit_acc >= TARGETS["bit_acc"] if n == split_size else None,
             "PSNR vs unwatermarked >= 35 dB": mean("psnr_vs_clean_db") >= TARGETS["psnr_vs_clean_db"],
@@ -184,7 +228,8 @@ def report(v: Dict[str, Any]) -> str:
     lines = [
         f"Test views decoded: {v['views']} of {v['split_views']} ({k} bits, informed geometric decoder)",
         "",
-        "| target | measured | |", "|---|---|---|",
+        "| target | measured | |",
+        "|---|---|---|",
         f"| {k} bits, bit accuracy >= 99.5 % over all test views | **{100 * v['bit_acc']:.2f} %** "
         f"({v.get('bits_matched', 'n/a')} of {v.get('bits_total', 'n/a')} bits; {v['views_all_bits']} views {k}/{k}"
         f"{'; ' + below if below else ''}) | {met(t['bit_acc >= 99.5 %'])} |",
@@ -208,25 +253,38 @@ def page(results: Dict[str, Any], json_name: str, png_name: Optional[str]) -> st
     """The whole Markdown page: the command, what it did, :func:`report`'s table, the chart and the limits."""
     r, v = results["run"], results["views"]
     trained = results.get("train") is not None
-    what = (f"It trained a {r['steps']}-step sticker on the base (`ns-train geometrysticker`, {r['pool_views']} + "
-            f"{r['pool_views']} pool views, warm-up {r['warmup_steps']} steps, owner id `{r['owner_id']}`)"
-            if trained else "It used the watermarked run already in the output folder (training not timed here)")
+    what = (
+        f"It trained a {r['steps']}-step sticker on the base (`ns-train geometrysticker`, {r['pool_views']} + "
+        f"{r['pool_views']} pool views, warm-up {r['warmup_steps']} steps, owner id `{r['owner_id']}`)"
+        if trained
+        else "It used the watermarked run already in the output folder (training not timed here)"
+    )
     lines = [
-        "# The sticker's targets on every test view", "",
+        "# The sticker's targets on every test view",
+        "",
         f"Command ({r['date']}, {r['cpu']}, {r['threads']} threads; every number on this page is in "
-        f"[{json_name}]({json_name}), written by it):", "", "```bash", r["command"], "```", "",
+        f"[{json_name}]({json_name}), written by it):",
+        "",
+        "```bash",
+        r["command"],
+        "```",
+        "",
         f"{what}, then decoded {v['views']} of the {v['split_views']} test views of the watermarked run with the informed "
         "geometric decoder (`ns-verify-owner --decode geometry`'s decoder: the owner key and the owner's base run), and "
         "compared each view with the unwatermarked render (the owner's base at the same camera, which the decoder "
         "renders anyway) and with the ground truth (on white). Per-view rows: `views.jsonl` in the output folder (an "
-        "interrupted run resumes).", "",
-        report(v).rstrip("\n"), "",
+        "interrupted run resumes).",
+        "",
+        report(v).rstrip("\n"),
+        "",
     ]
     if png_name:
         lines += [f"![per-view matched bits and PSNR]({png_name})", ""]
-    lines += ["What this does *not* show: the blind extractor (reading bits from images without the base); these "
-              "targets hold for the informed, model-level decoder on this base. Robustness to recoloring and the null "
-              "(unwatermarked models at chance) are in [results.md](results.md)."]
+    lines += [
+        "What this does *not* show: the blind extractor (reading bits from images without the base); these "
+        "targets hold for the informed, model-level decoder on this base. Robustness to recoloring and the null "
+        "(unwatermarked models at chance) are in [results.md](results.md)."
+    ]
     return "\n".join(lines) + "\n"
 
 

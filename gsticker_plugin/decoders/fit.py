@@ -26,13 +26,18 @@ def jacobian(fn: Callable[[Tensor], Tensor], s: Float[Tensor, " K"], chunk: int 
     eye = torch.eye(s.numel(), dtype=s.dtype, device=s.device)
     cols = []
     for i in range(0, s.numel(), chunk):
-        cols.append(vmap(lambda v: jvp(fn, (s,), (v,))[1].reshape(-1))(eye[i: i + chunk]))
+        cols.append(vmap(lambda v: jvp(fn, (s,), (v,))[1].reshape(-1))(eye[i : i + chunk]))
     return torch.cat(cols).T
 
 
-def per_ray_jacobian(change: Callable[[Tensor], Tensor], sticker: Sticker, features: Float[Tensor, "N F"],
-                     signs: Float[Tensor, " K"], ray_of_sample: Int[Tensor, " N"],
-                     num_rays: int) -> Optional[Float[Tensor, "C R K"]]:
+def per_ray_jacobian(
+    change: Callable[[Tensor], Tensor],
+    sticker: Sticker,
+    features: Float[Tensor, "N F"],
+    signs: Float[Tensor, " K"],
+    ray_of_sample: Int[Tensor, " N"],
+    num_rays: int,
+) -> Optional[Float[Tensor, "C R K"]]:
     """d change(mix(features, s)) / d s at ``signs``, when output ``[c, r]`` of ``change`` ([C R], a function of the
     sticker values at the gate-open samples) depends on the samples of ray ``r`` only; None for a sticker without a
     closed-form :meth:`Sticker.mix_jacobian` (``concat``: use :func:`jacobian`).
@@ -49,16 +54,26 @@ def per_ray_jacobian(change: Callable[[Tensor], Tensor], sticker: Sticker, featu
     m = m.requires_grad_(True)
     with torch.enable_grad():
         out = change(m)
-        grads = [torch.autograd.grad(out[c].sum(), m, retain_graph=c + 1 < out.shape[0])[0]
-                 for c in range(out.shape[0])]
+        grads = [
+            torch.autograd.grad(out[c].sum(), m, retain_graph=c + 1 < out.shape[0])[0] for c in range(out.shape[0])
+        ]
     k = dm_ds.shape[1]
-    return torch.stack([torch.zeros(num_rays, k, dtype=dm_ds.dtype, device=dm_ds.device)
-                        .index_add(0, ray_of_sample, g * dm_ds) for g in grads])
+    return torch.stack(
+        [
+            torch.zeros(num_rays, k, dtype=dm_ds.dtype, device=dm_ds.device).index_add(0, ray_of_sample, g * dm_ds)
+            for g in grads
+        ]
+    )
 
 
-def fit_message(predict: Callable[[Tensor], Tensor], target: Float[Tensor, " M"], num_bits: int,
-                iterations: int = 10, damping: float = 1e-3,
-                jac: Optional[Callable[[Tensor], Optional[Tensor]]] = None) -> Fit:
+def fit_message(
+    predict: Callable[[Tensor], Tensor],
+    target: Float[Tensor, " M"],
+    num_bits: int,
+    iterations: int = 10,
+    damping: float = 1e-3,
+    jac: Optional[Callable[[Tensor], Optional[Tensor]]] = None,
+) -> Fit:
     """Least squares ``min_s |target - (predict(s) - predict(0))|^2`` over ``s in [-1, 1]^K``.
 
     Levenberg-Marquardt from ``s = 0`` (Jacobians from ``jac(s)`` when it gives one, else by forward-mode AD;
@@ -104,9 +119,15 @@ def fit_message(predict: Callable[[Tensor], Tensor], target: Float[Tensor, " M"]
     return Fit(signs=s.detach(), explained=1.0 - cost / cost0, residual_rms=rms, iterations=it)
 
 
-def fit_and_decide(predict: Callable[[Tensor], Tensor], jac: Callable[[Tensor], Optional[Tensor]],
-                   target: Float[Tensor, " M"], num_bits: int, has_rays: bool, generator: torch.Generator,
-                   iterations: int = 10) -> Tuple[Fit, Int[Tensor, " K"], int]:
+def fit_and_decide(
+    predict: Callable[[Tensor], Tensor],
+    jac: Callable[[Tensor], Optional[Tensor]],
+    target: Float[Tensor, " M"],
+    num_bits: int,
+    has_rays: bool,
+    generator: torch.Generator,
+    iterations: int = 10,
+) -> Tuple[Fit, Int[Tensor, " K"], int]:
     """:func:`fit_message` then :func:`decide_bits`, shared by every informed decoder; a view with no ray the gate
     opens on (``has_rays`` false) has nothing to read: ``s = 0``, every bit a coin flip."""
     if not has_rays:
@@ -119,16 +140,23 @@ def fit_and_decide(predict: Callable[[Tensor], Tensor], jac: Callable[[Tensor], 
 
 def fit_summary(fit: Fit, undetermined: int, rays: int) -> Dict[str, Any]:
     """The per-view fit details the colour and image decoders report."""
-    return {"signs_abs_mean": float(fit.signs.abs().mean()), "undetermined": undetermined, "explained": fit.explained,
-            "residual_rms": fit.residual_rms, "iterations": fit.iterations, "rays": rays}
+    return {
+        "signs_abs_mean": float(fit.signs.abs().mean()),
+        "undetermined": undetermined,
+        "explained": fit.explained,
+        "residual_rms": fit.residual_rms,
+        "iterations": fit.iterations,
+        "rays": rays,
+    }
 
 
 UNDETERMINED = -1
 """The value of a bit the suspect does not determine: it matches no message bit (counted as a mismatch)."""
 
 
-def decide_bits(signs: Float[Tensor, " K"], generator: Optional[torch.Generator] = None,
-                tol: float = 1e-6) -> Tuple[Int[Tensor, " K"], int]:
+def decide_bits(
+    signs: Float[Tensor, " K"], generator: Optional[torch.Generator] = None, tol: float = 1e-6
+) -> Tuple[Int[Tensor, " K"], int]:
     """Bit ``i`` = ``signs_i > 0``; bits with ``|signs_i| <= tol`` (not determined by the suspect) are
     :data:`UNDETERMINED`, a mismatch whatever the message (deterministic and conservative: the matches of an unmarked
     suspect are then at most Binomial). Returns the bits and how many are undetermined. ``generator`` is unused."""

@@ -96,8 +96,9 @@ def change_jacobian(ref: ReferenceView, sticker: Sticker, signs: Float[Tensor, "
 # ================================================================================================================
 
 
-def relinearized_view(ref: BaseReference, name: str, camera, use_depth: bool, bits: Int[Tensor, " K"],
-                      sticker: Sticker) -> ReferenceView:
+def relinearized_view(
+    ref: BaseReference, name: str, camera, use_depth: bool, bits: Int[Tensor, " K"], sticker: Sticker
+) -> ReferenceView:
     """A reference view around a first estimate ``bits`` of the message, for bases whose final samples follow the
     wrapped density (TensoRF's and vanilla-nerf's PDF samplers): the samples are the ones the base marked with
     ``bits`` draws, the density at them is the base's, and the zero point is the prediction of the message 0 on
@@ -114,23 +115,43 @@ def suspect_signal(outputs: Dict[str, Tensor], ref: ReferenceView) -> Float[Tens
     signal, _ = geometry_signal(outputs, len(ref.signals) == 2)
     h, w = ref.hw
     if signal.shape[1] != h * w:
-        raise GStickerError(f"the suspect rendered {signal.shape[1]} pixels for a {h}x{w} camera; geometric decoding "
-                            "needs renders at the base's cameras")
+        raise GStickerError(
+            f"the suspect rendered {signal.shape[1]} pixels for a {h}x{w} camera; geometric decoding "
+            "needs renders at the base's cameras"
+        )
     out = signal[:, ref.rays].clone()
     if out.shape[0] == 2:
         out[1] /= ref.depth_scale
     return out
 
 
-def decode_view(ref_view: ReferenceView, sticker: Sticker, suspect: Float[Tensor, "C R"],
-                generator: torch.Generator, iterations: int = 10) -> Dict[str, Any]:
+def decode_view(
+    ref_view: ReferenceView,
+    sticker: Sticker,
+    suspect: Float[Tensor, "C R"],
+    generator: torch.Generator,
+    iterations: int = 10,
+) -> Dict[str, Any]:
     """Fit the continuous message to one view's suspect geometry and decide the bits."""
     target = (suspect - ref_view.base_signal).float()
-    fit, bits, undetermined = fit_and_decide(lambda s: predict_change(ref_view, sticker, s),
-                                             lambda s: change_jacobian(ref_view, sticker, s), target, sticker.num_bits,
-                                             ref_view.rays.numel() > 0, generator, iterations)
-    return {"bits": bits, "signs": fit.signs, "undetermined": undetermined, "explained": fit.explained,
-            "residual_rms": fit.residual_rms, "iterations": fit.iterations, "rays": int(ref_view.rays.numel())}
+    fit, bits, undetermined = fit_and_decide(
+        lambda s: predict_change(ref_view, sticker, s),
+        lambda s: change_jacobian(ref_view, sticker, s),
+        target,
+        sticker.num_bits,
+        ref_view.rays.numel() > 0,
+        generator,
+        iterations,
+    )
+    return {
+        "bits": bits,
+        "signs": fit.signs,
+        "undetermined": undetermined,
+        "explained": fit.explained,
+        "residual_rms": fit.residual_rms,
+        "iterations": fit.iterations,
+        "rays": int(ref_view.rays.numel()),
+    }
 
 
 # ================================================================================================================
@@ -138,10 +159,21 @@ def decode_view(ref_view: ReferenceView, sticker: Sticker, suspect: Float[Tensor
 # ================================================================================================================
 
 
-def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int, sampled_share: float, seed: int,
-                   sticker: Optional[bool] = None, progress: bool = False, iterations: int = 10,
-                   ref_cache: Optional[Dict[Any, ReferenceView]] = None, cameras: Optional[List[Tuple[str, Any]]] = None,
-                   relinearize: int = 1, full_renders: bool = True):
+def decode_suspect(
+    key,
+    reference: BaseReference,
+    suspect_model,
+    num_views: int,
+    sampled_share: float,
+    seed: int,
+    sticker: Optional[bool] = None,
+    progress: bool = False,
+    iterations: int = 10,
+    ref_cache: Optional[Dict[Any, ReferenceView]] = None,
+    cameras: Optional[List[Tuple[str, Any]]] = None,
+    relinearize: int = 1,
+    full_renders: bool = True,
+):
     """Render the base and the suspect at ``num_views`` cameras of the base run (or the given ``(name, camera)``
     list), fit and decode every view.
 
@@ -160,8 +192,18 @@ def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int,
     bits, details, views = [], [], []
     ref_cache = {} if ref_cache is None else ref_cache  # one base render per camera
     rays_for = None if full_renders else (lambda name, cam: any_reference_view(reference, name, cam, ref_cache).rays)
-    for name, cam, out in suspect_renders(reference, suspect_model, num_views, sampled_share, seed, sticker, progress,
-                                          "geometric decoding", cameras, rays_for=rays_for):
+    for name, cam, out in suspect_renders(
+        reference,
+        suspect_model,
+        num_views,
+        sampled_share,
+        seed,
+        sticker,
+        progress,
+        "geometric decoding",
+        cameras,
+        rays_for=rays_for,
+    ):
         use_depth = has_expected_depth(out)
         ref_view = cached_reference_view(reference, name, cam, use_depth, ref_cache)
         d = decode_view(ref_view, st, suspect_signal(out, ref_view), gen, iterations)
@@ -185,9 +227,18 @@ def decode_suspect(key, reference: BaseReference, suspect_model, num_views: int,
     return decoded(key, bits, "geometry", details), views
 
 
-def suspect_renders(reference: BaseReference, suspect_model, num_views: int, sampled_share: float, seed: int,
-                    sticker: Optional[bool], progress: bool, desc: str, cameras: Optional[List[Tuple[str, Any]]] = None,
-                    rays_for: Optional[Callable[[str, Any], Int[Tensor, " R"]]] = None):
+def suspect_renders(
+    reference: BaseReference,
+    suspect_model,
+    num_views: int,
+    sampled_share: float,
+    seed: int,
+    sticker: Optional[bool],
+    progress: bool,
+    desc: str,
+    cameras: Optional[List[Tuple[str, Any]]] = None,
+    rays_for: Optional[Callable[[str, Any], Int[Tensor, " R"]]] = None,
+):
     """Yield ``(name, camera, outputs)`` of the suspect at the base run's chosen cameras, or at ``cameras``
     (outputs float [H W C], on the CPU); ``sticker``: render with the suspect's sticker on/off (None: as it is).
 
@@ -197,8 +248,11 @@ def suspect_renders(reference: BaseReference, suspect_model, num_views: int, sam
     that overrides ``get_outputs_for_camera`` is rendered whole.
     """
     cams = cameras if cameras is not None else select_cameras(reference.pipeline, num_views, sampled_share, seed)
-    ctx = (suspect_model.sticker_enabled(sticker) if (sticker is not None and hasattr(suspect_model, "sticker_enabled"))
-           else contextlib.nullcontext())
+    ctx = (
+        suspect_model.sticker_enabled(sticker)
+        if (sticker is not None and hasattr(suspect_model, "sticker_enabled"))
+        else contextlib.nullcontext()
+    )
     per_ray = rays_for is not None and renders_rays_alone(suspect_model)
     with ctx:
         for name, cam in progress_bar(cams, desc, progress):
@@ -246,5 +300,3 @@ def render_rays(model, camera, rays: Int[Tensor, " R"], into: Optional[Dict[str,
         full[index.to(full.device)] = flat
         out[k] = full.reshape(h, w, -1)
     return out
-
-

@@ -62,7 +62,10 @@ from gsticker_plugin.views import View, Views, progress_bar
 @dataclass
 class ImageReferenceView:
     """One camera of the owner's base in the image decoder's terms."""
-    view: Any  # gsticker_plugin.decoders.reference.ReferenceView (rays, samples, gate, sticker features, sample colours)
+
+    view: (
+        Any  # gsticker_plugin.decoders.reference.ReferenceView (rays, samples, gate, sticker features, sample colours)
+    )
     background: Float[Tensor, " 3"]
     base_rgb: Float[Tensor, "R 3"]  # the base render at the rays (what the suspect image is compared with)
 
@@ -91,8 +94,9 @@ def predict_image_change(ref: ImageReferenceView, sticker: Sticker, signs: Float
     return rgb_of_sticker(ref, sticker.mix(ref.view.features, signs))
 
 
-def image_change_jacobian(ref: ImageReferenceView, sticker: Sticker,
-                          signs: Float[Tensor, " K"]) -> Optional[Float[Tensor, "M K"]]:
+def image_change_jacobian(
+    ref: ImageReferenceView, sticker: Sticker, signs: Float[Tensor, " K"]
+) -> Optional[Float[Tensor, "M K"]]:
     """d predict_image_change / d signs, rows ``r * 3 + c`` like ``predict_image_change(...).reshape(-1)``
     (None: no closed form for this sticker; the fit then uses forward-mode AD)."""
 
@@ -105,6 +109,7 @@ def image_change_jacobian(ref: ImageReferenceView, sticker: Sticker,
 LUMA = (0.299, 0.587, 0.114)
 """The luma row of JPEG's RGB -> YCbCr conversion (ITU-R BT.601): the channel JPEG keeps at full resolution."""
 
+
 def observe(rows: Tensor, luma: bool) -> Tensor:
     """What a fit reads of colour rows ``[..., 3, K]`` (rows ``p * 3 + c`` flattened as ``[P * 3, K]`` or ``[P * 3]``):
     all three channels, or their luma alone (``[P, K]`` / ``[P]``)."""
@@ -115,26 +120,46 @@ def observe(rows: Tensor, luma: bool) -> Tensor:
     return torch.einsum("pc...,c->p...", rows.reshape(-1, 3, *k), w)
 
 
-def decode_image_view(ref: ImageReferenceView, sticker: Sticker, image_rgb: Float[Tensor, "R 3"],
-                      generator: torch.Generator, iterations: int = 10, luma: bool = False) -> Dict[str, Any]:
+def decode_image_view(
+    ref: ImageReferenceView,
+    sticker: Sticker,
+    image_rgb: Float[Tensor, "R 3"],
+    generator: torch.Generator,
+    iterations: int = 10,
+    luma: bool = False,
+) -> Dict[str, Any]:
     """Fit the continuous message to one image's colour change (image minus base render) and decide the bits;
     ``luma``: read the change's luma only (what JPEG keeps at full resolution)."""
-
 
     def jac(x: Tensor) -> Optional[Tensor]:
         j = image_change_jacobian(ref, sticker, x)
         return None if j is None else observe(j, luma)
 
     target = observe((image_rgb.float() - ref.base_rgb).reshape(-1), luma)
-    fit, bits, undetermined = fit_and_decide(lambda x: observe(predict_image_change(ref, sticker, x).reshape(-1), luma),
-                                               jac, target, sticker.num_bits, ref.view.rays.numel() > 0, generator,
-                                               iterations)
-    return {"bits": bits, **fit_summary(fit, undetermined, int(ref.view.rays.numel())),
-            "signals": ["luma" if luma else "rgb"]}
+    fit, bits, undetermined = fit_and_decide(
+        lambda x: observe(predict_image_change(ref, sticker, x).reshape(-1), luma),
+        jac,
+        target,
+        sticker.num_bits,
+        ref.view.rays.numel() > 0,
+        generator,
+        iterations,
+    )
+    return {
+        "bits": bits,
+        **fit_summary(fit, undetermined, int(ref.view.rays.numel())),
+        "signals": ["luma" if luma else "rgb"],
+    }
 
 
-def leaked_key_attack(ref: ImageReferenceView, sticker: Sticker, image: Float[Tensor, "H W 3"], psnr_budget: float,
-                      steps: int = 100, margin: float = 0.25) -> Float[Tensor, "H W 3"]:
+def leaked_key_attack(
+    ref: ImageReferenceView,
+    sticker: Sticker,
+    image: Float[Tensor, "H W 3"],
+    psnr_budget: float,
+    steps: int = 100,
+    margin: float = 0.25,
+) -> Float[Tensor, "H W 3"]:
     """White-box removal by someone who holds the owner key (sticker, gates) and the base (the shared model with
     the sticker off): projected gradient descent on this decoder, at a PSNR budget.
 
@@ -146,7 +171,6 @@ def leaked_key_attack(ref: ImageReferenceView, sticker: Sticker, image: Float[Te
     and the L2 ball is ``|u| <= eps``: PGD on ``u`` with an exact projection. Pixels outside the decoder's rays are
     left alone. Deterministic; the result is clamped to [0, 1] (quantize it as a saved file would be).
     """
-
 
     if psnr_budget <= 0:
         raise GStickerError(f"leaked_key: a PSNR budget in dB > 0, got {psnr_budget}")
@@ -208,6 +232,7 @@ identified degradation, an upper bound for decoding an image of unknown processi
 @dataclass(frozen=True)
 class Degradation:
     """An image transform of :mod:`gsticker_plugin.attacks` (``blur``, ``resize``, ``rotate``, ``jpeg``; ``none``)."""
+
     name: str = "none"
     strength: float = 0.0
 
@@ -248,9 +273,12 @@ can happen to reduce (seen on a 32 px scene with a strong mark), while a real bl
 with edges leaves a few percent of it."""
 
 
-def match_degradation(image: Float[Tensor, "H W 3"], base: Float[Tensor, "3 H W"],
-                      grid: Optional[Dict[str, Sequence[float]]] = None,
-                      margin: float = MATCH_MARGIN) -> Tuple[Degradation, float]:
+def match_degradation(
+    image: Float[Tensor, "H W 3"],
+    base: Float[Tensor, "3 H W"],
+    grid: Optional[Dict[str, Sequence[float]]] = None,
+    margin: float = MATCH_MARGIN,
+) -> Tuple[Degradation, float]:
     """The degradation of ``grid`` whose transform of the base render is closest to ``image``, or the identity when
     none leaves less than ``margin`` of the identity's squared error; returns it and its mean squared error. Uses
     the image and the base only (not the message or the sticker)."""
@@ -268,25 +296,32 @@ def match_degradation(image: Float[Tensor, "H W 3"], base: Float[Tensor, "3 H W"
     return Degradation(), identity_err
 
 
-def decode_degraded_view(ref: ImageReferenceView, sticker: Sticker, image: Float[Tensor, "H W 3"],
-                         degradation: Degradation, generator: torch.Generator,
-                         iterations: int = 10, luma: Optional[bool] = None) -> Dict[str, Any]:
+def decode_degraded_view(
+    ref: ImageReferenceView,
+    sticker: Sticker,
+    image: Float[Tensor, "H W 3"],
+    degradation: Degradation,
+    generator: torch.Generator,
+    iterations: int = 10,
+    luma: Optional[bool] = None,
+) -> Dict[str, Any]:
     """:func:`decode_image_view` for an image the degradation ``D`` was applied to: the image is compared with
     ``D(base render)`` over every pixel, and the change is predicted as ``D_lin(change on the base's rays)``;
     ``luma`` (default: the degradation's own :attr:`Degradation.luma`): compare luma only."""
 
-
     luma = degradation.luma if luma is None else luma
     if degradation.name == "none":
-        d = decode_image_view(ref, sticker, image_at_rays(image, ref.view.rays, ref.view.hw), generator, iterations,
-                              luma=luma)
+        d = decode_image_view(
+            ref, sticker, image_at_rays(image, ref.view.rays, ref.view.hw), generator, iterations, luma=luma
+        )
         d["degradation"] = "none"
         return d
     h, w = ref.view.hw
     rays = ref.view.rays
     base = ref.view.image.float()  # [3 H W]
-    target = observe((image.float().permute(2, 0, 1) - degradation.apply(base[None])[0]).permute(1, 2, 0).reshape(-1),
-                     luma)
+    target = observe(
+        (image.float().permute(2, 0, 1) - degradation.apply(base[None])[0]).permute(1, 2, 0).reshape(-1), luma
+    )
 
     def spread(per_ray: Tensor) -> Tensor:  # [R 3 ...] at the rays -> D_lin of the whole image, rows p * 3 + c
         cols = per_ray.reshape(rays.numel(), 3, -1)
@@ -301,10 +336,15 @@ def decode_degraded_view(ref: ImageReferenceView, sticker: Sticker, image: Float
         j = image_change_jacobian(ref, sticker, sg)
         return None if j is None else spread(j)
 
-    fit, bits, undetermined = fit_and_decide(predict, jac, target, sticker.num_bits, rays.numel() > 0, generator,
-                                               iterations)
-    return {"bits": bits, **fit_summary(fit, undetermined, int(rays.numel())), "signals": ["luma" if luma else "rgb"],
-            "degradation": degradation.label()}
+    fit, bits, undetermined = fit_and_decide(
+        predict, jac, target, sticker.num_bits, rays.numel() > 0, generator, iterations
+    )
+    return {
+        "bits": bits,
+        **fit_summary(fit, undetermined, int(rays.numel())),
+        "signals": ["luma" if luma else "rgb"],
+        "degradation": degradation.label(),
+    }
 
 
 def residual_cost(ref: ImageReferenceView, image: Float[Tensor, "H W 3"], d: Dict[str, Any]) -> float:
@@ -322,8 +362,14 @@ def residual_cost(ref: ImageReferenceView, image: Float[Tensor, "H W 3"], d: Dic
     return cost
 
 
-def decode_selected(ref: ImageReferenceView, sticker: Sticker, image: Float[Tensor, "H W 3"],
-                    degradation: Degradation, generator: torch.Generator, iterations: int = 10) -> Dict[str, Any]:
+def decode_selected(
+    ref: ImageReferenceView,
+    sticker: Sticker,
+    image: Float[Tensor, "H W 3"],
+    degradation: Degradation,
+    generator: torch.Generator,
+    iterations: int = 10,
+) -> Dict[str, Any]:
     """Decode through ``degradation`` and, when it is not the identity, also without it; keep the fit that leaves
     the smaller residual over the whole image (a strong mark on a plain scene can make a transform of the base look
     closer than the base itself); both are compared in the channels the matched degradation keeps (JPEG: luma), and
@@ -347,14 +393,24 @@ def decode_selected(ref: ImageReferenceView, sticker: Sticker, image: Float[Tens
 
 def image_at_rays(image: Float[Tensor, "H W 3"], rays: Int[Tensor, " R"], hw: Tuple[int, int]) -> Float[Tensor, "R 3"]:
     if tuple(image.shape[:2]) != tuple(hw) or image.shape[-1] != 3:
-        raise GStickerError(f"an image of {tuple(image.shape)} for a {hw[0]}x{hw[1]} camera; the image decoder needs "
-                            "RGB images of the cameras' size (resize them to it)")
+        raise GStickerError(
+            f"an image of {tuple(image.shape)} for a {hw[0]}x{hw[1]} camera; the image decoder needs "
+            "RGB images of the cameras' size (resize them to it)"
+        )
     return image.float().reshape(-1, 3)[rays]
 
 
-def decode_posed_images(key, reference, images: Sequence[Float[Tensor, "H W 3"]], cameras: Sequence[Tuple[str, Any]],
-                        seed: int, iterations: int = 10, ref_cache: Optional[Dict[Any, Any]] = None,
-                        progress: bool = False, degradations: Optional[str] = "match") -> Dict[str, Any]:
+def decode_posed_images(
+    key,
+    reference,
+    images: Sequence[Float[Tensor, "H W 3"]],
+    cameras: Sequence[Tuple[str, Any]],
+    seed: int,
+    iterations: int = 10,
+    ref_cache: Optional[Dict[Any, Any]] = None,
+    progress: bool = False,
+    degradations: Optional[str] = "match",
+) -> Dict[str, Any]:
     """Decode ``images[i]``, taken at ``cameras[i] = (name, camera)`` of the owner's scene, with the informed image
     decoder. ``images``: a ``[V H W 3]`` tensor or a list of ``[H W 3]`` images (sizes may differ, each its camera's).
 
@@ -367,7 +423,6 @@ def decode_posed_images(key, reference, images: Sequence[Float[Tensor, "H W 3"]]
     ``None``: compare the image with the base render as it is.
     Returns per image ``bits``, ``matches``, ``bit_acc``, ``pvalues``, ``scores`` (None) and ``image`` (the fits).
     """
-
 
     if len(images) != len(cameras) or any(im.ndim != 3 for im in images):
         raise GStickerError(f"{len(images)} images for {len(cameras)} cameras: pass one [H W 3] image per camera")
@@ -418,12 +473,16 @@ def read_cameras_file(path) -> Dict[str, Dict[str, Any]]:
     try:
         meta = json.loads(path.read_text())
     except (OSError, ValueError) as e:
-        raise GStickerError(f"--cameras {path} is not readable JSON ({type(e).__name__}: {str(e)[:80]}); pass a "
-                            "transforms JSON (Blender format)") from None
+        raise GStickerError(
+            f"--cameras {path} is not readable JSON ({type(e).__name__}: {str(e)[:80]}); pass a "
+            "transforms JSON (Blender format)"
+        ) from None
     frames = meta.get("frames") if isinstance(meta, dict) else None
     if not isinstance(frames, list) or not frames:
-        raise GStickerError(f"--cameras {path} has no 'frames' list; pass a transforms JSON (Blender format: "
-                            "camera_angle_x and frames with file_path and transform_matrix)")
+        raise GStickerError(
+            f"--cameras {path} has no 'frames' list; pass a transforms JSON (Blender format: "
+            "camera_angle_x and frames with file_path and transform_matrix)"
+        )
     top = {k: meta[k] for k in INTRINSIC_KEYS if k in meta}
     out: Dict[str, Dict[str, Any]] = {}
     for i, fr in enumerate(frames):
@@ -431,19 +490,23 @@ def read_cameras_file(path) -> Dict[str, Dict[str, Any]]:
             name = frame_name(fr["file_path"])
             c2w = torch.tensor(fr["transform_matrix"], dtype=torch.float32)
         except (KeyError, TypeError, ValueError) as e:
-            raise GStickerError(f"--cameras {path}: frame {i} lacks a usable file_path/transform_matrix "
-                                f"({type(e).__name__}: {e})") from None
+            raise GStickerError(
+                f"--cameras {path}: frame {i} lacks a usable file_path/transform_matrix ({type(e).__name__}: {e})"
+            ) from None
         if tuple(c2w.shape) == (3, 4):
             c2w = torch.cat([c2w, torch.tensor([[0.0, 0.0, 0.0, 1.0]])])
         if tuple(c2w.shape) != (4, 4) or not bool(torch.isfinite(c2w).all()):
-            raise GStickerError(f"--cameras {path}: frame {i} ({name}) has a transform_matrix of shape "
-                                f"{tuple(c2w.shape)} or non-finite values; it must be a 4x4 camera-to-world matrix")
+            raise GStickerError(
+                f"--cameras {path}: frame {i} ({name}) has a transform_matrix of shape "
+                f"{tuple(c2w.shape)} or non-finite values; it must be a 4x4 camera-to-world matrix"
+            )
         intr = {**top, **{k: fr[k] for k in INTRINSIC_KEYS if k in fr}}
         if "camera_angle_x" not in intr and "fl_x" not in intr:
             raise GStickerError(f"--cameras {path}: frame {i} ({name}) has no intrinsics (camera_angle_x or fl_x)")
         if "fl_x" in intr and not ("w" in intr and "h" in intr):
-            raise GStickerError(f"--cameras {path}: frame {i} ({name}) gives fl_x without the image size w, h it "
-                                "refers to")
+            raise GStickerError(
+                f"--cameras {path}: frame {i} ({name}) gives fl_x without the image size w, h it refers to"
+            )
         out[name] = {"c2w": c2w, "intrinsics": intr}
     return out
 
@@ -468,8 +531,10 @@ def camera_for_image(frame: Dict[str, Any], height: int, width: int, scale_facto
     if "fl_x" in intr:
         w0, h0 = float(intr["w"]), float(intr["h"])
         if abs(w0 / h0 - width / height) > 0.01 * (w0 / h0):
-            raise GStickerError(f"a {width}x{height} image for a camera of {int(w0)}x{int(h0)} px (another aspect "
-                                "ratio): crop or pad it back to the camera's frame")
+            raise GStickerError(
+                f"a {width}x{height} image for a camera of {int(w0)}x{int(h0)} px (another aspect "
+                "ratio): crop or pad it back to the camera's frame"
+            )
         sx, sy = width / w0, height / h0
         fx = float(intr["fl_x"]) * sx
         fy = float(intr.get("fl_y", intr["fl_x"])) * sy
@@ -480,8 +545,16 @@ def camera_for_image(frame: Dict[str, Any], height: int, width: int, scale_facto
         cx, cy = width / 2.0, height / 2.0
     c2w = frame["c2w"][:3].clone()
     c2w[:, 3] *= float(scale_factor)
-    return Cameras(camera_to_worlds=c2w[None], fx=fx, fy=fy, cx=cx, cy=cy, width=int(width), height=int(height),
-                   camera_type=CameraType.PERSPECTIVE)
+    return Cameras(
+        camera_to_worlds=c2w[None],
+        fx=fx,
+        fy=fy,
+        cx=cx,
+        cy=cy,
+        width=int(width),
+        height=int(height),
+        camera_type=CameraType.PERSPECTIVE,
+    )
 
 
 def base_pose_scale(reference) -> float:
@@ -491,13 +564,17 @@ def base_pose_scale(reference) -> float:
     dm = reference.pipeline.datamanager
     parser_cfg = getattr(getattr(dm, "config", None), "dataparser", None)
     if not isinstance(parser_cfg, BlenderDataParserConfig):
-        raise GStickerError(f"--cameras needs a base trained on Blender-format data (blender-data dataparser); this "
-                            f"base used {type(parser_cfg).__name__}, whose pose normalization a transforms file "
-                            "does not carry; decode these images with --decode extractor")
+        raise GStickerError(
+            f"--cameras needs a base trained on Blender-format data (blender-data dataparser); this "
+            f"base used {type(parser_cfg).__name__}, whose pose normalization a transforms file "
+            "does not carry; decode these images with --decode extractor"
+        )
     return float(parser_cfg.scale_factor)
 
 
-def posed_views(views: Views, frames: Dict[str, Dict[str, Any]], scale_factor: float) -> Tuple[Views, List[Tuple[str, Any]]]:
+def posed_views(
+    views: Views, frames: Dict[str, Dict[str, Any]], scale_factor: float
+) -> Tuple[Views, List[Tuple[str, Any]]]:
     """The images that have a camera in ``frames`` (:func:`gsticker_plugin.decoders.image.read_cameras_file`), each
     with a camera of its own size; the others are added to ``skipped``."""
 
@@ -506,8 +583,12 @@ def posed_views(views: Views, frames: Dict[str, Dict[str, Any]], scale_factor: f
     for v in views.views:
         f = match_frame(v.name, frames)
         if f is None:
-            out.skipped.append({"name": v.name, "reason": "no camera for it in --cameras (frames are matched by file "
-                                                          "name without extension)"})
+            out.skipped.append(
+                {
+                    "name": v.name,
+                    "reason": "no camera for it in --cameras (frames are matched by file name without extension)",
+                }
+            )
             continue
         h, w = v.image.shape[-2:]
         try:
@@ -519,20 +600,24 @@ def posed_views(views: Views, frames: Dict[str, Dict[str, Any]], scale_factor: f
         out.views.append(View(name=v.name, image=v.image, note=note))
         cams.append((f"image/{f}/{int(h)}x{int(w)}", cam))
     if not out.views:
-        raise GStickerError(f"none of the {len(views.views)} images has a camera in --cameras (frames are matched by "
-                            "file name without extension, e.g. r_0.png <-> ./test/r_0); pass the transforms JSON "
-                            "of these images")
+        raise GStickerError(
+            f"none of the {len(views.views)} images has a camera in --cameras (frames are matched by "
+            "file name without extension, e.g. r_0.png <-> ./test/r_0); pass the transforms JSON "
+            "of these images"
+        )
     out.details["cameras"] = len(cams)
     return out, cams
 
 
-def decode_images_at_cameras(key: OwnerKey, ref, views: Views, frames: Dict[str, Dict[str, Any]], seed: int,
-                             progress: bool) -> Tuple[Views, Dict[str, Any]]:
+def decode_images_at_cameras(
+    key: OwnerKey, ref, views: Views, frames: Dict[str, Dict[str, Any]], seed: int, progress: bool
+) -> Tuple[Views, Dict[str, Any]]:
     """The informed image decoder on the images of ``views`` that have a camera in ``frames``, against the owner's
     base ``ref`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`): the posed views and the decoded bits."""
 
     posed, cams = posed_views(views, frames, base_pose_scale(ref))
     with contextlib.redirect_stdout(sys.stderr):
-        dec = decode_posed_images(key, ref, [v.image.permute(1, 2, 0) for v in posed.views], cams, seed,
-                                  progress=progress)
+        dec = decode_posed_images(
+            key, ref, [v.image.permute(1, 2, 0) for v in posed.views], cams, seed, progress=progress
+        )
     return posed, dec

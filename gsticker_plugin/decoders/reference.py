@@ -31,6 +31,7 @@ EXPECTED_DEPTH_KEYS = ("expected_depth",)
 @dataclass
 class ReferenceView:
     """One camera of the owner's base: the rays the sticker can change and everything needed to predict them."""
+
     name: str
     hw: Tuple[int, int]
     rays: Int[Tensor, " R"]  # flat pixel indices of rays with at least one gate-open sample
@@ -57,8 +58,10 @@ def geometry_signal(outputs: Dict[str, Tensor], use_depth: bool) -> Tuple[Float[
     """
     acc_key = next((k for k in ACCUMULATION_KEYS if isinstance(outputs.get(k), Tensor)), None)
     if acc_key is None:
-        raise GStickerError(f"the suspect renders no accumulation (outputs: {sorted(outputs)[:12]}); geometric "
-                            "decoding needs a NeRF-style model: use --decode extractor")
+        raise GStickerError(
+            f"the suspect renders no accumulation (outputs: {sorted(outputs)[:12]}); geometric "
+            "decoding needs a NeRF-style model: use --decode extractor"
+        )
     acc = outputs[acc_key].float().reshape(-1)
     if not use_depth:
         return acc[None], ("accumulation",)
@@ -73,6 +76,7 @@ def has_expected_depth(outputs: Dict[str, Any]) -> bool:
 @dataclass
 class BaseReference:
     """The owner's base run rebuilt with the key's sticker and gates (sticker off: renders are the base's)."""
+
     config_path: Path
     checkpoint: Path
     method: str
@@ -83,9 +87,11 @@ class BaseReference:
 
 
 def missing_geometry_message(key_path) -> str:
-    return (f"the owner key {key_path} has no geometry reference (a version-1 key); add it with `ns-verify-owner "
-            f"export-key --load-config WATERMARKED_RUN/config.yml --key {key_path}` (or retrain), or pass "
-            "--decode extractor")
+    return (
+        f"the owner key {key_path} has no geometry reference (a version-1 key); add it with `ns-verify-owner "
+        f"export-key --load-config WATERMARKED_RUN/config.yml --key {key_path}` (or retrain), or pass "
+        "--decode extractor"
+    )
 
 
 def recorded_base_config(key) -> Optional[Path]:
@@ -100,8 +106,10 @@ def base_config_path(key, key_path, base_config: Optional[Path]) -> Path:
         cfg = cfg / "config.yml"
     if cfg is None or not cfg.is_file():
         where = "given with --base-config" if base_config is not None else "recorded in the key"
-        raise GStickerError(f"the owner's base run {cfg} ({where}) does not exist here; geometric decoding needs "
-                            "the unwatermarked base: pass --base-config BASE_RUN/config.yml (or --decode extractor)")
+        raise GStickerError(
+            f"the owner's base run {cfg} ({where}) does not exist here; geometric decoding needs "
+            "the unwatermarked base: pass --base-config BASE_RUN/config.yml (or --decode extractor)"
+        )
     return cfg
 
 
@@ -112,19 +120,25 @@ def base_checkpoint(key, config_path: Path, only_beside: bool = False) -> Path:
     recorded = (key.base or {}).get("checkpoint")
     want = (key.base or {}).get("checkpoint_sha256")
     if not recorded or not want:
-        raise GStickerError("the owner key does not record its base checkpoint and sha256; retrain the sticker "
-                            "with this gsticker (ns-train geometrysticker --load-checkpoint ...)")
+        raise GStickerError(
+            "the owner key does not record its base checkpoint and sha256; retrain the sticker "
+            "with this gsticker (ns-train geometrysticker --load-checkpoint ...)"
+        )
     name = Path(recorded).name
     candidates = [config_path.parent / "nerfstudio_models" / name] + ([] if only_beside else [Path(recorded)])
     found = next((c for c in candidates if c.is_file()), None)
     if found is None:
-        raise GStickerError(f"the base checkpoint {name} the key was made on is not in "
-                            f"{config_path.parent / 'nerfstudio_models'}; pass --base-config with the base run "
-                            "the watermark was made on")
+        raise GStickerError(
+            f"the base checkpoint {name} the key was made on is not in "
+            f"{config_path.parent / 'nerfstudio_models'}; pass --base-config with the base run "
+            "the watermark was made on"
+        )
     got = file_sha256(found)
     if got != want:
-        raise GStickerError(f"base checkpoint {found} has sha256 {got[:12]}... but the key was made on "
-                            f"{want[:12]}...; pass --base-config with the exact base run the watermark was made on")
+        raise GStickerError(
+            f"base checkpoint {found} has sha256 {got[:12]}... but the key was made on "
+            f"{want[:12]}...; pass --base-config with the exact base run the watermark was made on"
+        )
     return found
 
 
@@ -136,8 +150,9 @@ def data_if_missing(config_path: Path, data: Optional[Path]) -> Optional[Path]:
     return None if (recorded is not None and Path(recorded).exists()) else data
 
 
-def load_base_reference(key, key_path, base_config: Optional[Path], data: Optional[Path],
-                        device: torch.device) -> BaseReference:
+def load_base_reference(
+    key, key_path, base_config: Optional[Path], data: Optional[Path], device: torch.device
+) -> BaseReference:
     """Rebuild the owner's base (strictly, sha256-checked) wrapped by a GeometrySticker model with the key's
     sticker and gates. ``data``: dataset folder used when the base's recorded one does not exist here."""
     geo = key.geometry
@@ -148,17 +163,25 @@ def load_base_reference(key, key_path, base_config: Optional[Path], data: Option
     with contextlib.redirect_stdout(sys.stderr):
         config, pipeline, _ = load_run(cfg_path, data=data_if_missing(cfg_path, data), device=device)
     if hasattr(pipeline.model, "sticker_enabled"):
-        raise GStickerError(f"{cfg_path} is a watermarked run, not the unwatermarked base; pass --base-config with "
-                            "the base run the watermark was made on")
+        raise GStickerError(
+            f"{cfg_path} is a watermarked run, not the unwatermarked base; pass --base-config with "
+            "the base run the watermark was made on"
+        )
     sc = geo["sticker_config"]
     base_model_cfg = config.pipeline.model
     mcfg = GeometryStickerModelConfig(
-        base_model=base_model_cfg, num_bits=int(sc["num_bits"]), num_frequencies=int(sc["num_frequencies"]),
-        sticker_hidden_dim=int(sc["hidden_dim"]), sticker_num_layers=int(sc["num_layers"]),
-        sticker_kind=sc["kind"], gate_threshold=float(geo["gate_threshold"]), base_step=runs.checkpoint_step(ckpt),
+        base_model=base_model_cfg,
+        num_bits=int(sc["num_bits"]),
+        num_frequencies=int(sc["num_frequencies"]),
+        sticker_hidden_dim=int(sc["hidden_dim"]),
+        sticker_num_layers=int(sc["num_layers"]),
+        sticker_kind=sc["kind"],
+        gate_threshold=float(geo["gate_threshold"]),
+        base_step=runs.checkpoint_step(ckpt),
         wrap_proposal_networks=bool(geo["wrap_proposal_networks"]),
         mark_sampling_passes=bool(geo.get("mark_sampling_passes", True)),  # keys written before the option: on
-        eval_num_rays_per_chunk=int(getattr(base_model_cfg, "eval_num_rays_per_chunk", 4096)))
+        eval_num_rays_per_chunk=int(getattr(base_model_cfg, "eval_num_rays_per_chunk", 4096)),
+    )
     ds = pipeline.datamanager.train_dataset
     with contextlib.redirect_stdout(sys.stderr):
         model = mcfg.setup(scene_box=ds.scene_box, num_train_data=len(ds), metadata=ds.metadata, device=device)
@@ -166,18 +189,24 @@ def load_base_reference(key, key_path, base_config: Optional[Path], data: Option
     runs.strict_load(model.base, runs.model_state_from_pipeline_state(state["pipeline"]), len(ds))
     names = [w.name for w in model.wraps]
     if names != list(geo["fields"]):
-        raise GStickerError(f"the key's sticker wraps fields {list(geo['fields'])} but the base rebuilds {names}; "
-                            "pass --base-config with the base run the watermark was made on")
+        raise GStickerError(
+            f"the key's sticker wraps fields {list(geo['fields'])} but the base rebuilds {names}; "
+            "pass --base-config with the base run the watermark was made on"
+        )
     try:
         model.sticker.load_state_dict(geo["sticker_state"], strict=True)
         model.gates.load_state_dict(geo["gates_state"], strict=True)
     except RuntimeError as e:
-        raise GStickerError(f"the key's sticker does not fit its own configuration ({str(e).splitlines()[0]}); "
-                            "the key is damaged: use your original copy") from None
+        raise GStickerError(
+            f"the key's sticker does not fit its own configuration ({str(e).splitlines()[0]}); "
+            "the key is damaged: use your original copy"
+        ) from None
     notes = []
     if sc["kind"] == "bilinear" and int(sc["hidden_dim"]) + 1 < int(sc["num_bits"]):
-        notes.append(f"the bilinear sticker's {sc['hidden_dim']} hidden units span fewer than its {sc['num_bits']} "
-                     "bit patterns: some bits are not identifiable from geometry (decoded near chance)")
+        notes.append(
+            f"the bilinear sticker's {sc['hidden_dim']} hidden units span fewer than its {sc['num_bits']} "
+            "bit patterns: some bits are not identifiable from geometry (decoded near chance)"
+        )
     for w in model.wraps:
         stored = geo["aabb"][w.name].to(w.aabb)
         if not torch.allclose(stored, w.aabb):
@@ -187,15 +216,24 @@ def load_base_reference(key, key_path, base_config: Optional[Path], data: Option
     model.eval()
     # nerfacto's proposal networks place its samples and are not wrapped (by default): its samples do not move;
     # without marked sampling passes no base's samples move
-    follows = mcfg.mark_sampling_passes and not (hasattr(model.base, "proposal_sampler")
-                                                 and not mcfg.wrap_proposal_networks)
-    return BaseReference(config_path=cfg_path, checkpoint=ckpt, method=config.method_name, pipeline=pipeline,
-                         model=model, notes=notes, samples_follow_sticker=follows)
+    follows = mcfg.mark_sampling_passes and not (
+        hasattr(model.base, "proposal_sampler") and not mcfg.wrap_proposal_networks
+    )
+    return BaseReference(
+        config_path=cfg_path,
+        checkpoint=ckpt,
+        method=config.method_name,
+        pipeline=pipeline,
+        model=model,
+        notes=notes,
+        samples_follow_sticker=follows,
+    )
 
 
 @torch.no_grad()
-def reference_view(ref: BaseReference, name: str, camera, use_depth: bool,
-                   message: Optional[Int[Tensor, " K"]] = None) -> ReferenceView:
+def reference_view(
+    ref: BaseReference, name: str, camera, use_depth: bool, message: Optional[Int[Tensor, " K"]] = None
+) -> ReferenceView:
     """Render the base at ``camera`` once (sticker off) and keep the rays whose samples the sticker can change.
 
     ``use_depth`` is honoured only when the base renders expected depth too (vanilla-nerf does not): the view's
@@ -223,8 +261,11 @@ def reference_view(ref: BaseReference, name: str, camera, use_depth: bool,
     steps = (positions - origin).norm(dim=-1, keepdim=True)
     open_index = open_.reshape(-1).nonzero().squeeze(-1)
     pos_open = positions.reshape(-1, 3)[open_index]
-    feats = model.sticker.features(wrap.normalize(pos_open.to(model.device))).cpu() if open_index.numel() else \
-        torch.zeros(0, model.sticker.num_bits)
+    feats = (
+        model.sticker.features(wrap.normalize(pos_open.to(model.device))).cpu()
+        if open_index.numel()
+        else torch.zeros(0, model.sticker.num_bits)
+    )
     psi_scale = psi.reshape(-1, 1)[open_index] * float(wrap.gate.scale)
     use_depth = use_depth and has_expected_depth(outputs)  # e.g. a vanilla-nerf base: accumulation only
     signal, names = geometry_signal(outputs, use_depth)
@@ -235,21 +276,37 @@ def reference_view(ref: BaseReference, name: str, camera, use_depth: bool,
     if use_depth:
         base_signal = base_signal.clone()
         base_signal[1] /= depth_scale
-    return ReferenceView(name=name, hw=(h, w), rays=rays, density=density, deltas=deltas, steps=steps,
-                         open_index=open_index, psi_scale=psi_scale, features=feats, base_signal=base_signal,
-                         depth_scale=depth_scale, signals=names,
-                         image=view.image.permute(2, 0, 1).contiguous(), rgb=rgb)
+    return ReferenceView(
+        name=name,
+        hw=(h, w),
+        rays=rays,
+        density=density,
+        deltas=deltas,
+        steps=steps,
+        open_index=open_index,
+        psi_scale=psi_scale,
+        features=feats,
+        base_signal=base_signal,
+        depth_scale=depth_scale,
+        signals=names,
+        image=view.image.permute(2, 0, 1).contiguous(),
+        rgb=rgb,
+    )
 
 
-def cached_reference_view(reference: BaseReference, name: str, cam, use_depth: bool,
-                          ref_cache: Optional[Dict[Any, ReferenceView]]) -> ReferenceView:
+def cached_reference_view(
+    reference: BaseReference, name: str, cam, use_depth: bool, ref_cache: Optional[Dict[Any, ReferenceView]]
+) -> ReferenceView:
     """:func:`reference_view`, kept in ``ref_cache`` (when given) under ``(name, use_depth)``. The view without
     depth is the one with depth less its second signal (the same rays and base render): derived, not re-rendered."""
     if ref_cache is not None and (name, use_depth) in ref_cache:
         return ref_cache[(name, use_depth)]
     with_depth = ref_cache.get((name, True)) if ref_cache is not None and not use_depth else None
-    ref_view = without_depth(with_depth) if with_depth is not None else \
-        reference_view(reference, name, cam, use_depth=use_depth)
+    ref_view = (
+        without_depth(with_depth)
+        if with_depth is not None
+        else reference_view(reference, name, cam, use_depth=use_depth)
+    )
     if ref_cache is not None:
         ref_cache[(name, use_depth)] = ref_view
     return ref_view
@@ -260,8 +317,9 @@ def without_depth(view: ReferenceView) -> ReferenceView:
     return dataclasses.replace(view, base_signal=view.base_signal[:1], signals=view.signals[:1])
 
 
-def any_reference_view(reference: BaseReference, name: str, cam,
-                       ref_cache: Optional[Dict[Any, ReferenceView]]) -> ReferenceView:
+def any_reference_view(
+    reference: BaseReference, name: str, cam, ref_cache: Optional[Dict[Any, ReferenceView]]
+) -> ReferenceView:
     """A cached reference view of camera ``name`` (either signal set), else one with depth (its rays do not depend
     on the signals read)."""
     for k in ((name, True), (name, False)):

@@ -25,13 +25,23 @@ class Decoded(TypedDict, total=False):
     color: List[Dict[str, Any]]
 
 
-def decoded(key, bits: List[Tensor], details_name: Optional[str] = None, details: Optional[List[Dict[str, Any]]] = None,
-            scores: Optional[Tensor] = None) -> Decoded:
+def decoded(
+    key,
+    bits: List[Tensor],
+    details_name: Optional[str] = None,
+    details: Optional[List[Dict[str, Any]]] = None,
+    scores: Optional[Tensor] = None,
+) -> Decoded:
     """Per-view bits -> matches, bit accuracy and binomial p-values against the owner's message (every decoder)."""
     b = torch.stack(bits)
     m = metrics.count_matches(b, key.message)
-    out: Decoded = {"bits": b, "matches": m, "bit_acc": metrics.bit_accuracy(b, key.message),
-                    "pvalues": metrics.binomial_tail_pvalues(m, key.num_bits), "scores": scores}
+    out: Decoded = {
+        "bits": b,
+        "matches": m,
+        "bit_acc": metrics.bit_accuracy(b, key.message),
+        "pvalues": metrics.binomial_tail_pvalues(m, key.num_bits),
+        "scores": scores,
+    }
     if details_name is not None:
         out[details_name] = details or []  # type: ignore[literal-required]
     return out

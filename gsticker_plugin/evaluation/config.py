@@ -38,8 +38,22 @@ REFERENCE_COLORS = ("green", "yellow", "orange", "red", "pink", "magenta", "purp
 LEAKED_KEY = "leaked_key"
 """The curve of the white-box attack with a leaked owner key (strengths: PSNR budgets in dB)."""
 
-ALL_STAGES = ("scene", "bases", "sticker", "renders", "quality", "geometry", "seeds", "distortions", "curves", "recolor",
-              "purify", "false_positives", "speed", "report")
+ALL_STAGES = (
+    "scene",
+    "bases",
+    "sticker",
+    "renders",
+    "quality",
+    "geometry",
+    "seeds",
+    "distortions",
+    "curves",
+    "recolor",
+    "purify",
+    "false_positives",
+    "speed",
+    "report",
+)
 
 
 @dataclass
@@ -194,8 +208,14 @@ def _build(cls, data: Any, where: str):
         if f.name not in data:
             continue
         v = data[f.name]
-        sub = {"scene": SceneSpec, "sticker": StickerSpec, "recolor": RecolorSpec, "finetune": FinetuneSpec,
-               "false_positives": FalsePositiveSpec, "geometry": GeometrySpec}.get(f.name)
+        sub = {
+            "scene": SceneSpec,
+            "sticker": StickerSpec,
+            "recolor": RecolorSpec,
+            "finetune": FinetuneSpec,
+            "false_positives": FalsePositiveSpec,
+            "geometry": GeometrySpec,
+        }.get(f.name)
         if sub is not None and cls in (Protocol, RecolorSpec):
             v = _build(sub, v, f"{where}.{f.name}")
         elif f.name == "bases" and cls is Protocol:
@@ -225,14 +245,18 @@ def validate(p: Protocol) -> None:
         if b.config is None and not b.preset:
             raise GStickerError(f"bases[{b.name}]: give config (an existing run) or preset (an ns-train method)")
         if b.config is not None and not Path(b.config).is_file():
-            raise GStickerError(f"bases[{b.name}].config {b.config} does not exist (paths are relative to the "
-                                "current folder: run from the repository root)")
+            raise GStickerError(
+                f"bases[{b.name}].config {b.config} does not exist (paths are relative to the "
+                "current folder: run from the repository root)"
+            )
     if p.num_views < 1:
         raise GStickerError(f"num_views must be >= 1, got {p.num_views}")
     if not p.seeds:
         raise GStickerError("seeds: give at least one seed")
     if len(set(p.sticker.seeds)) != len(p.sticker.seeds) or 42 in p.sticker.seeds:
-        raise GStickerError(f"sticker.seeds: give distinct training seeds other than 42 (the main run's), got {p.sticker.seeds}")
+        raise GStickerError(
+            f"sticker.seeds: give distinct training seeds other than 42 (the main run's), got {p.sticker.seeds}"
+        )
     if p.sticker.seeds and p.geometry is None:
         raise GStickerError("sticker.seeds needs geometry (the seeds stage decodes with the geometric decoder)")
     if not 0 < p.fpr < 1 or not 0 < p.min_share <= 1:
@@ -243,14 +267,17 @@ def validate(p: Protocol) -> None:
         for name, strengths in p.curves.items():
             if name == LEAKED_KEY:
                 if p.geometry is None or not p.geometry.image_decoder:
-                    raise ValueError(f"curves.{LEAKED_KEY} attacks the informed image decoder: it needs geometry with "
-                                     "image_decoder: true")
+                    raise ValueError(
+                        f"curves.{LEAKED_KEY} attacks the informed image decoder: it needs geometry with "
+                        "image_decoder: true"
+                    )
                 if not strengths or any(float(s) <= 0 for s in strengths):
                     raise ValueError(f"curves.{LEAKED_KEY}: give PSNR budgets in dB > 0, weakest (highest) first")
                 continue
             if name not in attacks.ATTACKS:
-                raise ValueError(f"curves: unknown attack {name!r}; use one of {', '.join(attacks.ATTACK_NAMES)} "
-                                 f"or {LEAKED_KEY}")
+                raise ValueError(
+                    f"curves: unknown attack {name!r}; use one of {', '.join(attacks.ATTACK_NAMES)} or {LEAKED_KEY}"
+                )
             if not strengths:
                 raise ValueError(f"curves.{name}: give at least one strength")
             for s in strengths:
@@ -271,18 +298,25 @@ def validate(p: Protocol) -> None:
     g = p.geometry
     if g is not None:
         if g.num_views < 1 or not 0 <= g.sampled_share <= 1:
-            raise GStickerError(f"geometry: num_views must be >= 1 and sampled_share in [0, 1], got {g.num_views}, "
-                                f"{g.sampled_share}")
+            raise GStickerError(
+                f"geometry: num_views must be >= 1 and sampled_share in [0, 1], got {g.num_views}, {g.sampled_share}"
+            )
         if any(int(s) < 0 for s in g.purify_steps) or list(g.purify_steps) != sorted(g.purify_steps):
             raise GStickerError(f"geometry.purify_steps: give increasing step counts >= 0, got {g.purify_steps}")
 
 
-def load_protocol(path: Path, output_dir: Optional[Path] = None, data: Optional[Path] = None,
-                  sticker_seeds: Optional[Sequence[int]] = None) -> Protocol:
+def load_protocol(
+    path: Path,
+    output_dir: Optional[Path] = None,
+    data: Optional[Path] = None,
+    sticker_seeds: Optional[Sequence[int]] = None,
+) -> Protocol:
     """Read and check a protocol YAML; ``output_dir``/``data``/``sticker_seeds`` override the file's values."""
     path = Path(path)
     if not path.is_file():
-        raise GStickerError(f"--config {path} does not exist; pass a protocol YAML such as method_configs/eval/smoke.yaml")
+        raise GStickerError(
+            f"--config {path} does not exist; pass a protocol YAML such as method_configs/eval/smoke.yaml"
+        )
     try:
         raw = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:

@@ -27,9 +27,21 @@ from gsticker_plugin.evaluation.stages import (
 from gsticker_plugin.evaluation.workspace import Workspace
 from gsticker_plugin.machine import machine_info
 
-STAGES = {"scene": scene, "bases": bases, "sticker": sticker, "renders": renders, "quality": quality,
-          "geometry": geometry, "seeds": seeds, "distortions": distortions, "curves": curves, "recolor": recolor,
-          "purify": purify, "false_positives": false_positives, "speed": speed}
+STAGES = {
+    "scene": scene,
+    "bases": bases,
+    "sticker": sticker,
+    "renders": renders,
+    "quality": quality,
+    "geometry": geometry,
+    "seeds": seeds,
+    "distortions": distortions,
+    "curves": curves,
+    "recolor": recolor,
+    "purify": purify,
+    "false_positives": false_positives,
+    "speed": speed,
+}
 """Every stage in protocol order; each module's ``run(ws)`` returns the stage's numbers."""
 
 
@@ -55,8 +67,13 @@ class Runner(Workspace):
         for i, s in enumerate(want):
             self.say(f"[eval] stage {i + 1}/{len(want)}: {s}")
             self.stage(s, fns[s])
-        results = {"protocol": to_plain(self.p), "threshold": self.threshold, "machine": machine_info(),
-                   "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "paper": report.paper_numbers()}
+        results = {
+            "protocol": to_plain(self.p),
+            "threshold": self.threshold,
+            "machine": machine_info(),
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "paper": report.paper_numbers(),
+        }
         for s in fns:
             if self.stage_path(s).is_file():
                 results[s] = json.loads(self.stage_path(s).read_text())
@@ -65,4 +82,3 @@ class Runner(Workspace):
         if "report" in stages:
             report.write_all(results, self.out)
         return results
-

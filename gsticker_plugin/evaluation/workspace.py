@@ -59,7 +59,9 @@ def finite_or_none(x: float) -> Any:
 class Workspace:
     """An evaluation's output folder and the services its stages share: resumable stages, caches, runs, decoders."""
 
-    def __init__(self, protocol: Protocol, progress: bool = True, redo: Sequence[str] = (), log: Callable[[str], None] = print):
+    def __init__(
+        self, protocol: Protocol, progress: bool = True, redo: Sequence[str] = (), log: Callable[[str], None] = print
+    ):
         self.p = protocol
         self.out = Path(protocol.output_dir)
         self.progress = progress
@@ -102,8 +104,10 @@ class Workspace:
             proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env=env)
         if proc.returncode != 0:
             sys.stderr.write("\n".join(log.read_text(errors="replace").splitlines()[-15:]) + "\n")
-            raise GStickerError(f"{Path(cmd[0]).name} {' '.join(cmd[1:2])} failed (exit {proc.returncode}); "
-                                f"its last lines are above, the full log is {log}")
+            raise GStickerError(
+                f"{Path(cmd[0]).name} {' '.join(cmd[1:2])} failed (exit {proc.returncode}); "
+                f"its last lines are above, the full log is {log}"
+            )
         self.say(f"    done in {time.time() - t0:.0f} s (log: {log})")
 
     def cached(self, name: str, fn: Callable[[], Dict[str, Tensor]]) -> Dict[str, Tensor]:
@@ -152,11 +156,15 @@ class Workspace:
         n = len(dataset)
         idx = sorted({int(round(j * (n - 1) / max(1, self.p.num_views - 1))) for j in range(min(self.p.num_views, n))})
         model = pipeline.model
-        ctx = model.sticker_enabled(sticker) if (sticker is not None and hasattr(model, "sticker_enabled")) else contextlib.nullcontext()
+        ctx = (
+            model.sticker_enabled(sticker)
+            if (sticker is not None and hasattr(model, "sticker_enabled"))
+            else contextlib.nullcontext()
+        )
         rgbs, gts = [], []
         with ctx:
             for i in progress_bar(idx, f"rendering {desc}", self.progress):
-                cam = dataset.cameras[i: i + 1].to(model.device)
+                cam = dataset.cameras[i : i + 1].to(model.device)
                 rgbs.append(final_rgb(model.get_outputs_for_camera(cam)).float().clamp(0, 1).cpu())
                 img = dataset.get_image_float32(i)
                 if img.shape[-1] == 4:
@@ -172,9 +180,9 @@ class Workspace:
         if not hasattr(self, "_geo"):
             self._geo: Dict[str, Any] = {}
         if name not in self._geo:
-
-            ref = load_base_reference(self.key(name), self.key_path(name), self.base_config(name), self.scene_dir,
-                                      self.device)
+            ref = load_base_reference(
+                self.key(name), self.key_path(name), self.base_config(name), self.scene_dir, self.device
+            )
             self._geo[name] = (ref, {})
         return self._geo[name]
 
@@ -185,8 +193,18 @@ class Workspace:
         key = self.key(name)
         t0 = time.time()
         with contextlib.redirect_stdout(sys.stderr):
-            dec, _ = decode_suspect(key, ref, suspect_model, g.num_views, g.sampled_share, self.p.seeds[0],
-                                    sticker=sticker, progress=self.progress, ref_cache=views, full_renders=False)
+            dec, _ = decode_suspect(
+                key,
+                ref,
+                suspect_model,
+                g.num_views,
+                g.sampled_share,
+                self.p.seeds[0],
+                sticker=sticker,
+                progress=self.progress,
+                ref_cache=views,
+                full_renders=False,
+            )
         res = self.summarize(dec["matches"], dec["bit_acc"], key.num_bits)
         res["seconds_per_view"] = round((time.time() - t0) / max(1, res["views"]), 2)
         if desc:
@@ -199,12 +217,23 @@ class Workspace:
         ref, views = self.geo_reference(self.primary)  # the same cameras as geo_decode's: its reference views serve
         key = self.key(self.primary)
         with contextlib.redirect_stdout(sys.stderr):
-            dec, _ = decode_color_suspect(key, ref, suspect_model, g.num_views, g.sampled_share, self.p.seeds[0],
-                                          amplitude=amplitude, progress=self.progress, ref_cache=views,
-                                          full_renders=False)
+            dec, _ = decode_color_suspect(
+                key,
+                ref,
+                suspect_model,
+                g.num_views,
+                g.sampled_share,
+                self.p.seeds[0],
+                amplitude=amplitude,
+                progress=self.progress,
+                ref_cache=views,
+                full_renders=False,
+            )
         res = self.summarize(dec["matches"], dec["bit_acc"], key.num_bits)
         if desc:
-            self.say(f"    color baseline {desc}: matches {res['matches']} -> {'OWNED' if res['verdict'] else 'not shown'}")
+            self.say(
+                f"    color baseline {desc}: matches {res['matches']} -> {'OWNED' if res['verdict'] else 'not shown'}"
+            )
         return res
 
     @property
@@ -224,15 +253,15 @@ class Workspace:
         if name not in self._test_cams:
             ref, _ = self.geo_reference(name)
             ds = ref.pipeline.datamanager.eval_dataset
-            self._test_cams[name] = [(f"eval/{int(i):03d}", ds.cameras[int(i): int(i) + 1])
-                                     for i in self.views(name)["indices"].tolist()]
+            self._test_cams[name] = [
+                (f"eval/{int(i):03d}", ds.cameras[int(i) : int(i) + 1]) for i in self.views(name)["indices"].tolist()
+            ]
         return self._test_cams[name]
 
     def image_decode(self, images_nhw3: Tensor) -> Dict[str, Any]:
         """The informed image decoder on images of the primary base's test views, quantized to 8 bits first (as
         saved image files are). Image ``j`` is read as if taken at test view ``j mod num_views``: for unmarked
         images (false positives) any image of that size is a valid null, the decoder never uses the message."""
-
 
         images = as_8_bit(images_nhw3)
         digest = hashlib.sha1((images * 255.0).to(torch.uint8).numpy().tobytes()).hexdigest()
@@ -254,7 +283,10 @@ class Workspace:
 
     @staticmethod
     def _as_tensors(d: Dict[str, Any], prefix: str) -> Dict[str, Tensor]:
-        return {f"{prefix}_matches": torch.tensor(d["matches"]), f"{prefix}_bit_acc": torch.tensor([float(d["bit_acc"])])}
+        return {
+            f"{prefix}_matches": torch.tensor(d["matches"]),
+            f"{prefix}_bit_acc": torch.tensor([float(d["bit_acc"])]),
+        }
 
     def _from_tensors(self, c: Dict[str, Tensor], prefix: str, num_bits: int = 48) -> Optional[Dict[str, Any]]:
         if f"{prefix}_matches" not in c:
@@ -288,8 +320,11 @@ class Workspace:
     def image_metrics(a: Tensor, b: Tensor, lpips=None) -> Dict[str, Any]:
         a4, b4 = a.permute(0, 3, 1, 2).float(), b.permute(0, 3, 1, 2).float()
         psnr = metrics.psnr(a4, b4)
-        res = {"psnr": finite_or_none(psnr.mean()), "psnr_min": finite_or_none(psnr.min()),
-               "ssim": float(metrics.ssim(a4, b4).mean())}
+        res = {
+            "psnr": finite_or_none(psnr.mean()),
+            "psnr_min": finite_or_none(psnr.min()),
+            "ssim": float(metrics.ssim(a4, b4).mean()),
+        }
         if lpips is not None:
             res["lpips"] = lpips(a4, b4)
         return res
@@ -304,13 +339,35 @@ class Workspace:
         if wm.with_name("watermarked.gskey").is_file() and self.latest_ckpt(wm) is not None:
             return None
         t0 = time.time()
-        self.run_cmd([console_script("ns-train"), "geometrysticker", "--machine.device-type", self.p.device, "--vis",
-                      "tensorboard", "--output-dir", str(self.out / "runs"), "--experiment-name", experiment,
-                      "--timestamp", "watermarked", "--max-num-iterations", str(s.steps),
-                      "--pipeline.owner-id", s.owner_id, "--pipeline.key-path", str(wm.with_name("watermarked.gskey")),
-                      *[str(a) for a in s.args], *extra,
-                      "--load-checkpoint", str(self.latest_ckpt(self.base_config(base).parent)),
-                      "--data", str(self.scene_dir)], f"sticker-{experiment}")
+        self.run_cmd(
+            [
+                console_script("ns-train"),
+                "geometrysticker",
+                "--machine.device-type",
+                self.p.device,
+                "--vis",
+                "tensorboard",
+                "--output-dir",
+                str(self.out / "runs"),
+                "--experiment-name",
+                experiment,
+                "--timestamp",
+                "watermarked",
+                "--max-num-iterations",
+                str(s.steps),
+                "--pipeline.owner-id",
+                s.owner_id,
+                "--pipeline.key-path",
+                str(wm.with_name("watermarked.gskey")),
+                *[str(a) for a in s.args],
+                *extra,
+                "--load-checkpoint",
+                str(self.latest_ckpt(self.base_config(base).parent)),
+                "--data",
+                str(self.scene_dir),
+            ],
+            f"sticker-{experiment}",
+        )
         return round(time.time() - t0, 1)
 
     def views(self, name: str) -> Dict[str, Tensor]:
@@ -326,7 +383,6 @@ class Workspace:
         cfg = self.out / "runs" / self.primary / "colormark" / "config.yml"
         return cfg if cfg.is_file() else None
 
-
     @property
     def primary(self) -> str:
         return self.p.bases[0].name
@@ -338,7 +394,6 @@ class Workspace:
         x = apply_attacks(wm.permute(0, 3, 1, 2).float(), spec, generator=g, cover=clean.permute(0, 3, 1, 2).float())
         return x.permute(0, 2, 3, 1).clamp(0, 1)
 
-
     # ------------------------------------------------------------------------------------------ all
 
 
@@ -346,16 +401,27 @@ def over_seeds(per_seed: List[Dict[str, Any]]) -> Dict[str, Any]:
     """A decoder's per-seed summaries -> mean bit accuracy, its spread over seeds, views passing and verdict rate.
     A deterministic attack gives the same images for every seed: identical entries, spread 0."""
     accs = torch.tensor([s["bit_acc"] for s in per_seed])
-    return {"bit_acc": float(accs.mean()), "bit_acc_seed_std": float(accs.std(unbiased=False)),
-            "share_passing": float(sum(s["share_passing"] for s in per_seed) / len(per_seed)),
-            "verdict_rate": float(sum(s["verdict"] for s in per_seed) / len(per_seed)), "per_seed": per_seed}
+    return {
+        "bit_acc": float(accs.mean()),
+        "bit_acc_seed_std": float(accs.std(unbiased=False)),
+        "share_passing": float(sum(s["share_passing"] for s in per_seed) / len(per_seed)),
+        "verdict_rate": float(sum(s["verdict"] for s in per_seed) / len(per_seed)),
+        "per_seed": per_seed,
+    }
 
 
 def describe_spec(spec: str) -> str:
     """The exact definition of each attack of a spec, from gsticker_plugin.attacks' docstrings."""
 
-    fns = {"noise": attacks.gaussian_noise, "rotate": attacks.rotate, "crop": attacks.cropout,
-           "blur": attacks.gaussian_blur, "hue": attacks.hue_shift, "jpeg": attacks.jpeg, "resize": attacks.resize}
+    fns = {
+        "noise": attacks.gaussian_noise,
+        "rotate": attacks.rotate,
+        "crop": attacks.cropout,
+        "blur": attacks.gaussian_blur,
+        "hue": attacks.hue_shift,
+        "jpeg": attacks.jpeg,
+        "resize": attacks.resize,
+    }
     if not spec.strip():
         return "no attack"
     parts = []
@@ -363,10 +429,10 @@ def describe_spec(spec: str) -> str:
         doc = inspect.getdoc(fns[name]) or ""
         first = " ".join(doc.split("\n\n")[0].split())
         parts.append(f"{name}: {first}")
-    extra = " (cropout: the rectangle is replaced by the unwatermarked render of the same view)" if "crop" in spec else ""
+    extra = (
+        " (cropout: the rectangle is replaced by the unwatermarked render of the same view)" if "crop" in spec else ""
+    )
     return "; ".join(parts) + extra
-
-
 
 
 def as_8_bit(images: Tensor) -> Tensor:

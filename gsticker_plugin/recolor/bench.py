@@ -54,7 +54,9 @@ def edit_region(rgb: Tensor, acc: Tensor, palette_lab: Tensor, index: int) -> Te
     return (w.argmax(-1) == index) & (acc[..., 0] > 0.5)
 
 
-def fidelity(original: Tensor, edited: Tensor, region: Tensor, acc: Tensor, target_rgb: Sequence[float]) -> Dict[str, float]:
+def fidelity(
+    original: Tensor, edited: Tensor, region: Tensor, acc: Tensor, target_rgb: Sequence[float]
+) -> Dict[str, float]:
     """Metrics of one edit over [N, H, W, 3] renders."""
     target_hue = float(lch_hue_deg(torch.tensor([list(target_rgb)], dtype=torch.float32))[0])
     hue = lch_hue_deg(edited[region])
@@ -74,8 +76,15 @@ def fidelity(original: Tensor, edited: Tensor, region: Tensor, acc: Tensor, targ
 
 
 @torch.no_grad()
-def measure(config: Path, data: Optional[Path], edits: Sequence[tuple], softness: Sequence[float], views: int,
-            k: Optional[int] = None, seed: int = 0) -> List[Dict[str, object]]:
+def measure(
+    config: Path,
+    data: Optional[Path],
+    edits: Sequence[tuple],
+    softness: Sequence[float],
+    views: int,
+    k: Optional[int] = None,
+    seed: int = 0,
+) -> List[Dict[str, object]]:
     loaded = runs.load_run(config, data)
     model = loaded.pipeline.model
     dataset = loaded.pipeline.datamanager.train_dataset
@@ -98,32 +107,52 @@ def measure(config: Path, data: Optional[Path], edits: Sequence[tuple], softness
             wraps = [ColorWrap(f, lambda rgb, s=soft: P.recolor(rgb, src.to(rgb), tgt.to(rgb), s)) for _, f in fields]
             t0 = time.time()
             try:
-                edited = torch.stack(runs.render_views(model, dataset.cameras, range(n), desc=f"edit {index} soft {soft}")["rgb"])
+                edited = torch.stack(
+                    runs.render_views(model, dataset.cameras, range(n), desc=f"edit {index} soft {soft}")["rgb"]
+                )
             finally:
                 for w in reversed(wraps):
                     w.remove()
             t_render = (time.time() - t0) / n
             image_level = P.recolor(orig, src, tgt, soft)
-            row = {"entry": f"{index}: {P.to_hex(pal.rgb[index])} -> {color}", "softness": soft, "level": "model",
-                   "s_per_view": t_render, **fidelity(orig, edited, region, acc, target)}
+            row = {
+                "entry": f"{index}: {P.to_hex(pal.rgb[index])} -> {color}",
+                "softness": soft,
+                "level": "model",
+                "s_per_view": t_render,
+                **fidelity(orig, edited, region, acc, target),
+            }
             rows.append(row)
-            rows.append({"entry": row["entry"], "softness": soft, "level": "image", "s_per_view": float("nan"),
-                         **fidelity(orig, image_level, region, acc, target)})
+            rows.append(
+                {
+                    "entry": row["entry"],
+                    "softness": soft,
+                    "level": "image",
+                    "s_per_view": float("nan"),
+                    **fidelity(orig, image_level, region, acc, target),
+                }
+            )
     rows.insert(0, {"palette": pal.describe(), "k": pal.k, "palette_seconds": t_pal, "views": n})
     return rows
 
 
 def to_markdown(rows: List[Dict[str, object]]) -> str:
     head = rows[0]
-    lines = [f"Palette (K = {head['k']}, {head['palette_seconds']:.1f} s): " + "; ".join(head["palette"]), "",
-             f"{head['views']} training views.", "",
-             "| edit | softness | level | region % | moved | hue err (deg, before) | PSNR outside | PSNR outside (object) | s/view |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"Palette (K = {head['k']}, {head['palette_seconds']:.1f} s): " + "; ".join(head["palette"]),
+        "",
+        f"{head['views']} training views.",
+        "",
+        "| edit | softness | level | region % | moved | hue err (deg, before) | PSNR outside | PSNR outside (object) | s/view |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows[1:]:
-        lines.append(f"| {r['entry']} | {r['softness']:g} | {r['level']} | {100 * r['region_share']:.1f} | "
-                     f"{100 * r['moved']:.0f} % | {r['hue_error_deg']:.0f} ({r['hue_error_before_deg']:.0f}) | "
-                     f"{r['psnr_outside']:.1f} | {r['psnr_outside_object']:.1f} | "
-                     f"{'' if math.isnan(r['s_per_view']) else format(r['s_per_view'], '.2f')} |")
+        lines.append(
+            f"| {r['entry']} | {r['softness']:g} | {r['level']} | {100 * r['region_share']:.1f} | "
+            f"{100 * r['moved']:.0f} % | {r['hue_error_deg']:.0f} ({r['hue_error_before_deg']:.0f}) | "
+            f"{r['psnr_outside']:.1f} | {r['psnr_outside_object']:.1f} | "
+            f"{'' if math.isnan(r['s_per_view']) else format(r['s_per_view'], '.2f')} |"
+        )
     return "\n".join(lines)
 
 

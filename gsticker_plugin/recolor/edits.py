@@ -38,8 +38,9 @@ def extract_palette_of(args: PaletteEdit, model, dataset, seed: int):
     if args.source == "images":
         px = runs.foreground_pixels(runs.training_images(dataset, n))
     else:
-        r = runs.render_views(model, dataset.cameras, range(n), desc="rendering for the palette",
-                              outputs=("rgb", "accumulation"))
+        r = runs.render_views(
+            model, dataset.cameras, range(n), desc="rendering for the palette", outputs=("rgb", "accumulation")
+        )
         px = torch_cat([rgb[acc[..., 0] > 0.5] for rgb, acc in zip(r["rgb"], r["accumulation"])])
     return P.extract_palette(px, k=args.k, seed=seed)
 
@@ -60,8 +61,10 @@ def cmd_palette(args: PaletteArgs) -> int:
     if not args.list_:
         out = runs.check_output_dir(args.output_dir, run_dir, args.overwrite)
         if not args.set_ and not args.palette:
-            raise GStickerError("no edit given; pass --set INDEX=COLOR (e.g. --set 0=blue) or --palette C0 C1 ..., "
-                                "or --list to see the palette first")
+            raise GStickerError(
+                "no edit given; pass --set INDEX=COLOR (e.g. --set 0=blue) or --palette C0 C1 ..., "
+                "or --list to see the palette first"
+            )
         for spec in args.set_:  # malformed colors stop here, before any model is built
             if "=" in spec:
                 P.parse_color(spec.split("=", 1)[1])
@@ -71,8 +74,10 @@ def cmd_palette(args: PaletteArgs) -> int:
     config, pipeline, run_dir, ckpt, step = runs.build_recolor_run(args.load_config, args.data, PALETTE_METHOD)
     model = pipeline.model
     pal = extract_palette_of(args, model, pipeline.datamanager.train_dataset, args.seed)
-    say(f"palette of {pal.k} colors ({'chosen per scene' if args.k is None else '--k'}) from the training "
-        f"{args.source} of {run_dir}:")
+    say(
+        f"palette of {pal.k} colors ({'chosen per scene' if args.k is None else '--k'}) from the training "
+        f"{args.source} of {run_dir}:"
+    )
     for line in pal.describe():
         print(f"  {line}")
     if args.list_:
@@ -87,9 +92,19 @@ def cmd_palette(args: PaletteArgs) -> int:
     model.config.softness = float(args.softness)
     set_model_palette(model)
     say(f"edit: {model.edit_summary()}")
-    cfg_path = runs.write_run(config, model, step, out, "palette", run_dir, extra_files={
-        "palette.png": lambda p: P.write_png(p, P.swatch_image([model.palette_source.tolist(),
-                                                                 model.palette_target.tolist()]))})
+    cfg_path = runs.write_run(
+        config,
+        model,
+        step,
+        out,
+        "palette",
+        run_dir,
+        extra_files={
+            "palette.png": lambda p: P.write_png(
+                p, P.swatch_image([model.palette_source.tolist(), model.palette_target.tolist()])
+            )
+        },
+    )
     _done(cfg_path)
     return 0
 
@@ -152,9 +167,19 @@ def _hue_images(args: HueArgs, out: Path) -> int:
             name = f"{args.split}_{i:04d}.png"
             P.write_png(staged.tmp / name, (jittered * 255).round().to(torch.uint8))
             record.append({"image": name, "camera_index": i, "hue_shift_turns": round(float(s), 6)})
-        (staged.tmp / "hue_jitter.json").write_text(json.dumps({
-            "run": str(Path(args.load_config).resolve()), "split": args.split, "seed": args.seed,
-            "max_shift": abs(float(args.shift)), "fixed": args.fixed, "images": record}, indent=1))
+        (staged.tmp / "hue_jitter.json").write_text(
+            json.dumps(
+                {
+                    "run": str(Path(args.load_config).resolve()),
+                    "split": args.split,
+                    "seed": args.seed,
+                    "max_shift": abs(float(args.shift)),
+                    "fixed": args.fixed,
+                    "images": record,
+                },
+                indent=1,
+            )
+        )
         staged.commit()
     except BaseException:
         staged.abort()
@@ -170,7 +195,9 @@ def _target_images(folder: Path, dataset, size) -> List:
 
     folder = Path(folder)
     if not folder.is_dir():
-        raise GStickerError(f"--targets {folder} is not a folder; pass a folder of edited images, one per training view")
+        raise GStickerError(
+            f"--targets {folder} is not a folder; pass a folder of edited images, one per training view"
+        )
     suffixes = {".png", ".jpg", ".jpeg"}
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in suffixes)
     names = [Path(f).stem for f in dataset._dataparser_outputs.image_filenames]
@@ -180,18 +207,24 @@ def _target_images(folder: Path, dataset, size) -> List:
     elif len(files) == len(names):
         chosen = files
     else:
-        raise GStickerError(f"--targets {folder} has {len(files)} images, not one per training view ({len(names)}, named "
-                            f"like {names[0]}.png); name them like the training images or give one per view in order")
+        raise GStickerError(
+            f"--targets {folder} has {len(files)} images, not one per training view ({len(names)}, named "
+            f"like {names[0]}.png); name them like the training images or give one per view in order"
+        )
     # deferred: only PNG writing needs it
     from PIL import Image
 
     out = []
     for p in chosen:
-        im = torch.from_numpy(np.asarray(Image.open(p).convert("RGBA" if Image.open(p).mode in ("RGBA", "LA") else "RGB")))
+        im = torch.from_numpy(
+            np.asarray(Image.open(p).convert("RGBA" if Image.open(p).mode in ("RGBA", "LA") else "RGB"))
+        )
         im = im.float() / 255.0
         if tuple(im.shape[:2]) != tuple(size):
-            raise GStickerError(f"target image {p.name} is {im.shape[1]}x{im.shape[0]} but the training views are "
-                                f"{size[1]}x{size[0]}; give targets at the training resolution")
+            raise GStickerError(
+                f"target image {p.name} is {im.shape[1]}x{im.shape[0]} but the training views are "
+                f"{size[1]}x{size[0]}; give targets at the training resolution"
+            )
         out.append(im)
     return out
 
@@ -201,8 +234,10 @@ def cmd_finetune(args: FinetuneArgs) -> int:
     has_palette = bool(args.set_ or args.palette)
     chosen = [bool(args.targets), has_palette, args.hue_shift is not None]
     if sum(chosen) != 1:
-        raise GStickerError("finetune needs exactly one kind of target: --targets DIR (edited images), a palette edit "
-                            "(--set INDEX=COLOR / --palette ...), or --hue-shift S")
+        raise GStickerError(
+            "finetune needs exactly one kind of target: --targets DIR (edited images), a palette edit "
+            "(--set INDEX=COLOR / --palette ...), or --hue-shift S"
+        )
     if args.hue_shift is not None:
         P.check_hue_shift(args.hue_shift, "--hue-shift")
     if args.steps < 1:
@@ -212,8 +247,10 @@ def cmd_finetune(args: FinetuneArgs) -> int:
     snapshots = {}
     for n_at in sorted(set(args.save_at)):
         if not 1 <= n_at < args.steps:
-            raise GStickerError(f"--save-at {n_at} must be between 1 and --steps - 1 ({args.steps - 1}); the run after "
-                                f"{args.steps} steps is --output-dir itself")
+            raise GStickerError(
+                f"--save-at {n_at} must be between 1 and --steps - 1 ({args.steps - 1}); the run after "
+                f"{args.steps} steps is --output-dir itself"
+            )
         snapshots[n_at] = runs.check_output_dir(out.parent / f"{out.name}-step{n_at}", run_dir, args.overwrite)
     loaded = runs.load_run(args.load_config, args.data)
     model = loaded.pipeline.model
@@ -234,9 +271,15 @@ def cmd_finetune(args: FinetuneArgs) -> int:
             tgt = P.rgb_to_lab(torch.tensor(target, dtype=torch.float32))
             soft = float(args.softness)
             transform = lambda rgb: P.recolor(rgb, src.to(rgb), tgt.to(rgb), soft)  # noqa: E731
-            what = "palette-edited renders (" + ", ".join(
-                f"{i}: {P.to_hex(a)} -> {P.to_hex(b)}" for i, (a, b) in enumerate(zip(pal.rgb.tolist(), target))
-                if P.to_hex(a) != P.to_hex(b)) + ")"
+            what = (
+                "palette-edited renders ("
+                + ", ".join(
+                    f"{i}: {P.to_hex(a)} -> {P.to_hex(b)}"
+                    for i, (a, b) in enumerate(zip(pal.rgb.tolist(), target))
+                    if P.to_hex(a) != P.to_hex(b)
+                )
+                + ")"
+            )
         else:
             shift = float(args.hue_shift)
             transform = lambda rgb: P.hue_rotate(rgb, shift).to(rgb.dtype)  # noqa: E731
@@ -250,26 +293,58 @@ def cmd_finetune(args: FinetuneArgs) -> int:
             for w in reversed(wraps):
                 w.remove()
     color, density = split_color_parameters(model, cameras)
-    say(f"fine-tuning {sum(p.numel() for p in color.values())} color parameters ({len(color)} tensors: "
+    say(
+        f"fine-tuning {sum(p.numel() for p in color.values())} color parameters ({len(color)} tensors: "
         f"{', '.join(sorted({k.rsplit('.', 1)[0] for k in color}))}); {len(density)} density tensors and everything "
-        f"else frozen; toward {what}; {args.steps} steps")
+        f"else frozen; toward {what}; {args.steps} steps"
+    )
     cfg = loaded.config  # the run's own config: the output is a run of the same method
 
     def write(dest: Path, steps: int, loss: List[float]) -> Path:
         k = max(1, min(10, len(loss) // 5))
-        return runs.write_run(cfg, model, loaded.step, dest, "finetune", run_dir, extra_files={
-            "finetune.json": lambda p: p.write_text(json.dumps({
-                "wrapped_run": str(Path(args.load_config).resolve()), "targets": what, "steps": steps, "lr": args.lr,
-                "rays_per_step": args.rays_per_step, "seed": args.seed, "color_parameters": sorted(color),
-                "loss_first": loss[:k], "loss_last": loss[-k:]}, indent=1))})
+        return runs.write_run(
+            cfg,
+            model,
+            loaded.step,
+            dest,
+            "finetune",
+            run_dir,
+            extra_files={
+                "finetune.json": lambda p: p.write_text(
+                    json.dumps(
+                        {
+                            "wrapped_run": str(Path(args.load_config).resolve()),
+                            "targets": what,
+                            "steps": steps,
+                            "lr": args.lr,
+                            "rays_per_step": args.rays_per_step,
+                            "seed": args.seed,
+                            "color_parameters": sorted(color),
+                            "loss_first": loss[:k],
+                            "loss_last": loss[-k:],
+                        },
+                        indent=1,
+                    )
+                )
+            },
+        )
 
     def on_step(step: int, loss: List[float]) -> None:
         if step in snapshots:
             say(f"after {step} steps: {write(snapshots[step], step, loss)}")
 
     t0 = time.time()
-    hist = finetune_color(model, cameras[:n], targets, args.steps, lr=args.lr, rays_per_step=args.rays_per_step,
-                          seed=args.seed, color_params=color, on_step=on_step if snapshots else None)
+    hist = finetune_color(
+        model,
+        cameras[:n],
+        targets,
+        args.steps,
+        lr=args.lr,
+        rays_per_step=args.rays_per_step,
+        seed=args.seed,
+        color_params=color,
+        on_step=on_step if snapshots else None,
+    )
     k = max(1, min(10, len(hist["loss"]) // 5))
     say(f"loss {sum(hist['loss'][:k]) / k:.5f} -> {sum(hist['loss'][-k:]) / k:.5f} in {time.time() - t0:.0f} s")
     _done(write(out, args.steps, hist["loss"]))

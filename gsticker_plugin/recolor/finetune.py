@@ -30,9 +30,14 @@ def _probe_rays(model, cameras, num_rays: int = 256, seed: int = 0):
     gen = RayGenerator(cams)
     g = torch.Generator().manual_seed(seed)
     h, w = int(cams.height[0]), int(cams.width[0])
-    idx = torch.stack([torch.zeros(num_rays, dtype=torch.long),
-                       torch.randint(0, h, (num_rays,), generator=g),
-                       torch.randint(0, w, (num_rays,), generator=g)], -1)
+    idx = torch.stack(
+        [
+            torch.zeros(num_rays, dtype=torch.long),
+            torch.randint(0, h, (num_rays,), generator=g),
+            torch.randint(0, w, (num_rays,), generator=g),
+        ],
+        -1,
+    )
     # central rays hit the object: bias half of them to the image centre
     idx[: num_rays // 2, 1] = h // 4 + torch.randint(0, max(h // 2, 1), (num_rays // 2,), generator=g)
     idx[: num_rays // 2, 2] = w // 4 + torch.randint(0, max(w // 2, 1), (num_rays // 2,), generator=g)
@@ -70,8 +75,10 @@ def split_color_parameters(model: nn.Module, cameras) -> Tuple[Dict[str, nn.Para
             model.forward(_probe_rays(model, cameras))
             total = sum(r.float().sum() for r in records if r.requires_grad)
             if not records or not isinstance(total, Tensor):
-                raise GStickerError(f"{type(base).__name__}'s fields computed no density while rendering; "
-                                    "fine-tune a NeRF-style run (nerfacto, vanilla-nerf, tensorf)")
+                raise GStickerError(
+                    f"{type(base).__name__}'s fields computed no density while rendering; "
+                    "fine-tune a NeRF-style run (nerfacto, vanilla-nerf, tensorf)"
+                )
             total.backward()
         density = {n: p for n, p in candidates.items() if p.grad is not None}
     finally:
@@ -86,13 +93,16 @@ def split_color_parameters(model: nn.Module, cameras) -> Tuple[Dict[str, nn.Para
     # Scene bounds stored as (non-trainable) parameters, e.g. TensoRF's aabb, are geometry, never color.
     color = {n: p for n, p in candidates.items() if n not in density and n.rsplit(".", 1)[-1] != "aabb"}
     if not color:
-        raise GStickerError(f"{type(base).__name__} has no color parameters separate from its density (every field "
-                            "parameter affects density); fine-tune a run with a color branch (nerfacto, vanilla-nerf, tensorf)")
+        raise GStickerError(
+            f"{type(base).__name__} has no color parameters separate from its density (every field "
+            "parameter affects density); fine-tune a run with a color branch (nerfacto, vanilla-nerf, tensorf)"
+        )
     return color, density
 
 
-def ray_schedule(num_views: int, hw: Tuple[int, int], steps: int, rays_per_step: int,
-                 seed: int = 0) -> Int[Tensor, "T R 3"]:
+def ray_schedule(
+    num_views: int, hw: Tuple[int, int], steps: int, rays_per_step: int, seed: int = 0
+) -> Int[Tensor, "T R 3"]:
     """The (view, row, column) of every ray of every fine-tune step: ``rays_per_step`` random pixels of random
     views per step, drawn from one generator seeded with ``seed`` (the rays never depend on the model)."""
     g = torch.Generator().manual_seed(seed)
@@ -115,8 +125,9 @@ class RayTargets:
 
 
 @torch.no_grad()
-def render_ray_targets(model, cameras, schedule: Int[Tensor, "T R 3"], chunk: int = 4096,
-                       progress: bool = True) -> RayTargets:
+def render_ray_targets(
+    model, cameras, schedule: Int[Tensor, "T R 3"], chunk: int = 4096, progress: bool = True
+) -> RayTargets:
     """The model's colors at exactly the pixels a fine-tune will visit (each distinct pixel rendered once).
 
     What the fine-tune reads from full renders of every view, at a fraction of the cost: ``T * R`` draws from
@@ -127,19 +138,31 @@ def render_ray_targets(model, cameras, schedule: Int[Tensor, "T R 3"], chunk: in
     uniq, inverse = torch.unique(flat, dim=0, return_inverse=True)
     gen = RayGenerator(cameras.to(model.device))
     parts = []
-    for i in tqdm(range(0, uniq.shape[0], chunk), desc=f"rendering targets ({uniq.shape[0]} pixels)", leave=False,
-                  disable=not progress):
-        out = model.forward(gen(uniq[i: i + chunk].to(model.device)))
+    for i in tqdm(
+        range(0, uniq.shape[0], chunk),
+        desc=f"rendering targets ({uniq.shape[0]} pixels)",
+        leave=False,
+        disable=not progress,
+    ):
+        out = model.forward(gen(uniq[i : i + chunk].to(model.device)))
         rgb = final_rgb(out)
         parts.append(rgb.detach().float().clamp(0.0, 1.0).cpu())
     values = torch.cat(parts)[inverse].reshape(*schedule.shape[:2], 3)
     return RayTargets(schedule=schedule, values=values)
 
 
-def finetune_color(model: nn.Module, cameras, targets: Union[Sequence[Tensor], RayTargets], steps: int,
-                   lr: float = 5e-3, rays_per_step: int = 1024, seed: int = 0, progress: bool = True,
-                   color_params: Optional[Dict[str, nn.Parameter]] = None,
-                   on_step: Optional[Callable[[int, List[float]], None]] = None) -> Dict[str, List[float]]:
+def finetune_color(
+    model: nn.Module,
+    cameras,
+    targets: Union[Sequence[Tensor], RayTargets],
+    steps: int,
+    lr: float = 5e-3,
+    rays_per_step: int = 1024,
+    seed: int = 0,
+    progress: bool = True,
+    color_params: Optional[Dict[str, nn.Parameter]] = None,
+    on_step: Optional[Callable[[int, List[float]], None]] = None,
+) -> Dict[str, List[float]]:
     """Adam on the color parameters only, MSE of rendered rays vs target pixels of random training views.
 
     ``targets``: the [H, W, 3] target image of each of ``cameras`` (rays from :func:`ray_schedule` with ``seed``),
@@ -150,8 +173,10 @@ def finetune_color(model: nn.Module, cameras, targets: Union[Sequence[Tensor], R
     if isinstance(targets, RayTargets):
         schedule, values = targets.schedule, targets.values
         if schedule.shape[0] < steps or schedule.shape[1] != rays_per_step:
-            raise GStickerError(f"the ray targets hold {schedule.shape[0]} steps of {schedule.shape[1]} rays; this "
-                                f"fine-tune needs {steps} of {rays_per_step}")
+            raise GStickerError(
+                f"the ray targets hold {schedule.shape[0]} steps of {schedule.shape[1]} rays; this "
+                f"fine-tune needs {steps} of {rays_per_step}"
+            )
     else:
         hw = (targets[0].shape[0], targets[0].shape[1])
         if any((t.shape[0], t.shape[1]) != hw for t in targets):

@@ -62,9 +62,11 @@ def color_fields(model: nn.Module) -> List[Tuple[str, nn.Module]]:
 def require_color_fields(model: nn.Module) -> List[Tuple[str, nn.Module]]:
     fields = color_fields(model)
     if not fields:
-        raise GStickerError(f"{type(model).__name__} has no field with a separable color output (no Nerfstudio Field "
-                            "with an RGB head); recolor a NeRF-style run (nerfacto, vanilla-nerf, tensorf, instant-ngp, "
-                            "or a geometrysticker run of one)")
+        raise GStickerError(
+            f"{type(model).__name__} has no field with a separable color output (no Nerfstudio Field "
+            "with an RGB head); recolor a NeRF-style run (nerfacto, vanilla-nerf, tensorf, instant-ngp, "
+            "or a geometrysticker run of one)"
+        )
     return fields
 
 
@@ -138,17 +140,21 @@ class RecolorModel(Model):
     def populate_modules(self) -> None:
         super().populate_modules()
         if self.config.inner_model is None:
-            raise GStickerError("this recolor config wraps no model; make recolored runs with "
-                                "`ns-recolor palette|hue --load-config RUN/config.yml --output-dir OUT`")
-        self.inner: Model = self.config.inner_model.setup(scene_box=self.scene_box, num_train_data=self.num_train_data,
-                                                          **self.kwargs)
+            raise GStickerError(
+                "this recolor config wraps no model; make recolored runs with "
+                "`ns-recolor palette|hue --load-config RUN/config.yml --output-dir OUT`"
+            )
+        self.inner: Model = self.config.inner_model.setup(
+            scene_box=self.scene_box, num_train_data=self.num_train_data, **self.kwargs
+        )
         self.inner.requires_grad_(False)
         self.inner.eval()
         src = [P.parse_color(c) for c in self.config.palette_source]
         tgt = [P.parse_color(c) for c in self.config.palette_target] or list(src)
         if len(tgt) != len(src):
-            raise GStickerError(f"palette_target has {len(tgt)} entries but palette_source {len(src)}; "
-                                "recreate the run with ns-recolor")
+            raise GStickerError(
+                f"palette_target has {len(tgt)} entries but palette_source {len(src)}; recreate the run with ns-recolor"
+            )
         self.register_buffer("palette_source", torch.tensor(src, dtype=torch.float32).reshape(-1, 3))
         self.register_buffer("palette_target", torch.tensor(tgt, dtype=torch.float32).reshape(-1, 3))
         self.register_buffer("softness", torch.tensor(float(self.config.softness)))
@@ -186,13 +192,21 @@ class RecolorModel(Model):
         def on_color(i: int):
             def cb(element) -> None:
                 self.set_target(i, [c / 255.0 for c in element.value])
+
             return cb
 
         for i in range(self.palette_source.shape[0]):
             default = tuple(int(round(float(c) * 255)) for c in self.palette_target[i])
-            setattr(self, f"viewer_palette_{i}", ViewerRGB(
-                f"Palette {i} (was {P.to_hex(self.palette_source[i])})", default, cb_hook=on_color(i),
-                hint="Edited color of this palette entry; the render re-mixes every sample's color with it"))
+            setattr(
+                self,
+                f"viewer_palette_{i}",
+                ViewerRGB(
+                    f"Palette {i} (was {P.to_hex(self.palette_source[i])})",
+                    default,
+                    cb_hook=on_color(i),
+                    hint="Edited color of this palette entry; the render re-mixes every sample's color with it",
+                ),
+            )
 
         def on_hue(element) -> None:
             self.hue_shift.fill_(float(element.value))
@@ -203,14 +217,28 @@ class RecolorModel(Model):
         def on_enabled(element) -> None:
             self.recolor_enabled = bool(element.value)
 
-        self.viewer_recolor_on = ViewerCheckbox("Recolor on", True, cb_hook=on_enabled,
-                                                hint="Render with (on) or without (off) the color edit")
-        self.viewer_recolor_hue = ViewerSlider("Hue shift (turns)", float(self.config.hue_shift), -0.5, 0.5, 0.01,
-                                               cb_hook=on_hue, hint="HSV hue rotation of every sample's color")
+        self.viewer_recolor_on = ViewerCheckbox(
+            "Recolor on", True, cb_hook=on_enabled, hint="Render with (on) or without (off) the color edit"
+        )
+        self.viewer_recolor_hue = ViewerSlider(
+            "Hue shift (turns)",
+            float(self.config.hue_shift),
+            -0.5,
+            0.5,
+            0.01,
+            cb_hook=on_hue,
+            hint="HSV hue rotation of every sample's color",
+        )
         if self.palette_source.shape[0]:
-            self.viewer_recolor_softness = ViewerSlider("Palette softness (dE)", float(self.config.softness), 1.0, 40.0,
-                                                        0.5, cb_hook=on_softness,
-                                                        hint="Width of the soft assignment of colors to palette entries")
+            self.viewer_recolor_softness = ViewerSlider(
+                "Palette softness (dE)",
+                float(self.config.softness),
+                1.0,
+                40.0,
+                0.5,
+                cb_hook=on_softness,
+                hint="Width of the soft assignment of colors to palette entries",
+            )
 
     # ------------------------------------------------------------------------------------------ plumbing
     def train(self, mode: bool = True):
@@ -243,8 +271,21 @@ class RecolorModel(Model):
         return self.inner.get_image_metrics_and_images(outputs, batch)
 
     # The geometrysticker interface of a wrapped geometrysticker run (verification and evaluation tools use it).
-    _DELEGATED = frozenset({"sticker_enabled", "message", "calibrated", "background_color", "sticker", "gates",
-                            "final_wrap", "wraps", "wrap_state", "capture_final_samples", "rendering_fields"})
+    _DELEGATED = frozenset(
+        {
+            "sticker_enabled",
+            "message",
+            "calibrated",
+            "background_color",
+            "sticker",
+            "gates",
+            "final_wrap",
+            "wraps",
+            "wrap_state",
+            "capture_final_samples",
+            "rendering_fields",
+        }
+    )
 
     def __getattr__(self, name: str):
         try:
@@ -256,8 +297,11 @@ class RecolorModel(Model):
             raise
 
     def edit_summary(self) -> str:
-        edits = [f"{i}: {P.to_hex(s)} -> {P.to_hex(t)}" for i, (s, t) in
-                 enumerate(zip(self.palette_source.tolist(), self.palette_target.tolist())) if s != t]
+        edits = [
+            f"{i}: {P.to_hex(s)} -> {P.to_hex(t)}"
+            for i, (s, t) in enumerate(zip(self.palette_source.tolist(), self.palette_target.tolist()))
+            if s != t
+        ]
         parts = []
         if edits:
             parts.append("palette " + ", ".join(edits))
@@ -293,6 +337,9 @@ class RecolorTrainerConfig(TrainerConfig):
 
 class RecolorTrainer(Trainer):
     def setup(self, test_mode="val") -> None:
-        exit_with_error(GStickerError(
-            f"{self.config.method_name} runs are written by ns-recolor, there is nothing to train; run "
-            "`ns-recolor palette|hue --load-config RUN/config.yml --output-dir OUT` instead"))
+        exit_with_error(
+            GStickerError(
+                f"{self.config.method_name} runs are written by ns-recolor, there is nothing to train; run "
+                "`ns-recolor palette|hue --load-config RUN/config.yml --output-dir OUT` instead"
+            )
+        )

@@ -49,8 +49,18 @@ PRESETS: Dict[str, str] = {
     "dodgerblue": "#1E90FF",
     "cyan": "#00FFFF",
 }
-PRESET_NAMES: Tuple[str, ...] = ("green", "yellow", "orange", "red", "pink", "magenta", "purple", "blue",
-                                 "dodger blue", "cyan")
+PRESET_NAMES: Tuple[str, ...] = (
+    "green",
+    "yellow",
+    "orange",
+    "red",
+    "pink",
+    "magenta",
+    "purple",
+    "blue",
+    "dodger blue",
+    "cyan",
+)
 KEEP = ("keep", "-", "_")
 """Tokens of ``--palette`` that leave an entry as it is."""
 
@@ -74,7 +84,7 @@ def parse_color(text: str) -> Tuple[float, float, float]:
         h = m.group(1)
         if len(h) == 3:
             h = "".join(c * 2 for c in h)
-        return tuple(int(h[i: i + 2], 16) / 255.0 for i in (0, 2, 4))  # type: ignore[return-value]
+        return tuple(int(h[i : i + 2], 16) / 255.0 for i in (0, 2, 4))  # type: ignore[return-value]
     key = _norm_name(s)
     if key in PRESETS:
         return parse_color(PRESETS[key])
@@ -84,8 +94,10 @@ def parse_color(text: str) -> Tuple[float, float, float]:
     css = {_norm_name(k): v for k, v in CSS4_COLORS.items()}
     if key in css:
         return parse_color(css[key])
-    raise GStickerError(f"unknown color name '{text}'; use #RRGGBB hex or a name such as "
-                        f"{', '.join(PRESET_NAMES)} (any CSS color name works)")
+    raise GStickerError(
+        f"unknown color name '{text}'; use #RRGGBB hex or a name such as "
+        f"{', '.join(PRESET_NAMES)} (any CSS color name works)"
+    )
 
 
 def to_hex(rgb: Sequence[float]) -> str:
@@ -105,8 +117,10 @@ def color_name(rgb: Sequence[float]) -> str:
 
 def check_k(k: Optional[int]) -> Optional[int]:
     if k is not None and not (K_MIN <= int(k) <= K_MAX):
-        raise GStickerError(f"--k {k} is outside {K_MIN}..{K_MAX}; pass --k between {K_MIN} and {K_MAX} "
-                            "(or leave it out to choose per scene)")
+        raise GStickerError(
+            f"--k {k} is outside {K_MIN}..{K_MAX}; pass --k between {K_MIN} and {K_MAX} "
+            "(or leave it out to choose per scene)"
+        )
     return k
 
 
@@ -115,8 +129,10 @@ def parse_edits(sets: Sequence[str], palette: Sequence[str], k: int) -> Dict[int
     edits: Dict[int, Tuple[float, float, float]] = {}
     if palette:
         if len(palette) != k:
-            raise GStickerError(f"--palette has {len(palette)} colors but the palette has {k} entries; give "
-                                f"exactly {k} (use 'keep' for entries to leave), or edit single entries with --set I=COLOR")
+            raise GStickerError(
+                f"--palette has {len(palette)} colors but the palette has {k} entries; give "
+                f"exactly {k} (use 'keep' for entries to leave), or edit single entries with --set I=COLOR"
+            )
         for i, c in enumerate(palette):
             if str(c).strip().lower() not in KEEP:
                 edits[i] = parse_color(c)
@@ -127,10 +143,14 @@ def parse_edits(sets: Sequence[str], palette: Sequence[str], k: int) -> Dict[int
         try:
             idx = int(idx_s.strip())
         except ValueError:
-            raise GStickerError(f"--set '{spec}': '{idx_s}' is not a palette index; write INDEX=COLOR with INDEX in 0..{k - 1}") from None
+            raise GStickerError(
+                f"--set '{spec}': '{idx_s}' is not a palette index; write INDEX=COLOR with INDEX in 0..{k - 1}"
+            ) from None
         if not (0 <= idx < k):
-            raise GStickerError(f"palette index {idx} is out of range (the palette has {k} entries); use an index in "
-                                f"0..{k - 1} (ns-recolor palette --list shows them)")
+            raise GStickerError(
+                f"palette index {idx} is out of range (the palette has {k} entries); use an index in "
+                f"0..{k - 1} (ns-recolor palette --list shows them)"
+            )
         edits[idx] = parse_color(col)
     return edits
 
@@ -161,7 +181,9 @@ def hue_rotate(rgb: Tensor, shift: float | Tensor) -> Tensor:
 
 def check_hue_shift(shift: float, flag: str = "--shift") -> float:
     if not (-0.5 <= float(shift) <= 0.5):
-        raise GStickerError(f"{flag} {shift} is outside [-0.5, 0.5] turns (0.5 = 180 degrees); pass a shift in that range")
+        raise GStickerError(
+            f"{flag} {shift} is outside [-0.5, 0.5] turns (0.5 = 180 degrees); pass a shift in that range"
+        )
     return float(shift)
 
 
@@ -231,8 +253,10 @@ class Palette:
         return int(self.rgb.shape[0])
 
     def describe(self) -> List[str]:
-        return [f"{i}: {to_hex(self.rgb[i])}  {100 * float(self.share[i]):5.1f} %  (near {color_name(self.rgb[i].tolist())})"
-                for i in range(self.k)]
+        return [
+            f"{i}: {to_hex(self.rgb[i])}  {100 * float(self.share[i]):5.1f} %  (near {color_name(self.rgb[i].tolist())})"
+            for i in range(self.k)
+        ]
 
 
 def subsample(pixels: Tensor, max_pixels: int, seed: int = 0) -> Tensor:
@@ -255,10 +279,15 @@ def extract_palette(pixels_rgb: Tensor, k: Optional[int] = None, seed: int = 0, 
     check_k(k)
     px = subsample(pixels_rgb.reshape(-1, 3).float(), max_pixels, seed)
     if px.shape[0] < K_MAX * 4:
-        raise GStickerError(f"only {px.shape[0]} foreground pixels to build a palette from; use a scene whose "
-                            "images show the object (alpha > 0.5), or --source renders")
-    key = (hashlib.sha256(px.detach().contiguous().cpu().numpy().tobytes()).hexdigest(), -1 if k is None else int(k),
-           int(seed))
+        raise GStickerError(
+            f"only {px.shape[0]} foreground pixels to build a palette from; use a scene whose "
+            "images show the object (alpha > 0.5), or --source renders"
+        )
+    key = (
+        hashlib.sha256(px.detach().contiguous().cpu().numpy().tobytes()).hexdigest(),
+        -1 if k is None else int(k),
+        int(seed),
+    )
     if key not in _PALETTES:
         if len(_PALETTES) >= 16:
             _PALETTES.clear()
@@ -320,7 +349,9 @@ def swatch_image(rows: Sequence[Sequence[Sequence[float]]], cell: int = 48) -> T
     img = torch.ones(len(rows) * cell, k * cell, 3)
     for r, row in enumerate(rows):
         for i, c in enumerate(row):
-            img[r * cell: (r + 1) * cell, i * cell + 2: (i + 1) * cell - 2] = torch.tensor(list(c), dtype=torch.float32)
+            img[r * cell : (r + 1) * cell, i * cell + 2 : (i + 1) * cell - 2] = torch.tensor(
+                list(c), dtype=torch.float32
+            )
     return (img * 255).round().to(torch.uint8)
 
 

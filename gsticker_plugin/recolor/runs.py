@@ -44,8 +44,10 @@ def check_input_config(load_config: Path) -> Tuple[Any, Path, Path]:
     run_dir = p.resolve().parent
     ckpt = latest_checkpoint(run_dir / "nerfstudio_models")
     if ckpt is None:
-        raise GStickerError(f"no checkpoint in {run_dir / 'nerfstudio_models'}; point --load-config at the config.yml "
-                            "of a trained run (with its nerfstudio_models/step-N.ckpt beside it)")
+        raise GStickerError(
+            f"no checkpoint in {run_dir / 'nerfstudio_models'}; point --load-config at the config.yml "
+            "of a trained run (with its nerfstudio_models/step-N.ckpt beside it)"
+        )
     return run_cfg, run_dir, ckpt
 
 
@@ -60,15 +62,21 @@ def _inside(a: Path, b: Path) -> bool:
 
 def check_output_dir(output_dir: Optional[Path], run_dir: Path, overwrite: bool) -> Path:
     if output_dir is None:
-        raise GStickerError("no output folder given; pass --output-dir OUT (a new folder; the input run is never changed)")
+        raise GStickerError(
+            "no output folder given; pass --output-dir OUT (a new folder; the input run is never changed)"
+        )
     out = Path(output_dir).expanduser().resolve()
     run_dir = run_dir.resolve()
     if _inside(out, run_dir):
-        raise GStickerError(f"--output-dir {output_dir} is inside the input run {run_dir}; the input run is never "
-                            "overwritten: pass an --output-dir outside it")
+        raise GStickerError(
+            f"--output-dir {output_dir} is inside the input run {run_dir}; the input run is never "
+            "overwritten: pass an --output-dir outside it"
+        )
     if _inside(run_dir, out):
-        raise GStickerError(f"--output-dir {output_dir} contains the input run {run_dir}; the input run is never "
-                            "overwritten: pass another --output-dir")
+        raise GStickerError(
+            f"--output-dir {output_dir} contains the input run {run_dir}; the input run is never "
+            "overwritten: pass another --output-dir"
+        )
     if out.exists() and not overwrite:
         raise GStickerError(f"output folder {out} exists; pass --overwrite to replace it, or another --output-dir")
     return out
@@ -76,6 +84,7 @@ def check_output_dir(output_dir: Optional[Path], run_dir: Path, overwrite: bool)
 
 class StagedDir:
     """Write into a temporary sibling of ``final`` and move it in place on success (replacing an old one)."""
+
     def __init__(self, final: Path) -> None:
         self.final = final
         final.parent.mkdir(parents=True, exist_ok=True)
@@ -171,9 +180,13 @@ def build_recolor_run(load_config: Path, data: Optional[Path], method_name: str,
     config.pipeline.model = RecolorModelConfig(
         inner_model=inner,
         eval_num_rays_per_chunk=getattr(inner, "eval_num_rays_per_chunk", 4096),
-        wrapped_run={"method": run_cfg.method_name, "model": type(inner).__name__,
-                     "config": str(Path(load_config).resolve()), "checkpoint": str(ckpt.resolve()),
-                     "checkpoint_sha256": file_sha256(ckpt)},
+        wrapped_run={
+            "method": run_cfg.method_name,
+            "model": type(inner).__name__,
+            "config": str(Path(load_config).resolve()),
+            "checkpoint": str(ckpt.resolve()),
+            "checkpoint_sha256": file_sha256(ckpt),
+        },
     )
     pipeline = config.pipeline.setup(device=device, test_mode="inference")
     pipeline.eval()
@@ -184,8 +197,15 @@ def build_recolor_run(load_config: Path, data: Optional[Path], method_name: str,
 # ---------------------------------------------------------------------------------------------- writing
 
 
-def write_run(config, model, step: int, out: Path, timestamp: str, source_run_dir: Optional[Path] = None,
-              extra_files: Optional[Dict[str, Any]] = None) -> Path:
+def write_run(
+    config,
+    model,
+    step: int,
+    out: Path,
+    timestamp: str,
+    source_run_dir: Optional[Path] = None,
+    extra_files: Optional[Dict[str, Any]] = None,
+) -> Path:
     """Write ``config`` + the model's weights as a Nerfstudio run under ``out``; returns the run's config.yml."""
     staged = StagedDir(out)
     try:
@@ -195,8 +215,13 @@ def write_run(config, model, step: int, out: Path, timestamp: str, source_run_di
         ckpt_dir = run_dir / config.relative_model_dir
         ckpt_dir.mkdir(parents=True)
         (run_dir / "config.yml").write_text(yaml.dump(config), "utf8")
-        state = {"step": int(step), "pipeline": {"_model." + k: v.detach().cpu() for k, v in shareable_state(model).items()},
-                 "optimizers": {}, "schedulers": {}, "scalers": {}}
+        state = {
+            "step": int(step),
+            "pipeline": {"_model." + k: v.detach().cpu() for k, v in shareable_state(model).items()},
+            "optimizers": {},
+            "schedulers": {},
+            "scalers": {},
+        }
         torch.save(state, ckpt_dir / f"step-{int(step):09d}.ckpt")
         if source_run_dir is not None and (source_run_dir / "dataparser_transforms.json").is_file():
             shutil.copy2(source_run_dir / "dataparser_transforms.json", run_dir / "dataparser_transforms.json")
@@ -244,18 +269,21 @@ def composite_on(img: Tensor, bg: Tensor) -> Tensor:
 
 
 @torch.no_grad()
-def render_views(model, cameras, indices: Sequence[int], desc: str = "rendering", outputs=("rgb",),
-                 progress: bool = True) -> Dict[str, List[Tensor]]:
+def render_views(
+    model, cameras, indices: Sequence[int], desc: str = "rendering", outputs=("rgb",), progress: bool = True
+) -> Dict[str, List[Tensor]]:
     """Render cameras[indices] with the model (any wrapper); {name: [H W C] per view} (rgb clamped to [0, 1])."""
     res: Dict[str, List[Tensor]] = {k: [] for k in outputs}
     it = tqdm(list(indices), desc=desc, leave=False, disable=not progress)
     for i in it:
-        out = model.get_outputs_for_camera(cameras[int(i): int(i) + 1].to(model.device))
+        out = model.get_outputs_for_camera(cameras[int(i) : int(i) + 1].to(model.device))
         for k in outputs:
             v = out.get(k)
             if v is None and k == "rgb":
                 v = out.get("rgb_fine")
             if v is None:
-                raise GStickerError(f"the model renders no '{k}' output; it is not a NeRF-style run ns-recolor supports")
+                raise GStickerError(
+                    f"the model renders no '{k}' output; it is not a NeRF-style run ns-recolor supports"
+                )
             res[k].append((v.clamp(0, 1) if k == "rgb" else v).detach().cpu())
     return res

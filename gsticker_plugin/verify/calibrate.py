@@ -42,14 +42,36 @@ def calibrate(config: CalibrateConfig) -> Dict[str, Any]:
     if config.base:
         base_cfg = (key.base or {}).get("config")
         if base_cfg and Path(base_cfg).is_file():
-            sources.append(model_views(Path(base_cfg), config.num_views, config.sampled_share, config.seed, None,
-                                       device, sticker=False, progress=config.progress))
+            sources.append(
+                model_views(
+                    Path(base_cfg),
+                    config.num_views,
+                    config.sampled_share,
+                    config.seed,
+                    None,
+                    device,
+                    sticker=False,
+                    progress=config.progress,
+                )
+            )
         else:
-            notes.append(f"base run skipped: its config {base_cfg!r} recorded in the key does not exist here "
-                         "(pass it with --load-config, or --no-base)")
+            notes.append(
+                f"base run skipped: its config {base_cfg!r} recorded in the key does not exist here "
+                "(pass it with --load-config, or --no-base)"
+            )
     for cfg in config.load_config:
-        sources.append(model_views(Path(cfg), config.num_views, config.sampled_share, config.seed, None, device,
-                                   sticker=False, progress=config.progress))
+        sources.append(
+            model_views(
+                Path(cfg),
+                config.num_views,
+                config.sampled_share,
+                config.seed,
+                None,
+                device,
+                sticker=False,
+                progress=config.progress,
+            )
+        )
     for d in config.images:
         sources.append(images_views(Path(d), config.max_side, config.min_side, config.max_pixels, config.progress))
     if config.random_images > 0:
@@ -66,19 +88,41 @@ def calibrate(config: CalibrateConfig) -> Dict[str, Any]:
         dec = decode_views(key, s, device)
         m = [int(x) for x in dec["matches"].tolist()]
         matches += m
-        src_info.append({"kind": s.kind, "source": s.source, "n": len(m), "mean_matches": sum(m) / len(m),
-                         "max_matches": max(m), "skipped": len(s.skipped), **({"details": s.details} if s.details else {})})
+        src_info.append(
+            {
+                "kind": s.kind,
+                "source": s.source,
+                "n": len(m),
+                "mean_matches": sum(m) / len(m),
+                "max_matches": max(m),
+                "skipped": len(s.skipped),
+                **({"details": s.details} if s.details else {}),
+            }
+        )
     return _store_null(config, key_path, key, "extractor", matches, src_info, notes)
 
 
-def _store_null(config: CalibrateConfig, key_path: Path, key: OwnerKey, decoder: str, matches: List[int],
-                src_info: List[Dict[str, Any]], notes: List[str]) -> Dict[str, Any]:
+def _store_null(
+    config: CalibrateConfig,
+    key_path: Path,
+    key: OwnerKey,
+    decoder: str,
+    matches: List[int],
+    src_info: List[Dict[str, Any]],
+    notes: List[str],
+) -> Dict[str, Any]:
     old = decoder_null(key, decoder) if config.append else None
     if old:
         matches = [int(x) for x in old.get("matches", [])] + matches
         src_info = list(old.get("sources", [])) + src_info
-    null = {"version": NULL_FORMAT_VERSION, "num_bits": key.num_bits, "matches": matches, "sources": src_info,
-            "created": time.time(), "decoder": decoder}
+    null = {
+        "version": NULL_FORMAT_VERSION,
+        "num_bits": key.num_bits,
+        "matches": matches,
+        "sources": src_info,
+        "created": time.time(),
+        "decoder": decoder,
+    }
     if decoder == "geometry":
         key.geometry = {**key.geometry, "null": null}
     elif decoder == "image":
@@ -92,22 +136,38 @@ def _store_null(config: CalibrateConfig, key_path: Path, key: OwnerKey, decoder:
     key.save(key_path)
     OwnerKey.load(key_path)  # the rewritten key passes its own fingerprint check
     k = key.num_bits
-    return {"key": str(key_path), "backup": str(backup) if backup else None, "null_views": len(matches),
-            "decoder": decoder, "sources": src_info, "notes": notes, **distinct_sources(src_info),
-            "mean_matches": sum(matches) / len(matches), "max_matches": max(matches),
-            "thresholds": {f"{a:g}": {"theoretical": metrics.min_matches_for_fpr(k, a),
-                                      "empirical": metrics.empirical_threshold(matches, a, k)}
-                           for a in (1e-3, 1e-6, 1e-9)}}
+    return {
+        "key": str(key_path),
+        "backup": str(backup) if backup else None,
+        "null_views": len(matches),
+        "decoder": decoder,
+        "sources": src_info,
+        "notes": notes,
+        **distinct_sources(src_info),
+        "mean_matches": sum(matches) / len(matches),
+        "max_matches": max(matches),
+        "thresholds": {
+            f"{a:g}": {
+                "theoretical": metrics.min_matches_for_fpr(k, a),
+                "empirical": metrics.empirical_threshold(matches, a, k),
+            }
+            for a in (1e-3, 1e-6, 1e-9)
+        },
+    }
 
 
 def distinct_sources(src_info: List[Dict[str, Any]]) -> Dict[str, int]:
     """How many *distinct* unmarked models, image folders and synthetic random images a null holds (views of one
     model are not independent samples of the null)."""
+
     def count(kind: str) -> int:
         return len({str(Path(x["source"]).resolve()) for x in src_info if x["kind"] == kind})
 
-    return {"distinct_models": count("model"), "distinct_image_sources": count("images"),
-            "synthetic_views": sum(int(x["n"]) for x in src_info if x["kind"] == "random")}
+    return {
+        "distinct_models": count("model"),
+        "distinct_image_sources": count("images"),
+        "synthetic_views": sum(int(x["n"]) for x in src_info if x["kind"] == "random"),
+    }
 
 
 def _calibrate_geometry(config: CalibrateConfig, key_path: Path, key: OwnerKey, device: torch.device) -> Dict[str, Any]:
@@ -121,21 +181,43 @@ def _calibrate_geometry(config: CalibrateConfig, key_path: Path, key: OwnerKey, 
     ref = load_base_reference(key, key_path, config.base_config, config.data, device)
     runs = ([ref.config_path] if config.base else []) + [Path(c) for c in config.load_config]
     if not runs:
-        raise GStickerError("no unmarked run to calibrate the geometric decoder on; keep the base (drop --no-base) "
-                            "or pass --load-config OTHER_RUN/config.yml")
+        raise GStickerError(
+            "no unmarked run to calibrate the geometric decoder on; keep the base (drop --no-base) "
+            "or pass --load-config OTHER_RUN/config.yml"
+        )
     matches: List[int] = []
     src_info = []
     for i, cfg in enumerate(runs):
         with contextlib.redirect_stdout(sys.stderr):
             run_cfg, pipeline, _ = load_run(cfg, data=data_if_missing(cfg, config.data), device=device)
-        dec, _ = decode_suspect(key, ref, pipeline.model, config.num_views, config.sampled_share,
-                                         config.seed + i, sticker=False, progress=config.progress, full_renders=False)
+        dec, _ = decode_suspect(
+            key,
+            ref,
+            pipeline.model,
+            config.num_views,
+            config.sampled_share,
+            config.seed + i,
+            sticker=False,
+            progress=config.progress,
+            full_renders=False,
+        )
         m = [int(x) for x in dec["matches"].tolist()]
         matches += m
-        src_info.append({"kind": "model", "source": str(cfg), "n": len(m), "mean_matches": sum(m) / len(m),
-                         "max_matches": max(m), "skipped": 0,
-                         "details": {"method": run_cfg.method_name, "sticker": "off",
-                                     "undetermined_bits_mean": sum(g["undetermined"] for g in dec["geometry"]) / len(m)}})
+        src_info.append(
+            {
+                "kind": "model",
+                "source": str(cfg),
+                "n": len(m),
+                "mean_matches": sum(m) / len(m),
+                "max_matches": max(m),
+                "skipped": 0,
+                "details": {
+                    "method": run_cfg.method_name,
+                    "sticker": "off",
+                    "undetermined_bits_mean": sum(g["undetermined"] for g in dec["geometry"]) / len(m),
+                },
+            }
+        )
     return _store_null(config, key_path, key, "geometry", matches, src_info, notes)
 
 
@@ -146,12 +228,16 @@ def _calibrate_image(config: CalibrateConfig, key_path: Path, key: OwnerKey, dev
     if not key.geometry:
         raise GStickerError(missing_geometry_message(key_path))
     if not config.images or config.cameras is None:
-        raise GStickerError("--decode image calibrates on unmarked images at known cameras: pass --images DIR "
-                            "(e.g. the base dataset's test photos) and --cameras transforms.json")
+        raise GStickerError(
+            "--decode image calibrates on unmarked images at known cameras: pass --images DIR "
+            "(e.g. the base dataset's test photos) and --cameras transforms.json"
+        )
     notes = []
     if config.load_config:
-        notes.append("--load-config runs skipped: the image decoder reads images (render them, e.g. with ns-render "
-                     "dataset, and pass them with --images)")
+        notes.append(
+            "--load-config runs skipped: the image decoder reads images (render them, e.g. with ns-render "
+            "dataset, and pass them with --images)"
+        )
     frames = read_cameras_file(config.cameras)
     ref = load_base_reference(key, key_path, config.base_config, config.data, device)
     matches: List[int] = []
@@ -161,24 +247,38 @@ def _calibrate_image(config: CalibrateConfig, key_path: Path, key: OwnerKey, dev
         posed, dec = decode_images_at_cameras(key, ref, views, frames, config.seed + len(src_info), config.progress)
         m = [int(x) for x in dec["matches"].tolist()]
         matches += m
-        src_info.append({"kind": "images", "source": str(d), "n": len(m), "mean_matches": sum(m) / len(m),
-                         "max_matches": max(m), "skipped": len(posed.skipped),
-                         "details": {"cameras": str(config.cameras)}})
+        src_info.append(
+            {
+                "kind": "images",
+                "source": str(d),
+                "n": len(m),
+                "mean_matches": sum(m) / len(m),
+                "max_matches": max(m),
+                "skipped": len(posed.skipped),
+                "details": {"cameras": str(config.cameras)},
+            }
+        )
     return _store_null(config, key_path, key, "image", matches, src_info, notes)
 
 
 def calibrate_text(res: Dict[str, Any]) -> str:
-    lines = [f"calibrated {res['key']} ({res['decoder']} decoder): {res['null_views']} unmarked views in its null "
-             f"(mean {res['mean_matches']:.1f}, max {res['max_matches']} matches; chance mean 24 of 48), from "
-             f"{res['distinct_models']} distinct models, {res['distinct_image_sources']} image folders and "
-             f"{res['synthetic_views']} synthetic random images"]
+    lines = [
+        f"calibrated {res['key']} ({res['decoder']} decoder): {res['null_views']} unmarked views in its null "
+        f"(mean {res['mean_matches']:.1f}, max {res['max_matches']} matches; chance mean 24 of 48), from "
+        f"{res['distinct_models']} distinct models, {res['distinct_image_sources']} image folders and "
+        f"{res['synthetic_views']} synthetic random images"
+    ]
     for s in res["sources"]:
-        lines.append(f"  {s['kind']} {s['source']}: {s['n']} views, mean {s['mean_matches']:.1f}, max {s['max_matches']}")
+        lines.append(
+            f"  {s['kind']} {s['source']}: {s['n']} views, mean {s['mean_matches']:.1f}, max {s['max_matches']}"
+        )
     for n in res["notes"]:
         lines.append(f"  note: {n}")
     for a, t in res["thresholds"].items():
-        lines.append(f"  per-view FPR {a}: threshold theoretical {t['theoretical']}, empirical {t['empirical']} "
-                     f"-> verify uses {max(t['theoretical'], t['empirical'])}")
+        lines.append(
+            f"  per-view FPR {a}: threshold theoretical {t['theoretical']}, empirical {t['empirical']} "
+            f"-> verify uses {max(t['theoretical'], t['empirical'])}"
+        )
     if res["backup"]:
         lines.append(f"  previous key kept as {res['backup']}")
     return "\n".join(lines)

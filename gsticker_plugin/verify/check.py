@@ -95,15 +95,21 @@ def _check_stats(fpr: float, min_share: float) -> None:
 def choose_decoder(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]]) -> Tuple[str, List[str]]:
     """``--decode``: geometry or extractor, and why (auto); one-line errors for impossible choices."""
     if config.cameras is not None and config.images is None:
-        raise GStickerError("--cameras gives the cameras of --images; a model (--load-config) is rendered at its own "
-                            "cameras: drop --cameras")
+        raise GStickerError(
+            "--cameras gives the cameras of --images; a model (--load-config) is rendered at its own "
+            "cameras: drop --cameras"
+        )
     if config.decode in ("geometry", "image"):
         if config.decode == "geometry" and config.load_config is None:
-            raise GStickerError("--decode geometry reads a model's geometry, not images: pass --load-config "
-                                "SUSPECT/config.yml, or use --decode image --cameras CAMERAS.json with --images")
+            raise GStickerError(
+                "--decode geometry reads a model's geometry, not images: pass --load-config "
+                "SUSPECT/config.yml, or use --decode image --cameras CAMERAS.json with --images"
+            )
         if config.decode == "image" and (config.images is None or config.cameras is None):
-            raise GStickerError("--decode image reads images at known cameras: pass --images DIR and --cameras "
-                                "transforms.json (for a model use --decode geometry)")
+            raise GStickerError(
+                "--decode image reads images at known cameras: pass --images DIR and --cameras "
+                "transforms.json (for a model use --decode geometry)"
+            )
         for path, key in keys:
             if not key.geometry:
                 raise GStickerError(missing_geometry_message(path))
@@ -111,22 +117,37 @@ def choose_decoder(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]]) -> T
     if config.decode == "extractor":
         return "extractor", []
     if config.load_config is None and config.cameras is None:
-        return "extractor", ["auto: images without cameras can only be decoded by the extractor (pass --cameras "
-                             "transforms.json for the informed image decoder)"]
+        return "extractor", [
+            "auto: images without cameras can only be decoded by the extractor (pass --cameras "
+            "transforms.json for the informed image decoder)"
+        ]
     kind, what = ("geometry", "geometric") if config.load_config is not None else ("image", "image")
     for path, key in keys:
         if not key.geometry:
-            return "extractor", [f"auto: {path} has no geometry reference (version-1 key), so the extractor decodes; "
-                                 "add it with `ns-verify-owner export-key`"]
+            return "extractor", [
+                f"auto: {path} has no geometry reference (version-1 key), so the extractor decodes; "
+                "add it with `ns-verify-owner export-key`"
+            ]
         cfg = Path(config.base_config) if config.base_config is not None else recorded_base_config(key)
         if cfg is None or not cfg.exists():
-            return "extractor", [f"auto: the owner's base run {cfg} is not reachable from here, so the extractor "
-                                 f"decodes; pass --base-config BASE_RUN/config.yml for {what} decoding"]
+            return "extractor", [
+                f"auto: the owner's base run {cfg} is not reachable from here, so the extractor "
+                f"decodes; pass --base-config BASE_RUN/config.yml for {what} decoding"
+            ]
     return kind, []
 
 
-def _informed_result(key: OwnerKey, path: Path, dec: Dict[str, Any], views: Views, config: VerifyConfig,
-                     decoder: str, ref, notes: List[str], bases: List[str]) -> Dict[str, Any]:
+def _informed_result(
+    key: OwnerKey,
+    path: Path,
+    dec: Dict[str, Any],
+    views: Views,
+    config: VerifyConfig,
+    decoder: str,
+    ref,
+    notes: List[str],
+    bases: List[str],
+) -> Dict[str, Any]:
     """:func:`key_result` of an informed decoder, with the owner's base run it read against (its notes and path
     are added to ``notes`` and ``bases``)."""
     r = key_result(key, path, dec, views, config.fpr, config.min_share, decoder=decoder)
@@ -146,14 +167,23 @@ def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], de
     results, views, bases, notes = [], None, [], []
     for path, key in keys:
         ref = load_base_reference(key, path, config.base_config, config.base_data or config.data, device)
-        dec, vlist = decode_suspect(key, ref, model, config.num_views, config.sampled_share, config.seed,
-                                             progress=config.progress)
-        kv = Views(kind="model", source=str(config.load_config), views=vlist,
-                   details={"method": run_cfg.method_name, "model": type(model).__name__, "checkpoint": str(ckpt),
-                            "sticker": "on" if hasattr(model, "sticker_enabled") else None,
-                            "own_cameras": sum(1 for v in vlist if not v.name.startswith("sampled/")),
-                            "sampled_poses": sum(1 for v in vlist if v.name.startswith("sampled/")),
-                            "cameras_of": f"the owner's base run {ref.config_path}"})
+        dec, vlist = decode_suspect(
+            key, ref, model, config.num_views, config.sampled_share, config.seed, progress=config.progress
+        )
+        kv = Views(
+            kind="model",
+            source=str(config.load_config),
+            views=vlist,
+            details={
+                "method": run_cfg.method_name,
+                "model": type(model).__name__,
+                "checkpoint": str(ckpt),
+                "sticker": "on" if hasattr(model, "sticker_enabled") else None,
+                "own_cameras": sum(1 for v in vlist if not v.name.startswith("sampled/")),
+                "sampled_poses": sum(1 for v in vlist if v.name.startswith("sampled/")),
+                "cameras_of": f"the owner's base run {ref.config_path}",
+            },
+        )
         results.append(_informed_result(key, path, dec, kv, config, "geometry", ref, notes, bases))
         views = views or kv
         del ref
@@ -161,8 +191,9 @@ def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], de
     return results, views, {"bases": bases, "signals": [list(s) for s in signals], "notes": notes}
 
 
-def _verify_images_informed(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], views: Views,
-                            device: torch.device):
+def _verify_images_informed(
+    config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], views: Views, device: torch.device
+):
     """The informed image decoder on the images that have a camera in --cameras, for every key (each against its own
     base run)."""
 
@@ -197,31 +228,50 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
     if decoder == "extractor":
         leaning = [str(p) for p, k in keys if k.owner_message_prob > 0]
         if leaning:
-            raise GStickerError(f"{', '.join(leaning)}: its extractor was trained on the owner's message "
-                                "(--pipeline.owner-message-prob > 0) and decodes it from unmarked images too; its "
-                                "binomial null does not hold: use --decode geometry or --decode image")
+            raise GStickerError(
+                f"{', '.join(leaning)}: its extractor was trained on the owner's message "
+                "(--pipeline.owner-message-prob > 0) and decodes it from unmarked images too; its "
+                "binomial null does not hold: use --decode geometry or --decode image"
+            )
     if decoder == "geometry":
         results, views, info = _verify_geometry(config, keys, device)
         notes += info.pop("notes")
         if config.attack.strip():
-            notes.append(f"--attack {config.attack!r} not applied: attacks are image-level distortions, and the "
-                         "geometric decoder reads the model's geometry, not images")
-        decoder_info = {"kind": "geometry", "informed": True, **info,
-                        "description": "informed: fits the key's sticker to the suspect's geometry ("
-                                       + " + ".join(sorted({n.replace("_", " ") for sig in info["signals"] for n in sig}))
-                                       + ") against the owner's unwatermarked base run; model-level only"}
+            notes.append(
+                f"--attack {config.attack!r} not applied: attacks are image-level distortions, and the "
+                "geometric decoder reads the model's geometry, not images"
+            )
+        decoder_info = {
+            "kind": "geometry",
+            "informed": True,
+            **info,
+            "description": "informed: fits the key's sticker to the suspect's geometry ("
+            + " + ".join(sorted({n.replace("_", " ") for sig in info["signals"] for n in sig}))
+            + ") against the owner's unwatermarked base run; model-level only",
+        }
     elif decoder == "image":
         views = images_views(config.images, config.max_side, config.min_side, config.max_pixels, config.progress)
         apply_attack(views, config.attack, config.seed)
         results, views, info = _verify_images_informed(config, keys, views, device)
         notes += info.pop("notes")
-        decoder_info = {"kind": "image", "informed": True, **info,
-                        "description": "informed: fits the key's sticker to each image's colour change from the "
-                                       "owner's unwatermarked base rendered at the image's camera (--cameras)"}
+        decoder_info = {
+            "kind": "image",
+            "informed": True,
+            **info,
+            "description": "informed: fits the key's sticker to each image's colour change from the "
+            "owner's unwatermarked base rendered at the image's camera (--cameras)",
+        }
     else:
         if config.load_config is not None:
-            views = model_views(config.load_config, config.num_views, config.sampled_share, config.seed, config.data,
-                                device, progress=config.progress)
+            views = model_views(
+                config.load_config,
+                config.num_views,
+                config.sampled_share,
+                config.seed,
+                config.data,
+                device,
+                progress=config.progress,
+            )
         else:
             views = images_views(config.images, config.max_side, config.min_side, config.max_pixels, config.progress)
         if not views.views:
@@ -231,22 +281,37 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
         for path, key in progress_bar(keys, "decoding", config.progress and len(keys) > 1):
             dec = decode_views(key, views, device)
             results.append(key_result(key, path, dec, views, config.fpr, config.min_share))
-        decoder_info = {"kind": "extractor", "informed": False,
-                        "description": "blind: the key's extractor reads the message from RGB "
-                                       + ("renders" if views.kind == "model" else "images")}
+        decoder_info = {
+            "kind": "extractor",
+            "informed": False,
+            "description": "blind: the key's extractor reads the message from RGB "
+            + ("renders" if views.kind == "model" else "images"),
+        }
     decoder_info["notes"] = notes
     report: Dict[str, Any] = {
-        "tool": "ns-verify-owner", "created": time.time(),
-        "input": {"kind": views.kind, "source": views.source, "views": len(views.views),
-                  "skipped": views.skipped, "details": views.details},
-        "settings": {"fpr": config.fpr, "min_share": config.min_share, "attack": config.attack,
-                     "num_views": config.num_views if views.kind == "model" else None, "seed": config.seed,
-                     "correction": config.correction if len(keys) > 1 else None},
+        "tool": "ns-verify-owner",
+        "created": time.time(),
+        "input": {
+            "kind": views.kind,
+            "source": views.source,
+            "views": len(views.views),
+            "skipped": views.skipped,
+            "details": views.details,
+        },
+        "settings": {
+            "fpr": config.fpr,
+            "min_share": config.min_share,
+            "attack": config.attack,
+            "num_views": config.num_views if views.kind == "model" else None,
+            "seed": config.seed,
+            "correction": config.correction if len(keys) > 1 else None,
+        },
         "decoder": decoder_info,
         "commitment": committed,
         "keys": results,
         "multiple_testing": correct_keys(results, config.fpr, config.min_share, config.correction)
-        if len(keys) > 1 else None,
+        if len(keys) > 1
+        else None,
     }
     owned = [r["owner_id"] for r in results if r["owned"]]
     report["verdict"] = "owned" if owned else "not shown"
@@ -263,8 +328,9 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
         report["files"] = files
         write_json(out / "report.json", report)
     except OSError as e:
-        raise GStickerError(f"cannot write the report to {out} ({e.strerror or e}); pass --output with a "
-                            "writable folder") from None
+        raise GStickerError(
+            f"cannot write the report to {out} ({e.strerror or e}); pass --output with a writable folder"
+        ) from None
     return report["exit_status"], report
 
 
@@ -277,13 +343,19 @@ def check_commitment(given: Optional[str], keys: List[Tuple[Path, OwnerKey]]) ->
         raise GStickerError("--commitment checks one key: pass it with --key KEY.gskey, not --keys")
     path, key = keys[0]
     if len(hex_) != 64 or set(hex_) - set("0123456789abcdef"):
-        raise GStickerError(f"--commitment must be the 64 hex digits printed by `ns-verify-owner commit`, got {given!r}")
+        raise GStickerError(
+            f"--commitment must be the 64 hex digits printed by `ns-verify-owner commit`, got {given!r}"
+        )
     own = commitment(key)
     if own != hex_:
-        raise GStickerError(f"{path} does not match the commitment {hex_[:16]}... (its own is {own[:16]}...): this is "
-                            "not the key that was committed to; pass the committed key")
-    return {"given": hex_, "matches": True, "key": str(path),
-            "meaning": "sha256 over a secret salt and the key's message, sticker, heads and base checksum: the key "
-                       "existed when this value was published or timestamped"}
-
-
+        raise GStickerError(
+            f"{path} does not match the commitment {hex_[:16]}... (its own is {own[:16]}...): this is "
+            "not the key that was committed to; pass the committed key"
+        )
+    return {
+        "given": hex_,
+        "matches": True,
+        "key": str(path),
+        "meaning": "sha256 over a secret salt and the key's message, sticker, heads and base checksum: the key "
+        "existed when this value was published or timestamped",
+    }

@@ -68,10 +68,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         elif sub == "commit":
             cfg = tyro.cli(CommitConfig, args=argv, prog="ns-verify-owner commit")
         else:
-            cfg = tyro.cli(VerifyConfig, args=argv, prog="ns-verify-owner [verify]",
-                           description=(VerifyConfig.__doc__ or "") + "\n\nSubcommands: verify (default), calibrate "
-                           "(ns-verify-owner calibrate --help), export-key (adds the geometry reference to a "
-                           "version-1 key), commit (prints the key's commitment to publish at release).")
+            cfg = tyro.cli(
+                VerifyConfig,
+                args=argv,
+                prog="ns-verify-owner [verify]",
+                description=(VerifyConfig.__doc__ or "") + "\n\nSubcommands: verify (default), calibrate "
+                "(ns-verify-owner calibrate --help), export-key (adds the geometry reference to a "
+                "version-1 key), commit (prints the key's commitment to publish at release).",
+            )
     except SystemExit as e:  # --help (0) or a parse error (tyro prints it; status 2)
         return int(e.code) if isinstance(e.code, int) else EXIT_ERROR
     # deferred: the commands pull in Nerfstudio (seconds, and its warnings): parse the arguments first
@@ -88,16 +92,20 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if sub == "commit":
             res = commit(cfg)
             print(res["commitment"])
-            print(f"commitment of {res['key']}: publish or timestamp it when you release the model; later "
-                  f"`ns-verify-owner --key {res['key']} --commitment HEX ...` shows this key existed then",
-                  file=sys.stderr)
+            print(
+                f"commitment of {res['key']}: publish or timestamp it when you release the model; later "
+                f"`ns-verify-owner --key {res['key']} --commitment HEX ...` shows this key existed then",
+                file=sys.stderr,
+            )
             for c in res["null_caveats"]:
                 print(f"note: weaker claim: {c}", file=sys.stderr)
             return 0
         if sub == "export-key":
             res = export_key(cfg)
-            print(f"wrote {res['key']}: geometry reference of {res['run']} (fields {', '.join(res['fields'])})"
-                  + (f"; previous key kept as {res['backup']}" if res["backup"] else ""))
+            print(
+                f"wrote {res['key']}: geometry reference of {res['run']} (fields {', '.join(res['fields'])})"
+                + (f"; previous key kept as {res['backup']}" if res["backup"] else "")
+            )
             return 0
         status, report = verify(cfg)
         print(summary_text(report))
@@ -111,8 +119,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except Exception as e:  # a crash is never a verdict: one line, exit 2
         frames = traceback.extract_tb(e.__traceback__)
         where = f" at {Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else ""
-        return _error(f"no verdict: {type(e).__name__}: {e}{where} (a failure inside ns-verify-owner, not a "
-                      "negative verdict; rerun with the same inputs to reproduce and report it)")
+        return _error(
+            f"no verdict: {type(e).__name__}: {e}{where} (a failure inside ns-verify-owner, not a "
+            "negative verdict; rerun with the same inputs to reproduce and report it)"
+        )
 
 
 def entrypoint() -> None:

@@ -25,22 +25,33 @@ def export_key(config: ExportKeyConfig) -> Dict[str, Any]:
         run_cfg, pipeline, ckpt = load_run(config.load_config, data=config.data, device=torch.device("cpu"))
     model = pipeline.model
     if not hasattr(model, "sticker") or not hasattr(model, "final_wrap"):
-        raise GStickerError(f"{config.load_config} is a {run_cfg.method_name} run without a sticker; pass the "
-                            "watermarked run (ns-train geometrysticker) the key was written for")
+        raise GStickerError(
+            f"{config.load_config} is a {run_cfg.method_name} run without a sticker; pass the "
+            "watermarked run (ns-train geometrysticker) the key was written for"
+        )
     if bool(getattr(model, "folded", False)):
-        raise GStickerError(f"{config.load_config} is a shared run (its sticker is folded, it holds no message); its "
-                            "owner key already carries the geometry reference: nothing to export")
+        raise GStickerError(
+            f"{config.load_config} is a shared run (its sticker is folded, it holds no message); its "
+            "owner key already carries the geometry reference: nothing to export"
+        )
     if not torch.equal(model.message.cpu().long(), key.message.long()):
-        raise GStickerError(f"the run {config.load_config} carries a different message than the key {key_path}; "
-                            "pass the watermarked run this key was written for")
+        raise GStickerError(
+            f"the run {config.load_config} carries a different message than the key {key_path}; "
+            "pass the watermarked run this key was written for"
+        )
     run_sha = dict(run_cfg.pipeline.base_run).get("checkpoint_sha256")
     key_sha = (key.base or {}).get("checkpoint_sha256")
     if run_sha != key_sha:
-        raise GStickerError(f"the run {config.load_config} was made on another base than the key {key_path} "
-                            "(base checkpoint sha256 differs); pass the watermarked run this key was written for")
+        raise GStickerError(
+            f"the run {config.load_config} was made on another base than the key {key_path} "
+            "(base checkpoint sha256 differs); pass the watermarked run this key was written for"
+        )
     old = key.geometry or {}
-    key.geometry = {**geometry_reference(model), "null": old.get("null"),
-                    **({"image_null": old["image_null"]} if old.get("image_null") else {})}
+    key.geometry = {
+        **geometry_reference(model),
+        "null": old.get("null"),
+        **({"image_null": old["image_null"]} if old.get("image_null") else {}),
+    }
     out = Path(config.output) if config.output is not None else key_path
     backup = None
     if out.resolve() == key_path.resolve() and config.backup:
@@ -48,11 +59,20 @@ def export_key(config: ExportKeyConfig) -> Dict[str, Any]:
         shutil.copy2(key_path, backup)
     key.save(out)
     OwnerKey.load(out)
-    return {"key": str(out), "backup": str(backup) if backup else None, "run": str(config.load_config),
-            "checkpoint": str(ckpt), "fields": key.geometry["fields"]}
+    return {
+        "key": str(out),
+        "backup": str(backup) if backup else None,
+        "run": str(config.load_config),
+        "checkpoint": str(ckpt),
+        "fields": key.geometry["fields"],
+    }
 
 
 def commit(config: CommitConfig) -> Dict[str, Any]:
     key = OwnerKey.load(Path(config.key))
-    return {"key": str(config.key), "commitment": commitment(key), "message_source": key.message_source,
-            "null_caveats": key.null_caveats()}
+    return {
+        "key": str(config.key),
+        "commitment": commitment(key),
+        "message_source": key.message_source,
+        "null_caveats": key.null_caveats(),
+    }

@@ -36,7 +36,9 @@ def summary_text(report: Dict[str, Any]) -> str:
     desc = f"{inp['kind']} {inp['source']}: {inp['views']} views"
     if inp["kind"] == "model":
         d = inp.get("details", {})
-        desc += f" ({d.get('own_cameras', 0)} run cameras, {d.get('sampled_poses', 0)} sampled poses; {d.get('method')})"
+        desc += (
+            f" ({d.get('own_cameras', 0)} run cameras, {d.get('sampled_poses', 0)} sampled poses; {d.get('method')})"
+        )
     if inp["skipped"]:
         desc += f"; {len(inp['skipped'])} skipped (listed in report.json)"
     lines.append("  input: " + desc)
@@ -49,35 +51,50 @@ def summary_text(report: Dict[str, Any]) -> str:
         lines.append(f"  attack before decoding: {report['settings']['attack']}")
     for r in report["keys"]:
         t = r["thresholds"]
-        calib = "ns-verify-owner calibrate" + (f" --decode {r['decoder']}" if r.get("decoder", "extractor") != "extractor"
-                                               else "")
-        emp = (f"empirical {t['empirical']} from {r['empirical_null']['n']} null views"
-               if r["empirical_null"] else f"no empirical null for this decoder (run {calib})")
+        calib = "ns-verify-owner calibrate" + (
+            f" --decode {r['decoder']}" if r.get("decoder", "extractor") != "extractor" else ""
+        )
+        emp = (
+            f"empirical {t['empirical']} from {r['empirical_null']['n']} null views"
+            if r["empirical_null"]
+            else f"no empirical null for this decoder (run {calib})"
+        )
         lines.append(f"  key {r['owner_id']} ({r['key']}): {r['verdict'].upper()}")
         for c in r.get("null_caveats", []):
             lines.append(f"    weaker claim: {c}")
-        lines.append(f"    {r['views_passing']}/{r['views']} views pass ({100 * r['share_passing']:.0f} %; needs "
-                     f"{r['views_needed']} = {100 * r['min_share']:.0f} %) at >= {t['used']}/{r['num_bits']} matches "
-                     f"(theoretical {t['theoretical']} at per-view FPR {t['per_view_fpr_target']:g}; {emp})")
+        lines.append(
+            f"    {r['views_passing']}/{r['views']} views pass ({100 * r['share_passing']:.0f} %; needs "
+            f"{r['views_needed']} = {100 * r['min_share']:.0f} %) at >= {t['used']}/{r['num_bits']} matches "
+            f"(theoretical {t['theoretical']} at per-view FPR {t['per_view_fpr_target']:g}; {emp})"
+        )
         best = max(r["per_view"], key=lambda v: v["matches"])
-        lines.append(f"    matches min/median/max {r['matches_min']}/{r['matches_median']}/{r['matches_max']} of "
-                     f"{r['num_bits']} (best view {best['name']}: p = {_fmt_p(best['pvalue'])}); mean bit accuracy "
-                     f"{r['mean_bit_accuracy']:.3f}; " + (f"classifier score {r['mean_score']:.2f}"
-                                                          if r["mean_score"] is not None else
-                                                          f"classifier not used ({DECODER_NAMES[r.get('decoder', 'geometry')]})"))
-        line = (f"    model-level p-value {_fmt_p(r['model_pvalue'])}; FPR of this verdict <= "
-                f"{r['model_fpr_bound']:.2g} under any dependence between views")
+        lines.append(
+            f"    matches min/median/max {r['matches_min']}/{r['matches_median']}/{r['matches_max']} of "
+            f"{r['num_bits']} (best view {best['name']}: p = {_fmt_p(best['pvalue'])}); mean bit accuracy "
+            f"{r['mean_bit_accuracy']:.3f}; "
+            + (
+                f"classifier score {r['mean_score']:.2f}"
+                if r["mean_score"] is not None
+                else f"classifier not used ({DECODER_NAMES[r.get('decoder', 'geometry')]})"
+            )
+        )
+        line = (
+            f"    model-level p-value {_fmt_p(r['model_pvalue'])}; FPR of this verdict <= "
+            f"{r['model_fpr_bound']:.2g} under any dependence between views"
+        )
         if "adjusted_pvalue" in r:
             line += f"; {report['multiple_testing']['correction']}-adjusted p {_fmt_p(r['adjusted_pvalue'])}"
         lines.append(line)
     if report.get("commitment"):
         c = report["commitment"]
-        lines.append(f"  commitment {c['given'][:16]}... matches the key: it existed when this commitment was "
-                     "published")
+        lines.append(
+            f"  commitment {c['given'][:16]}... matches the key: it existed when this commitment was published"
+        )
     if report.get("multiple_testing"):
         mt = report["multiple_testing"]
-        lines.append(f"  {mt['keys']} keys tested, {mt['correction']} correction; family-wise FPR <= "
-                     f"{mt['family_wise_fpr']:.2g}")
+        lines.append(
+            f"  {mt['keys']} keys tested, {mt['correction']} correction; family-wise FPR <= {mt['family_wise_fpr']:.2g}"
+        )
     for f in report.get("files", []):
         lines.append(f"  wrote {f}")
     return "\n".join(lines)
@@ -98,15 +115,30 @@ def write_figure(path: Path, report: Dict[str, Any], views: Views, key: Optional
     ax = fig.add_subplot(gs[0, :])
     xs = list(range(k + 1))
     matches = [v["matches"] for v in r["per_view"]]
-    ax.hist(matches, bins=[x - 0.5 for x in range(k + 2)], density=True, color="tab:blue", alpha=0.7,
-            label=f"suspect views (n={len(matches)})")
-    pmf = [math.exp(metrics.log_binomial_tail_pvalue(x, k)) - math.exp(metrics.log_binomial_tail_pvalue(x + 1, k))
-           for x in xs]
+    ax.hist(
+        matches,
+        bins=[x - 0.5 for x in range(k + 2)],
+        density=True,
+        color="tab:blue",
+        alpha=0.7,
+        label=f"suspect views (n={len(matches)})",
+    )
+    pmf = [
+        math.exp(metrics.log_binomial_tail_pvalue(x, k)) - math.exp(metrics.log_binomial_tail_pvalue(x + 1, k))
+        for x in xs
+    ]
     ax.plot(xs, pmf, "k-", lw=1.5, label=f"theoretical null Binomial({k}, 1/2)")
     if r["empirical_null"] and key is not None and decoder_null(key, r.get("decoder", "extractor")):
         nm = [int(x) for x in decoder_null(key, r.get("decoder", "extractor"))["matches"]]
-        ax.hist(nm, bins=[x - 0.5 for x in range(k + 2)], density=True, histtype="step", color="tab:orange", lw=2,
-                label=f"empirical null (n={len(nm)})")
+        ax.hist(
+            nm,
+            bins=[x - 0.5 for x in range(k + 2)],
+            density=True,
+            histtype="step",
+            color="tab:orange",
+            lw=2,
+            label=f"empirical null (n={len(nm)})",
+        )
     t = r["thresholds"]
     ax.axvline(t["theoretical"] - 0.5, color="tab:red", ls="--", label=f"theoretical threshold {t['theoretical']}")
     if t["empirical"] is not None:
@@ -114,8 +146,10 @@ def write_figure(path: Path, report: Dict[str, Any], views: Views, key: Optional
     ax.set_xlim(-0.5, k + 0.5)
     ax.set_xlabel(f"matching bits (of {k})")
     ax.set_ylabel("share of views")
-    ax.set_title(f"{report['verdict'].upper()} - key {r['owner_id']}: {r['views_passing']}/{r['views']} views pass "
-                 f">= {t['used']}/{k}; model p = {_fmt_p(r['model_pvalue'])}")
+    ax.set_title(
+        f"{report['verdict'].upper()} - key {r['owner_id']}: {r['views_passing']}/{r['views']} views pass "
+        f">= {t['used']}/{k}; model p = {_fmt_p(r['model_pvalue'])}"
+    )
     ax.legend(fontsize=8, loc="upper left")
     order = sorted(range(len(views.views)), key=lambda i: -r["per_view"][i]["matches"])
     picks = order[:n_thumbs]
@@ -128,8 +162,11 @@ def write_figure(path: Path, report: Dict[str, Any], views: Views, key: Optional
         a.imshow(img.permute(1, 2, 0).clamp(0, 1).numpy())
         v = r["per_view"][i]
         score = f"score={v['score']:.2f}" if v["score"] is not None else r.get("decoder", "geometry")
-        a.set_title(f"{v['name'][-24:]}\n{v['matches']}/{k}  p={_fmt_p(v['pvalue'])}  {score}\n"
-                    f"{'PASS' if v['passed'] else 'fail'}", fontsize=8)
+        a.set_title(
+            f"{v['name'][-24:]}\n{v['matches']}/{k}  p={_fmt_p(v['pvalue'])}  {score}\n"
+            f"{'PASS' if v['passed'] else 'fail'}",
+            fontsize=8,
+        )
         a.axis("off")
     fig.tight_layout()
     tmp = path.with_name(path.name + ".tmp.png")

@@ -36,20 +36,33 @@ def null_summary(key: OwnerKey, fpr: float, decoder: str = "extractor") -> Optio
     mean = sum(m) / n
     sd = math.sqrt(sum((x - mean) ** 2 for x in m) / max(1, n - 1))
     return {
-        "n": n, "mean_matches": mean, "sd_matches": sd, "max_matches": max(m),
-        "chance_mean": k / 2, "chance_sd": math.sqrt(k) / 2,
+        "n": n,
+        "mean_matches": mean,
+        "sd_matches": sd,
+        "max_matches": max(m),
+        "chance_mean": k / 2,
+        "chance_sd": math.sqrt(k) / 2,
         "threshold": m_emp,
         "sources": null.get("sources", []),
         "created": null.get("created"),
-        "meaning": (f"smallest match count reached by at most a share {fpr:g} of the {n} unmarked null views; "
-                    f"with fpr < 1/n it is one more than the largest null count ({max(m)}); on its own it "
-                    f"certifies a per-view FPR of no less than ~{metrics.clopper_pearson_upper(0, n):.2g} "
-                    "(95 % upper bound, rule of three), so it only makes the binomial threshold stricter"),
+        "meaning": (
+            f"smallest match count reached by at most a share {fpr:g} of the {n} unmarked null views; "
+            f"with fpr < 1/n it is one more than the largest null count ({max(m)}); on its own it "
+            f"certifies a per-view FPR of no less than ~{metrics.clopper_pearson_upper(0, n):.2g} "
+            "(95 % upper bound, rule of three), so it only makes the binomial threshold stricter"
+        ),
     }
 
 
-def key_result(key: OwnerKey, key_path: Path, dec: Dict[str, Any], views: Views, fpr: float,
-               min_share: float, decoder: str = "extractor") -> Dict[str, Any]:
+def key_result(
+    key: OwnerKey,
+    key_path: Path,
+    dec: Dict[str, Any],
+    views: Views,
+    fpr: float,
+    min_share: float,
+    decoder: str = "extractor",
+) -> Dict[str, Any]:
     k = key.num_bits
     m_theo = metrics.min_matches_for_fpr(k, fpr)
     emp = null_summary(key, fpr, decoder)
@@ -72,24 +85,46 @@ def key_result(key: OwnerKey, key_path: Path, dec: Dict[str, Any], views: Views,
     img_fit = dec.get("image")
     per_view = []
     for i, v in enumerate(views.views):
-        per_view.append({
-            "name": v.name, "matches": int(matches[i]), "num_bits": k, "bit_accuracy": float(dec["bit_acc"][i]),
-            "pvalue": float(dec["pvalues"][i]), "score": float(scores[i]) if scores is not None else None,
-            "passed": bool(passed[i]), "decoded": bits_to_str(dec["bits"][i]), **({"note": v.note} if v.note else {}),
-            **({"geometry": geo[i]} if geo is not None else {}),
-            **({"image_fit": img_fit[i]} if img_fit is not None else {}),
-        })
+        per_view.append(
+            {
+                "name": v.name,
+                "matches": int(matches[i]),
+                "num_bits": k,
+                "bit_accuracy": float(dec["bit_acc"][i]),
+                "pvalue": float(dec["pvalues"][i]),
+                "score": float(scores[i]) if scores is not None else None,
+                "passed": bool(passed[i]),
+                "decoded": bits_to_str(dec["bits"][i]),
+                **({"note": v.note} if v.note else {}),
+                **({"geometry": geo[i]} if geo is not None else {}),
+                **({"image_fit": img_fit[i]} if img_fit is not None else {}),
+            }
+        )
     mlist = sorted(int(x) for x in matches.tolist())
     return {
-        "key": str(key_path), "owner_id": key.owner_id or Path(key_path).stem, "num_bits": k,
-        "verdict": "owned" if vote.passed else "not shown", "owned": bool(vote.passed),
-        "thresholds": {"theoretical": m_theo, "empirical": m_emp, "used": m_star,
-                       "per_view_fpr_target": fpr, "per_view_fpr_at_used": per_view_fpr_used},
-        "views": n, "views_passing": int(sum(passed)), "share_passing": vote.share, "views_needed": needed,
+        "key": str(key_path),
+        "owner_id": key.owner_id or Path(key_path).stem,
+        "num_bits": k,
+        "verdict": "owned" if vote.passed else "not shown",
+        "owned": bool(vote.passed),
+        "thresholds": {
+            "theoretical": m_theo,
+            "empirical": m_emp,
+            "used": m_star,
+            "per_view_fpr_target": fpr,
+            "per_view_fpr_at_used": per_view_fpr_used,
+        },
+        "views": n,
+        "views_passing": int(sum(passed)),
+        "share_passing": vote.share,
+        "views_needed": needed,
         "min_share": min_share,
         "model_fpr_bound": metrics.combined_fpr_bound(per_view_fpr_used, min_share),
-        "model_pvalue": p_model, "vote_statistic": t_stat,
-        "matches_min": mlist[0], "matches_median": mlist[n // 2], "matches_max": mlist[-1],
+        "model_pvalue": p_model,
+        "vote_statistic": t_stat,
+        "matches_min": mlist[0],
+        "matches_median": mlist[n // 2],
+        "matches_max": mlist[-1],
         "mean_bit_accuracy": float(dec["bit_acc"].float().mean()),
         "mean_score": float(scores.float().mean()) if scores is not None else None,
         "decoder": decoder,
@@ -97,10 +132,17 @@ def key_result(key: OwnerKey, key_path: Path, dec: Dict[str, Any], views: Views,
         "null_caveats": key.null_caveats(),
         "message_source": key.message_source,
         "empirical_null": emp,
-        **({"null_note": (f"the key's empirical null was measured with the extractor and does not apply to the "
-                          f"{'geometric' if decoder == 'geometry' else 'image'} decoder; run `ns-verify-owner "
-                          f"calibrate --decode {decoder}` to measure its own")}
-           if decoder in ("geometry", "image") and emp is None and key.null else {}),
+        **(
+            {
+                "null_note": (
+                    f"the key's empirical null was measured with the extractor and does not apply to the "
+                    f"{'geometric' if decoder == 'geometry' else 'image'} decoder; run `ns-verify-owner "
+                    f"calibrate --decode {decoder}` to measure its own"
+                )
+            }
+            if decoder in ("geometry", "image") and emp is None and key.null
+            else {}
+        ),
         "per_view": per_view,
     }
 
@@ -115,6 +157,12 @@ def correct_keys(results: List[Dict[str, Any]], fpr: float, min_share: float, co
         r["adjusted_pvalue"] = float(a)
         r["owned"] = bool(a <= alpha and (emp is None or r["vote_statistic"] >= emp))
         r["verdict"] = "owned" if r["owned"] else "not shown"
-    return {"keys": len(results), "correction": correction, "family_wise_fpr": alpha,
-            "rule": ("a key is 'owned' when its corrected model-level p-value is <= fpr / min-share and its vote "
-                     "statistic also reaches the key's empirical threshold")}
+    return {
+        "keys": len(results),
+        "correction": correction,
+        "family_wise_fpr": alpha,
+        "rule": (
+            "a key is 'owned' when its corrected model-level p-value is <= fpr / min-share and its vote "
+            "statistic also reaches the key's empirical threshold"
+        ),
+    }

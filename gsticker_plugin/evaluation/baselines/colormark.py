@@ -68,9 +68,11 @@ from gsticker_plugin.views import View, select_cameras
 @dataclass
 class ColorMarkModelConfig(GeometryStickerModelConfig):
     """A geometrysticker run's sticker and gates, with the mark added to the final field's color, not its density."""
+
     _target: Type = field(default_factory=lambda: ColorMarkModel)
     color_amplitude: float = 0.05
     """Largest per-sample RGB change of the color mark (at psi = 1 and |m| = 1), the same on the 3 channels."""
+
 
 class ColorMarkWrap:
     """Installs the color mark on a field instance: ``get_density`` is only watched (density and samples of the
@@ -151,9 +153,11 @@ class ColorMarkModel(GeometryStickerModel):
 
         final = self.final_wrap.field
         if not any(f is final for _, f in color_fields(self.base)):
-            raise GStickerError(f"{type(self.base).__name__}'s final field {self.final_wrap.name} has no per-sample "
-                                "RGB output for the color mark; build the color-branch baseline on a nerfacto "
-                                "(or vanilla-nerf / tensorf) geometrysticker run")
+            raise GStickerError(
+                f"{type(self.base).__name__}'s final field {self.final_wrap.name} has no per-sample "
+                "RGB output for the color mark; build the color-branch baseline on a nerfacto "
+                "(or vanilla-nerf / tensorf) geometrysticker run"
+            )
         self.color_wrap = ColorMarkWrap(self.final_wrap, self.wrap_state, lambda: self.config.color_amplitude)
 
 
@@ -165,11 +169,16 @@ class ColorMarkModel(GeometryStickerModel):
 def color_mark_config(model_config: GeometryStickerModelConfig, amplitude: float) -> ColorMarkModelConfig:
     """The same field values as ``model_config`` (a geometrysticker model config), as a color-mark config."""
     if not isinstance(model_config, GeometryStickerModelConfig):
-        raise GStickerError(f"the run's model is {type(model_config).__name__}, not a geometrysticker model; build the "
-                            "color-branch baseline from a watermarked run (ns-train geometrysticker ...)")
+        raise GStickerError(
+            f"the run's model is {type(model_config).__name__}, not a geometrysticker model; build the "
+            "color-branch baseline from a watermarked run (ns-train geometrysticker ...)"
+        )
     check_amplitude(amplitude)
-    values = {f.name: copy.deepcopy(getattr(model_config, f.name)) for f in dataclasses.fields(model_config)
-              if f.init and f.name not in ("_target", "color_amplitude")}
+    values = {
+        f.name: copy.deepcopy(getattr(model_config, f.name))
+        for f in dataclasses.fields(model_config)
+        if f.init and f.name not in ("_target", "color_amplitude")
+    }
     return ColorMarkModelConfig(**values, color_amplitude=float(amplitude))
 
 
@@ -180,8 +189,9 @@ def check_amplitude(amplitude: float) -> float:
     return a
 
 
-def write_color_marked_run(watermarked_config: Path, output_dir: Path, amplitude: float,
-                           overwrite: bool = False) -> Path:
+def write_color_marked_run(
+    watermarked_config: Path, output_dir: Path, amplitude: float, overwrite: bool = False
+) -> Path:
     """Write ``output_dir/config.yml`` (the watermarked run's config with a :class:`ColorMarkModelConfig` of the same
     field values plus ``color_amplitude``) and a copy of its latest checkpoint in ``output_dir/nerfstudio_models``.
 
@@ -221,14 +231,17 @@ def color_mark_model(model) -> ColorMarkModel:
     """The ColorMarkModel in ``model`` (itself or the one a recolor run wraps); one-line error otherwise."""
     found = next((m for m in iter_models(model) if isinstance(m, ColorMarkModel)), None)
     if found is None:
-        raise GStickerError(f"{type(model).__name__} carries no color mark; load a run written by "
-                            "gsticker_plugin.evaluation.baselines.colormark.write_color_marked_run")
+        raise GStickerError(
+            f"{type(model).__name__} carries no color mark; load a run written by "
+            "gsticker_plugin.evaluation.baselines.colormark.write_color_marked_run"
+        )
     return found
 
 
 @torch.no_grad()
 def mark_psnr(model, cameras: Sequence[Tuple[str, Any]]) -> Float[Tensor, " V"]:
     """Per-view PSNR of the color-marked render against the same model with the mark off (renders clamped)."""
+
     def render(cam) -> Tensor:
         rgb = model.get_outputs_for_camera(cam.to(model.device))["rgb"]
         return rgb.detach().float().clamp(0, 1).cpu().permute(2, 0, 1)[None]
@@ -243,8 +256,14 @@ def mark_psnr(model, cameras: Sequence[Tuple[str, Any]]) -> Float[Tensor, " V"]:
     return torch.stack(values)
 
 
-def match_amplitude(pipeline, target_psnr: float, num_views: int = 4, sampled_share: float = 0.0, seed: int = 0,
-                    trial_amplitude: Optional[float] = None) -> float:
+def match_amplitude(
+    pipeline,
+    target_psnr: float,
+    num_views: int = 4,
+    sampled_share: float = 0.0,
+    seed: int = 0,
+    trial_amplitude: Optional[float] = None,
+) -> float:
     """The color amplitude whose mark has mean PSNR ``target_psnr`` against the unmarked render.
 
     The RGB change is linear in the amplitude up to the final [0, 1] clamp, so every view's PSNR moves by
@@ -263,8 +282,10 @@ def match_amplitude(pipeline, target_psnr: float, num_views: int = 4, sampled_sh
             psnr = mark_psnr(model, cams)
             finite = psnr[torch.isfinite(psnr)]
             if finite.numel() == 0:
-                raise GStickerError("the color mark changes no pixel in the chosen views (the gate never opens); pass "
-                                    "more --num-views or check that the run's gates are calibrated")
+                raise GStickerError(
+                    "the color mark changes no pixel in the chosen views (the gate never opens); pass "
+                    "more --num-views or check that the run's gates are calibrated"
+                )
             a = a * 10.0 ** ((float(finite.mean()) - float(target_psnr)) / 20.0)
     finally:
         model.config.color_amplitude = old
@@ -279,6 +300,7 @@ def match_amplitude(pipeline, target_psnr: float, num_views: int = 4, sampled_sh
 @dataclass
 class ColorReferenceView:
     """One reference view in the color decoder's terms: what the suspect's RGB change at the rays depends on."""
+
     view: Any  # gsticker_plugin.decoders.reference.ReferenceView
     psi: Float[Tensor, "N 1"]  # the gate at the open samples (psi_scale without the gate's density scale)
     weights: Float[Tensor, "R S 1"]  # the base's render weights (the color mark leaves density unchanged)
@@ -288,12 +310,17 @@ class ColorReferenceView:
 def color_reference(ref_view, gate_scale: float) -> ColorReferenceView:
     h, w = ref_view.hw
     base = ref_view.image.permute(1, 2, 0).reshape(h * w, 3)[ref_view.rays].float()
-    return ColorReferenceView(view=ref_view, psi=ref_view.psi_scale / float(gate_scale),
-                              weights=render_weights(ref_view.density, ref_view.deltas), base_rgb=base)
+    return ColorReferenceView(
+        view=ref_view,
+        psi=ref_view.psi_scale / float(gate_scale),
+        weights=render_weights(ref_view.density, ref_view.deltas),
+        base_rgb=base,
+    )
 
 
-def predict_color_change(ref: ColorReferenceView, sticker: Sticker, signs: Float[Tensor, " K"],
-                         amplitude: float) -> Float[Tensor, "R 3"]:
+def predict_color_change(
+    ref: ColorReferenceView, sticker: Sticker, signs: Float[Tensor, " K"], amplitude: float
+) -> Float[Tensor, "R 3"]:
     """The suspect's RGB change at the rays for continuous message ``signs``: ``clamp(base + sum_j w_j a psi_j
     m_j(s)) - base`` (the renderer clamps the composite to [0, 1]); differentiable in ``signs``."""
     return color_of_sticker(ref, sticker.mix(ref.view.features, signs), amplitude)
@@ -303,31 +330,46 @@ def color_of_sticker(ref: ColorReferenceView, m: Float[Tensor, "N 1"], amplitude
     """The RGB change at the rays for sticker values ``m`` at the gate-open samples."""
     v = ref.view
     r, s = v.density.shape[:2]
-    per_sample = torch.zeros(r * s, 1, dtype=m.dtype, device=m.device).index_add(0, v.open_index,
-                                                                                 amplitude * ref.psi * m)
+    per_sample = torch.zeros(r * s, 1, dtype=m.dtype, device=m.device).index_add(
+        0, v.open_index, amplitude * ref.psi * m
+    )
     change = (ref.weights * per_sample.reshape(r, s, 1)).sum(dim=-2)  # [R 1], the same on the 3 channels
     return (ref.base_rgb + change).clamp(0.0, 1.0) - ref.base_rgb
 
 
-def color_change_jacobian(ref: ColorReferenceView, sticker: Sticker, signs: Float[Tensor, " K"],
-                          amplitude: float) -> Optional[Float[Tensor, "M K"]]:
+def color_change_jacobian(
+    ref: ColorReferenceView, sticker: Sticker, signs: Float[Tensor, " K"], amplitude: float
+) -> Optional[Float[Tensor, "M K"]]:
     """d predict_color_change / d signs, flattened like ``predict_color_change(...).reshape(-1)`` (None: no closed
     form)."""
 
     v = ref.view
     r, s = v.density.shape[:2]
-    j = per_ray_jacobian(lambda x: color_of_sticker(ref, x, amplitude).T, sticker, v.features, signs,
-                           v.open_index // s, r)
+    j = per_ray_jacobian(
+        lambda x: color_of_sticker(ref, x, amplitude).T, sticker, v.features, signs, v.open_index // s, r
+    )
     return None if j is None else j.permute(1, 0, 2).reshape(-1, j.shape[-1])  # [3 R K] -> rows r * 3 + c
 
 
-def decode_color_view(ref: ColorReferenceView, sticker: Sticker, suspect_rgb: Float[Tensor, "R 3"], amplitude: float,
-                      generator: torch.Generator, iterations: int = 10) -> Dict[str, Any]:
+def decode_color_view(
+    ref: ColorReferenceView,
+    sticker: Sticker,
+    suspect_rgb: Float[Tensor, "R 3"],
+    amplitude: float,
+    generator: torch.Generator,
+    iterations: int = 10,
+) -> Dict[str, Any]:
     """Fit the continuous message to one view's RGB change (suspect minus base) and decide the bits."""
     target = (suspect_rgb.float() - ref.base_rgb).reshape(-1)
-    fit, bits, undetermined = fit_and_decide(lambda x: predict_color_change(ref, sticker, x, amplitude),
-                                               lambda x: color_change_jacobian(ref, sticker, x, amplitude), target,
-                                               sticker.num_bits, ref.view.rays.numel() > 0, generator, iterations)
+    fit, bits, undetermined = fit_and_decide(
+        lambda x: predict_color_change(ref, sticker, x, amplitude),
+        lambda x: color_change_jacobian(ref, sticker, x, amplitude),
+        target,
+        sticker.num_bits,
+        ref.view.rays.numel() > 0,
+        generator,
+        iterations,
+    )
     return {"bits": bits, **fit_summary(fit, undetermined, int(ref.view.rays.numel())), "signals": ["rgb"]}
 
 
@@ -335,15 +377,27 @@ def suspect_rgb_at(outputs: Dict[str, Tensor], rays: Int[Tensor, " R"], hw: Tupl
     rgb = final_rgb(outputs)
     flat = rgb.float().reshape(-1, 3)
     if flat.shape[0] != hw[0] * hw[1]:
-        raise GStickerError(f"the suspect rendered {flat.shape[0]} pixels for a {hw[0]}x{hw[1]} camera; the color "
-                            "decoder needs renders at the base's cameras")
+        raise GStickerError(
+            f"the suspect rendered {flat.shape[0]} pixels for a {hw[0]}x{hw[1]} camera; the color "
+            "decoder needs renders at the base's cameras"
+        )
     return flat[rays]
 
 
-def decode_color_suspect(key, reference, suspect_model, num_views: int, sampled_share: float, seed: int,
-                         amplitude: float, sticker: Optional[bool] = None, progress: bool = False,
-                         iterations: int = 10, ref_cache: Optional[Dict[Any, Any]] = None,
-                         full_renders: bool = True):
+def decode_color_suspect(
+    key,
+    reference,
+    suspect_model,
+    num_views: int,
+    sampled_share: float,
+    seed: int,
+    amplitude: float,
+    sticker: Optional[bool] = None,
+    progress: bool = False,
+    iterations: int = 10,
+    ref_cache: Optional[Dict[Any, Any]] = None,
+    full_renders: bool = True,
+):
     """The informed color decoder: :func:`gsticker_plugin.decoders.geometric.decode_suspect` with the suspect's RGB instead of
     its geometry, and the color mark of ``amplitude`` as the model of the change.
 
@@ -355,7 +409,6 @@ def decode_color_suspect(key, reference, suspect_model, num_views: int, sampled_
     (none with ``full_renders=False``: the suspect is rendered only at the rays the fit reads).
     """
 
-
     check_amplitude(amplitude)
     st = cpu_sticker(reference.model)
     gate_scale = float(reference.model.final_wrap.gate.scale)
@@ -364,13 +417,15 @@ def decode_color_suspect(key, reference, suspect_model, num_views: int, sampled_
     bits, views = [], []
     ref_cache = {} if ref_cache is None else ref_cache  # one base render per camera
     rays_for = None if full_renders else (lambda name, cam: any_reference_view(reference, name, cam, ref_cache).rays)
-    for name, cam, rendered in suspect_renders(reference, suspect_model, num_views, sampled_share, seed, sticker,
-                                                 progress, "color decoding", rays_for=rays_for):
+    for name, cam, rendered in suspect_renders(
+        reference, suspect_model, num_views, sampled_share, seed, sticker, progress, "color decoding", rays_for=rays_for
+    ):
         # any reference view of this camera will do (the color fit uses no depth)
         ref_view = any_reference_view(reference, name, cam, ref_cache)
         ref = color_reference(ref_view, gate_scale)
-        d = decode_color_view(ref, st, suspect_rgb_at(rendered, ref_view.rays, ref_view.hw), float(amplitude), gen,
-                              iterations)
+        d = decode_color_view(
+            ref, st, suspect_rgb_at(rendered, ref_view.rays, ref_view.hw), float(amplitude), gen, iterations
+        )
         bits.append(d.pop("bits"))
         per_view.append(d)
         if full_renders:

@@ -28,7 +28,11 @@ def run(ws: Workspace) -> Dict[str, Any]:
             accs, shares, verdicts, image_per_seed = [], [], [], []
             leaked = leaked_key_attacked(ws, v["watermarked"], float(s)) if name == LEAKED_KEY else None
             for seed in ws.p.seeds:
-                x = leaked if leaked is not None else ws.attacked(v["watermarked"], v["sticker_off"], [(name, float(s))], seed)
+                x = (
+                    leaked
+                    if leaked is not None
+                    else ws.attacked(v["watermarked"], v["sticker_off"], [(name, float(s))], seed)
+                )
                 d = ws.decode(key, x)
                 accs.append(d["bit_acc"])
                 shares.append(d["share_passing"])
@@ -36,9 +40,14 @@ def run(ws: Workspace) -> Dict[str, Any]:
                 if ws.reads_images:
                     image_per_seed.append({"seed": seed, **ws.image_decode(x)})
             a = torch.tensor(accs)
-            pt = {"strength": float(s), "bit_acc_mean": float(a.mean()), "bit_acc_std": float(a.std(unbiased=False)),
-                  "bit_acc_per_seed": accs, "share_passing_mean": sum(shares) / len(shares),
-                  "verdict_rate": sum(verdicts) / len(verdicts)}
+            pt = {
+                "strength": float(s),
+                "bit_acc_mean": float(a.mean()),
+                "bit_acc_std": float(a.std(unbiased=False)),
+                "bit_acc_per_seed": accs,
+                "share_passing_mean": sum(shares) / len(shares),
+                "verdict_rate": sum(verdicts) / len(verdicts),
+            }
             if image_per_seed:
                 pt["image_decoder"] = over_seeds(image_per_seed)
             if leaked is not None:  # the PSNR the attack reached (8-bit image vs the 8-bit watermarked one)
@@ -46,17 +55,29 @@ def run(ws: Workspace) -> Dict[str, Any]:
             pts.append(pt)
         below = next((p["strength"] for p in pts if p["bit_acc_mean"] < 0.9), None)
         fails = next((p["strength"] for p in pts if p["verdict_rate"] < 0.5), None)
-        curves[name] = {"points": pts, "bit_acc_below_90_at": below, "verdict_fails_at": fails,
-                        "randomized": name in ("noise", "crop"),
-                        "definition": describe_leaked_key() if name == LEAKED_KEY else describe_spec(f"{name}={strengths[-1]}")}
+        curves[name] = {
+            "points": pts,
+            "bit_acc_below_90_at": below,
+            "verdict_fails_at": fails,
+            "randomized": name in ("noise", "crop"),
+            "definition": describe_leaked_key() if name == LEAKED_KEY else describe_spec(f"{name}={strengths[-1]}"),
+        }
         if ws.reads_images:
             curves[name]["image_decoder"] = {
                 "bit_acc_below_90_at": next((p["strength"] for p in pts if p["image_decoder"]["bit_acc"] < 0.9), None),
-                "verdict_fails_at": next((p["strength"] for p in pts if p["image_decoder"]["verdict_rate"] < 0.5), None)}
-    return {"base": ws.primary, "seeds": list(ws.p.seeds), "curves": curves, "image_decoder": ws.reads_images,
-            "note": "seeds change the distortions' randomness only (noise samples, cropout rectangle); rotation, "
-                    "blur, JPEG, resize and a fixed hue shift are deterministic, so their spread over seeds is 0. "
-                    "The models are trained once."}
+                "verdict_fails_at": next(
+                    (p["strength"] for p in pts if p["image_decoder"]["verdict_rate"] < 0.5), None
+                ),
+            }
+    return {
+        "base": ws.primary,
+        "seeds": list(ws.p.seeds),
+        "curves": curves,
+        "image_decoder": ws.reads_images,
+        "note": "seeds change the distortions' randomness only (noise samples, cropout rectangle); rotation, "
+        "blur, JPEG, resize and a fixed hue shift are deterministic, so their spread over seeds is 0. "
+        "The models are trained once.",
+    }
 
 
 def leaked_key_attacked(ws: Workspace, wm: Tensor, psnr_budget: float) -> Tensor:

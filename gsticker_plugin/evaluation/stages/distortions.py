@@ -21,10 +21,15 @@ def run(ws: Workspace) -> Dict[str, Any]:
             per_seed.append({"seed": seed, **d})
             if ws.reads_images:
                 image_per_seed.append({"seed": seed, **ws.image_decode(x)})
-        row = {"label": r.label, "spec": r.spec, "paper": r.paper, "definition": describe_spec(r.spec),
-               **over_seeds(per_seed), "attack_psnr": per_seed[0]["attack_psnr"]}
+        row = {
+            "label": r.label,
+            "spec": r.spec,
+            "paper": r.paper,
+            "definition": describe_spec(r.spec),
+            **over_seeds(per_seed),
+            "attack_psnr": per_seed[0]["attack_psnr"],
+        }
         if image_per_seed:
             row["image_decoder"] = over_seeds(image_per_seed)
         rows.append(row)
-    return {"base": ws.primary, "rows": rows, "threshold": ws.threshold,
-            "image_decoder": ws.reads_images}
+    return {"base": ws.primary, "rows": rows, "threshold": ws.threshold, "image_decoder": ws.reads_images}

@@ -18,8 +18,13 @@ def run(ws: Workspace) -> Dict[str, Any]:
     """Model-level verdicts of the informed geometric decoder: watermarked, sticker off, the unwatermarked base
     (and other runs); plus the color-branch baseline (unedited) when enabled."""
     g = ws.p.geometry
-    res: Dict[str, Any] = {"num_views": g.num_views, "sampled_share": g.sampled_share, "seed": ws.p.seeds[0],
-                           "threshold": ws.threshold, "bases": {}}
+    res: Dict[str, Any] = {
+        "num_views": g.num_views,
+        "sampled_share": g.sampled_share,
+        "seed": ws.p.seeds[0],
+        "threshold": ws.threshold,
+        "bases": {},
+    }
     for b in ws.p.bases:
         ws.say(f"  [geometry] {b.name}")
         wm = ws.load(ws.wm_dir(b.name) / "config.yml").model
@@ -31,7 +36,6 @@ def run(ws: Workspace) -> Dict[str, Any]:
         del wm
     others = []
     for o in ws.p.false_positives.other_runs:
-
         name, cfg = o.get("name", Path(o["config"]).parent.name), Path(o["config"])
         with contextlib.redirect_stdout(sys.stderr):
             _, pipe, _ = load_run(cfg, data=Path(o["data"]) if o.get("data") else None, device=ws.device)
@@ -57,8 +61,9 @@ def color_baseline(ws: Workspace) -> Dict[str, Any]:
     # refine on the reported test views (the clamp to [0, 1] makes the PSNR only nearly linear in log amplitude)
     for _ in range(3):
         pipe.model.config.color_amplitude = amplitude
-        got = ws.image_metrics(ws.render(pipe, "color mark", sticker=True)["rgb"],
-                                 ws.render(pipe, "color mark off", sticker=False)["rgb"])["psnr"]
+        got = ws.image_metrics(
+            ws.render(pipe, "color mark", sticker=True)["rgb"], ws.render(pipe, "color mark off", sticker=False)["rgb"]
+        )["psnr"]
         if not isinstance(got, float) or abs(got - float(target)) < 0.1:
             break
         amplitude *= 10 ** ((got - float(target)) / 20)
@@ -67,10 +72,14 @@ def color_baseline(ws: Workspace) -> Dict[str, Any]:
     pipe = ws.load(cfg)
     r_on = ws.render(pipe, "color-marked", sticker=True)
     r_off = ws.render(pipe, "color mark off", sticker=False)
-    return {"config": str(cfg), "amplitude": amplitude, "target_psnr": float(target),
-            "psnr_vs_unmarked": ws.image_metrics(r_on["rgb"], r_off["rgb"])["psnr"],
-            "color_decoder": ws.color_decode(pipe.model, amplitude, desc="unedited"),
-            "geometry_decoder": ws.geo_decode(ws.primary, pipe.model, desc="color-marked run"),
-            "note": "the same sticker patterns and gate as the watermarked run, added to the final field's per-sample "
-                    "color instead of its density (density identical to the base); built, not trained, in this "
-                    "harness; decoded by the informed color decoder (the geometric decoder's fit on RGB)"}
+    return {
+        "config": str(cfg),
+        "amplitude": amplitude,
+        "target_psnr": float(target),
+        "psnr_vs_unmarked": ws.image_metrics(r_on["rgb"], r_off["rgb"])["psnr"],
+        "color_decoder": ws.color_decode(pipe.model, amplitude, desc="unedited"),
+        "geometry_decoder": ws.geo_decode(ws.primary, pipe.model, desc="color-marked run"),
+        "note": "the same sticker patterns and gate as the watermarked run, added to the final field's per-sample "
+        "color instead of its density (density identical to the base); built, not trained, in this "
+        "harness; decoded by the informed color decoder (the geometric decoder's fit on RGB)",
+    }

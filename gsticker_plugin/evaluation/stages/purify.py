@@ -19,15 +19,26 @@ def run(ws: Workspace) -> Dict[str, Any]:
     ds = pipe.datamanager.train_dataset
     bg = background_of(model)
     targets = [composite_on(t, bg) for t in training_images(ds)]
-    params = {n: p for n, p in model.named_parameters() if p.is_floating_point() and n.rsplit(".", 1)[-1] != "aabb"
-              and not n.startswith(("extractor", "classifier"))}
+    params = {
+        n: p
+        for n, p in model.named_parameters()
+        if p.is_floating_point() and n.rsplit(".", 1)[-1] != "aabb" and not n.startswith(("extractor", "classifier"))
+    }
     points, done, t_train = [], 0, 0.0
     for steps in g.purify_steps:
         if steps > done:
             t0 = time.time()
-            hist = finetune_color(model, ds.cameras, targets, steps - done, lr=g.purify_lr,
-                                  rays_per_step=g.purify_rays_per_step, seed=done, progress=ws.progress,
-                                  color_params=params)
+            hist = finetune_color(
+                model,
+                ds.cameras,
+                targets,
+                steps - done,
+                lr=g.purify_lr,
+                rays_per_step=g.purify_rays_per_step,
+                seed=done,
+                progress=ws.progress,
+                color_params=params,
+            )
             t_train += time.time() - t0
             done = steps
             loss = float(sum(hist["loss"][-20:]) / len(hist["loss"][-20:]))
@@ -36,14 +47,29 @@ def run(ws: Workspace) -> Dict[str, Any]:
         model.eval()
         r = ws.render(pipe, f"purified {steps} steps")
         d = ws.geo_decode(ws.primary, model, desc=f"purified {steps} steps")
-        points.append({"steps": steps, "train_seconds": round(t_train, 1), "loss": loss,
-                       "psnr_vs_gt": ws.image_metrics(r["rgb"], r["gt"])["psnr"],
-                       "bit_acc": d["bit_acc"], "share_passing": d["share_passing"], "verdict": d["verdict"],
-                       "matches": d["matches"]})
+        points.append(
+            {
+                "steps": steps,
+                "train_seconds": round(t_train, 1),
+                "loss": loss,
+                "psnr_vs_gt": ws.image_metrics(r["rgb"], r["gt"])["psnr"],
+                "bit_acc": d["bit_acc"],
+                "share_passing": d["share_passing"],
+                "verdict": d["verdict"],
+                "matches": d["matches"],
+            }
+        )
     below = next((p["steps"] for p in points if p["bit_acc"] < 0.9), None)
     fails = next((p["steps"] for p in points if not p["verdict"]), None)
-    return {"base": ws.primary, "lr": g.purify_lr, "rays_per_step": g.purify_rays_per_step,
-            "parameters": len(params), "points": points, "bit_acc_below_90_at": below, "verdict_fails_at": fails,
-            "note": "the attacker holds the shareable model and the clean training images and fine-tunes every "
-                    "parameter (the base's density and color, the sticker, the gate width) to fit the images; "
-                    "decoded with the informed geometric decoder against the owner's untouched base"}
+    return {
+        "base": ws.primary,
+        "lr": g.purify_lr,
+        "rays_per_step": g.purify_rays_per_step,
+        "parameters": len(params),
+        "points": points,
+        "bit_acc_below_90_at": below,
+        "verdict_fails_at": fails,
+        "note": "the attacker holds the shareable model and the clean training images and fine-tunes every "
+        "parameter (the base's density and color, the sticker, the gate width) to fit the images; "
+        "decoded with the informed geometric decoder against the owner's untouched base",
+    }

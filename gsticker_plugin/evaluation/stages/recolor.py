@@ -42,9 +42,17 @@ def run(ws: Workspace) -> Dict[str, Any]:
             if ws.reads_images:
                 image_seed.append({"seed": seed, **ws.image_decode(a)})
                 image_null.append({"seed": seed, **ws.image_decode(b)})
-        row = _recolor_row({"name": "image-hue-jitter", "kind": "image_hue",
-                                 "label": f"image-level hue jitter U(-{abs(jitter):g}, {abs(jitter):g})"},
-                                per_seed, null_seed, quality, paper=99.33)
+        row = _recolor_row(
+            {
+                "name": "image-hue-jitter",
+                "kind": "image_hue",
+                "label": f"image-level hue jitter U(-{abs(jitter):g}, {abs(jitter):g})",
+            },
+            per_seed,
+            null_seed,
+            quality,
+            paper=99.33,
+        )
         if image_seed:
             row["image_decoder"], row["image_decoder_null"] = over_seeds(image_seed), over_seeds(image_null)
         rows.append(row)
@@ -64,25 +72,41 @@ def run(ws: Workspace) -> Dict[str, Any]:
         if var["kind"] == "palette" and source is not None:
             row["delta_e"] = palette_distance(source, var["color"])
         rows.append(row)
-    return {"base": ws.primary, "rows": rows, "palette_entry": ws.p.recolor.palette_entry,
-            "palette_source": source,
-            "note": "bit accuracy of the watermarked run after the edit; 'null' = the same edit of the unwatermarked base "
-                    "decoded with the owner key; PSNR/SSIM = watermarked-recolored vs unwatermarked-recolored render; "
-                    "bit_acc/null_* = the blind extractor on the renders; 'geometry' = the informed geometric decoder on "
-                    "the edited model (geometry_null: on the edited base); 'color_baseline' = the color-branch "
-                    "baseline after the same edit, read by the informed color decoder"}
+    return {
+        "base": ws.primary,
+        "rows": rows,
+        "palette_entry": ws.p.recolor.palette_entry,
+        "palette_source": source,
+        "note": "bit accuracy of the watermarked run after the edit; 'null' = the same edit of the unwatermarked base "
+        "decoded with the owner key; PSNR/SSIM = watermarked-recolored vs unwatermarked-recolored render; "
+        "bit_acc/null_* = the blind extractor on the renders; 'geometry' = the informed geometric decoder on "
+        "the edited model (geometry_null: on the edited base); 'color_baseline' = the color-branch "
+        "baseline after the same edit, read by the informed color decoder",
+    }
 
 
 def recolor_variants(ws: Workspace) -> List[Dict[str, Any]]:
     rc = ws.p.recolor
     out = []
     for c in rc.colors:
-        out.append({"name": f"palette-{c.replace(' ', '')}", "kind": "palette", "color": c,
-                    "label": f"palette {rc.palette_entry} -> {c}",
-                    "edit": (PaletteArgs, {"set_": (f"{rc.palette_entry}={c}",)})})
+        out.append(
+            {
+                "name": f"palette-{c.replace(' ', '')}",
+                "kind": "palette",
+                "color": c,
+                "label": f"palette {rc.palette_entry} -> {c}",
+                "edit": (PaletteArgs, {"set_": (f"{rc.palette_entry}={c}",)}),
+            }
+        )
     for h in rc.model_hue:
-        out.append({"name": f"hue-{h:+g}", "kind": "model_hue", "label": f"model-level hue {h:+g}",
-                    "edit": (HueArgs, {"shift": float(h)})})
+        out.append(
+            {
+                "name": f"hue-{h:+g}",
+                "kind": "model_hue",
+                "label": f"model-level hue {h:+g}",
+                "edit": (HueArgs, {"shift": float(h)}),
+            }
+        )
     ft = rc.finetune
     if ft is not None:
         tgt = {"set_": (f"{rc.palette_entry}={ft.color}",)} if ft.color is not None else {"hue_shift": ft.hue_shift}
@@ -90,12 +114,24 @@ def recolor_variants(ws: Workspace) -> List[Dict[str, Any]]:
         # one fine-tune per model to the longest step count; the shorter ones are its snapshots (--save-at)
         counts = sorted({ft.steps, *ft.steps_curve})
         views = {} if ft.max_views is None else {"max_views": int(ft.max_views)}
-        fields = {**tgt, **views, "steps": int(counts[-1]), "rays_per_step": int(ft.rays_per_step),
-                  "save_at": tuple(int(n) for n in counts[:-1])}
+        fields = {
+            **tgt,
+            **views,
+            "steps": int(counts[-1]),
+            "rays_per_step": int(ft.rays_per_step),
+            "save_at": tuple(int(n) for n in counts[:-1]),
+        }
         for n in counts:
-            out.append({"name": "finetune" if n == ft.steps else f"finetune-{n}steps", "kind": "finetune", "steps": n,
-                        "label": f"attacker's color fine-tune ({what}, {n} steps)", "edit": (FinetuneArgs, fields),
-                        "snapshot": n != counts[-1]})
+            out.append(
+                {
+                    "name": "finetune" if n == ft.steps else f"finetune-{n}steps",
+                    "kind": "finetune",
+                    "steps": n,
+                    "label": f"attacker's color fine-tune ({what}, {n} steps)",
+                    "edit": (FinetuneArgs, fields),
+                    "snapshot": n != counts[-1],
+                }
+            )
     return out
 
 
@@ -111,9 +147,11 @@ def palette_source(ws: Workspace) -> Optional[List[float]]:
 def recolored(ws: Workspace, variant: Dict[str, Any], which: str) -> Dict[str, Tensor]:
     """One ns-recolor edit of the watermarked run (``wm``), the base run (``base``) or the color-branch baseline
     (``color``): its renders and, with ``geometry`` on, its model-level decodes (geometric; color for ``color``)."""
+
     def make():
-        src = {"wm": ws.wm_dir(ws.primary) / "config.yml", "base": ws.base_config(ws.primary),
-               "color": ws.color_run()}[which]
+        src = {"wm": ws.wm_dir(ws.primary) / "config.yml", "base": ws.base_config(ws.primary), "color": ws.color_run()}[
+            which
+        ]
         base_dir = ws.out / "recolored" / ws.primary
         if variant["kind"] == "finetune":  # the curve's variants share one ns-recolor run: OUT, OUT-stepN
             out_dir = base_dir / "finetune" / which
@@ -153,12 +191,21 @@ def _recolor_row(var, per_seed, null_seed, quality, paper) -> Dict[str, Any]:
         vals = [x[k] for x in xs if isinstance(x[k], (int, float))]
         return float(sum(vals) / len(vals)) if vals else (xs[0][k] if xs else None)
 
-    return {"name": var["name"], "kind": var["kind"], "label": var["label"], "paper": paper,
-            "bit_acc": mean(per_seed, "bit_acc"), "share_passing": mean(per_seed, "share_passing"),
-            "verdict_rate": sum(float(s["verdict"]) for s in per_seed) / len(per_seed),
-            "null_bit_acc": mean(null_seed, "bit_acc"), "null_share_passing": mean(null_seed, "share_passing"),
-            "psnr": mean(quality, "psnr"), "ssim": mean(quality, "ssim"),
-            "per_seed": per_seed, "null_per_seed": null_seed}
+    return {
+        "name": var["name"],
+        "kind": var["kind"],
+        "label": var["label"],
+        "paper": paper,
+        "bit_acc": mean(per_seed, "bit_acc"),
+        "share_passing": mean(per_seed, "share_passing"),
+        "verdict_rate": sum(float(s["verdict"]) for s in per_seed) / len(per_seed),
+        "null_bit_acc": mean(null_seed, "bit_acc"),
+        "null_share_passing": mean(null_seed, "share_passing"),
+        "psnr": mean(quality, "psnr"),
+        "ssim": mean(quality, "ssim"),
+        "per_seed": per_seed,
+        "null_per_seed": null_seed,
+    }
 
 
 def palette_distance(source_rgb: Sequence[float], color: str) -> float:

@@ -13,6 +13,7 @@ from gsticker_plugin.evaluation.workspace import Workspace
 def run(ws: Workspace) -> Dict[str, Any]:
     res = {}
     for b in ws.p.bases:
+
         def wm_views(b=b):
             pipe = ws.load(ws.wm_dir(b.name) / "config.yml")
             on = ws.render(pipe, f"{b.name} watermarked", sticker=True)
@@ -26,6 +27,10 @@ def run(ws: Workspace) -> Dict[str, Any]:
 
         w = ws.cached(f"{b.name}-wm", wm_views)
         base = ws.cached(f"{b.name}-base", base_views)
-        res[b.name] = {"views": int(w["watermarked"].shape[0]), "size": list(w["watermarked"].shape[1:3]),
-                       "indices": w["indices"].tolist(), "base_seconds_per_view": float(base["seconds_per_view"])}
+        res[b.name] = {
+            "views": int(w["watermarked"].shape[0]),
+            "size": list(w["watermarked"].shape[1:3]),
+            "indices": w["indices"].tolist(),
+            "base_seconds_per_view": float(base["seconds_per_view"]),
+        }
     return res
