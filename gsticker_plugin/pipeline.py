@@ -77,9 +77,10 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     """Training-time distortions applied to renders before the extractor and classifier."""
     target_psnr: float = 38.0
     """PSNR budget of watermarked vs clean renders; the content loss rises steeply below it."""
-    content_stop_psnr: Optional[float] = 44.0
-    """The content loss stops pulling once watermarked and clean renders are this close (PSNR above it), so a long
-    run cannot shrink the mark toward the renderer's float noise; None pulls toward 0 at every step."""
+    mark_psnr: Optional[float] = 44.0
+    """The mark's operating point: the content loss holds watermarked renders this close (PSNR) to the clean ones,
+    shrinking a strong mark and growing a faint one, so the mark neither fades toward the renderer's float noise in a
+    long run nor stays faint from a weak start; None: the content loss only shrinks the mark."""
     content_weight: float = 1.0
     """Weight of the content loss (MSE, in units of the PSNR budget)."""
     warmup_steps: int = 200
@@ -328,8 +329,11 @@ class GeometryStickerPipeline(VanillaPipeline):
         cfg = self.config
         mse = F.mse_loss(marked, clean)
         budget = 10.0 ** (-cfg.target_psnr / 10.0)
-        floor = 0.0 if cfg.content_stop_psnr is None else 10.0 ** (-cfg.content_stop_psnr / 10.0)
-        content = F.relu(mse - floor) / budget + 10.0 * F.relu(mse / budget - 1.0)
+        if cfg.mark_psnr is None:
+            content = mse / budget + 10.0 * F.relu(mse / budget - 1.0)
+        else:  # two-sided around the operating point, steep past the budget
+            point = 10.0 ** (-cfg.mark_psnr / 10.0)
+            content = (mse - point).abs() / budget + 10.0 * F.relu(mse / budget - 1.0)
         # Warm-up: no content loss and no distortions for warmup_steps, then both ramp in over as many steps.
         ramp = min(1.0, max(0.0, (step + 1 - cfg.warmup_steps) / max(1, cfg.warmup_steps)))
         losses = {
