@@ -42,9 +42,7 @@ NERFACTO_TINY = [
     "256",
 ]
 CPU_ARGS = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
-TINY_STICKER_ARGS = [
-    "--max-num-iterations",
-    "10",
+TINY_POOL_ARGS = [
     "--pipeline.pool-train-views",
     "2",
     "--pipeline.pool-novel-views",
@@ -58,6 +56,7 @@ TINY_STICKER_ARGS = [
     "--pipeline.heads.width",
     "8",
 ]
+TINY_STICKER_ARGS = ["--max-num-iterations", "10", *TINY_POOL_ARGS]
 
 
 def subprocess_env(threads: int = 0, **extra: str) -> dict:

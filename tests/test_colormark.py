@@ -20,7 +20,8 @@ from typing import Dict
 import pytest
 import torch
 import yaml
-from test_geometry import COMMON, MESSAGE, NERFACTO_TINY, _train  # the tiny-run recipe shared with the geometry tests
+from conftest import CPU_ARGS, NERFACTO_TINY, TINY_POOL_ARGS
+from test_geometry import MESSAGE, _train  # the tiny-run recipe shared with the geometry tests
 
 from gsticker_plugin import runs as RUNS
 from gsticker_plugin import views as VW
@@ -160,7 +161,7 @@ def runs(tiny_scene, tmp_path_factory) -> Dict[str, Path]:
     _train(
         [
             *NERFACTO_TINY,
-            *COMMON,
+            *CPU_ARGS,
             "--output-dir",
             str(out / "base"),
             "--experiment-name",
@@ -184,7 +185,7 @@ def runs(tiny_scene, tmp_path_factory) -> Dict[str, Path]:
             "geometrysticker",
             "--load-checkpoint",
             str(ckpt),
-            *COMMON,
+            *CPU_ARGS,
             "--output-dir",
             str(out / "gs"),
             "--experiment-name",
@@ -195,18 +196,7 @@ def runs(tiny_scene, tmp_path_factory) -> Dict[str, Path]:
             "10",
             "--pipeline.message",
             MESSAGE,
-            "--pipeline.pool-train-views",
-            "2",
-            "--pipeline.pool-novel-views",
-            "2",
-            "--pipeline.monitor-views",
-            "1",
-            "--pipeline.steps-per-monitor",
-            "5",
-            "--pipeline.views-per-step",
-            "2",
-            "--pipeline.heads.width",
-            "8",
+            *TINY_POOL_ARGS,
             "--pipeline.key-path",
             str(ws / "keys" / "run.gskey"),
         ],

@@ -19,7 +19,7 @@ from typing import Dict, List
 
 import pytest
 import torch
-from conftest import TINY_MESSAGE, copy_key, synthetic_reference_view
+from conftest import CPU_ARGS, NERFACTO_TINY, TINY_MESSAGE, copy_key, synthetic_reference_view
 
 from gsticker_plugin import runs as RUNS
 from gsticker_plugin import sticker as S
@@ -34,17 +34,6 @@ from gsticker_plugin.verify import cli as V
 BIN = Path(sys.executable).parent
 MESSAGE = TINY_MESSAGE
 OTHER_MESSAGE = "010011000111000011110000011111000000111111000000"  # the complement: 0 matches with MESSAGE
-NERFACTO_TINY = [
-    "gsticker-nerfacto-small",
-    "--pipeline.model.num-nerf-samples-per-ray",
-    "16",
-    "--pipeline.model.num-proposal-samples-per-ray",
-    "32",
-    "16",
-    "--pipeline.datamanager.train-num-rays-per-batch",
-    "256",
-]
-COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
 VIEWS = "6"
 
 
@@ -244,7 +233,7 @@ def runs(tiny_sticker, ws) -> Dict[str, Path]:
     _train(
         [
             *NERFACTO_TINY,
-            *COMMON,
+            *CPU_ARGS,
             "--output-dir",
             str(out / "scene2"),
             "--experiment-name",

@@ -28,7 +28,7 @@ from typing import Dict, List
 
 import pytest
 import torch
-from conftest import console_script, run_parallel, subprocess_env
+from conftest import TINY_POOL_ARGS, console_script, run_parallel, subprocess_env
 
 from gsticker_plugin.decoders import geometric as G
 from gsticker_plugin.decoders import reference as R
@@ -88,18 +88,7 @@ MESSAGES = {
 }
 # The small sticker stage: a 4 + 1 view pool, 2 views per step, narrow heads.
 GS_FLAGS = [
-    "--pipeline.pool-train-views",
-    "2",
-    "--pipeline.pool-novel-views",
-    "2",
-    "--pipeline.monitor-views",
-    "1",
-    "--pipeline.steps-per-monitor",
-    "5",
-    "--pipeline.views-per-step",
-    "2",
-    "--pipeline.heads.width",
-    "8",
+    *TINY_POOL_ARGS,
 ]
 COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
 

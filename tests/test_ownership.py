@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import CPU_ARGS, TINY_POOL_ARGS
 
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.heads import HeadConfig, Heads
@@ -128,17 +129,6 @@ from gsticker_plugin.key import bits_to_str  # noqa: E402
 from gsticker_plugin.verify import cli as V  # noqa: E402
 
 BIN = Path(sys.executable).parent
-COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
-NERFACTO_TINY = [
-    "gsticker-nerfacto-small",
-    "--pipeline.model.num-nerf-samples-per-ray",
-    "16",
-    "--pipeline.model.num-proposal-samples-per-ray",
-    "32",
-    "16",
-    "--pipeline.datamanager.train-num-rays-per-batch",
-    "256",
-]
 
 
 def _train(args, cwd: Path) -> subprocess.CompletedProcess:
@@ -180,7 +170,7 @@ def shared_run(tiny_base, tmp_path_factory, owner_keys_dir):
             "geometrysticker",
             "--load-checkpoint",
             str(ckpt),
-            *COMMON,
+            *CPU_ARGS,
             "--output-dir",
             str(out),
             "--experiment-name",
@@ -191,18 +181,7 @@ def shared_run(tiny_base, tmp_path_factory, owner_keys_dir):
             "10",
             "--pipeline.owner-id",
             "alice",
-            "--pipeline.pool-train-views",
-            "2",
-            "--pipeline.pool-novel-views",
-            "2",
-            "--pipeline.monitor-views",
-            "1",
-            "--pipeline.steps-per-monitor",
-            "5",
-            "--pipeline.views-per-step",
-            "2",
-            "--pipeline.heads.width",
-            "8",
+            *TINY_POOL_ARGS,
         ],
         ws,
     )

@@ -23,7 +23,7 @@ from typing import Dict, List
 
 import pytest
 import torch
-from conftest import console_script, run_parallel, subprocess_env
+from conftest import TINY_POOL_ARGS, console_script, run_parallel, subprocess_env
 
 from gsticker_plugin.errors import GStickerError
 
@@ -150,18 +150,7 @@ def runs(tiny_scene: Path, work: Path) -> Dict[str, Path]:
         "3",
         "--pipeline.message",
         MESSAGE,
-        "--pipeline.pool-train-views",
-        "2",
-        "--pipeline.pool-novel-views",
-        "2",
-        "--pipeline.monitor-views",
-        "1",
-        "--pipeline.steps-per-monitor",
-        "5",
-        "--pipeline.views-per-step",
-        "2",
-        "--pipeline.heads.width",
-        "8",
+        *TINY_POOL_ARGS,
     ]
     (proc,) = run_parallel([gs], work / "logs-gs")
     assert proc.returncode == 0, f"ns-train geometrysticker: {_fail(proc)}"

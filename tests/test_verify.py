@@ -539,17 +539,6 @@ def test_console_script_exit_codes(alice, dirs, ws):
 
 
 # ---------------------------------------------------------------------------------------------- real runs (slow)
-NERFACTO_TINY = [
-    "gsticker-nerfacto-small",
-    "--pipeline.model.num-nerf-samples-per-ray",
-    "16",
-    "--pipeline.model.num-proposal-samples-per-ray",
-    "32",
-    "16",
-    "--pipeline.datamanager.train-num-rays-per-batch",
-    "256",
-]
-COMMON = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
 MESSAGE = TINY_MESSAGE
 
 
