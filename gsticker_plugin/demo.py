@@ -27,7 +27,7 @@ import tyro
 from gsticker_plugin import metrics
 from gsticker_plugin.evaluate import decode_images, load_pipeline, psnr_nhw3, render_split
 from gsticker_plugin.key import OwnerKey
-from gsticker_plugin.machine import console_script
+from gsticker_plugin.machine import console_script, sticker_train_argv
 from gsticker_plugin.runs import latest_checkpoint
 
 
@@ -138,28 +138,15 @@ def main(cfg: DemoConfig) -> None:
     key_path = out / "owner-keys" / "demo.gskey"  # the secret half: outside the run's output folder
     if not key_path.exists() or not list((wm_run / "nerfstudio_models").glob("step-*.ckpt")):
         _run(
-            [
-                console_script("ns-train"),
-                "geometrysticker",
-                "--machine.device-type",
-                "cpu",
-                "--vis",
-                "tensorboard",
-                "--output-dir",
-                str(out),
-                "--experiment-name",
+            sticker_train_argv(
+                out,
                 "demo",
-                "--timestamp",
-                "watermarked",
-                "--max-num-iterations",
-                str(cfg.sticker_iterations),
-                "--pipeline.owner-id",
+                cfg.sticker_iterations,
                 cfg.owner_id,
-                "--pipeline.key-path",
-                str(key_path),
+                key_path,
                 "--load-checkpoint",
                 str(base_ckpt),
-            ],
+            ),
             logs / "sticker.log",
         )
     else:

@@ -142,3 +142,37 @@ def render_cached(view: ViewCache, wrap, message: Tensor, background: Tensor) ->
 
 def pool_memory_mb(views: List[ViewCache]) -> float:
     return sum(v.nbytes() for v in views) / 2**20
+
+
+def render_signs(
+    view: ViewCache, wrap, signs: Tensor, background: Tensor, gain: float = 1.0, clamp: bool = True
+) -> Float[Tensor, "H W 3"]:
+    """Render of a cached view with the (bilinear) sticker at continuous message signs (+-1 for bits) and its density
+    change scaled by ``gain``; ``clamp=False`` keeps the unclamped colours (for derivatives)."""
+    h, w = view.hw
+    density = view.density
+    psi, open_ = wrap.open_samples(density)
+    delta = torch.zeros_like(density)
+    if open_.any():
+        pos = wrap.normalize(view.positions.float()[open_])
+        m = wrap.sticker.mix(wrap.sticker.features(pos), signs.to(pos))
+        delta[open_] = gain * psi[open_] * wrap.gate.scale * m
+    rgb = view.rgb.float()
+    marked, _ = composite(torch.relu(density + delta), rgb, view.deltas, background)
+    clean, _ = composite(density, rgb, view.deltas, background)
+    flat = view.image.reshape(-1, 3)
+    out = (flat + torch.zeros_like(flat).index_add(0, view.active, marked - clean)).reshape(h, w, 3)
+    return out.clamp(0.0, 1.0) if clamp else out
+
+
+@torch.no_grad()
+def sign_jacobian(view: ViewCache, wrap, num_bits: int, background: Tensor, eps: float = 1e-2) -> Tensor:
+    """R[b] = dI/ds_b at s = 0 by central differences: the render's per-bit change [K H W 3] (unclamped)."""
+    rows = []
+    for b in range(num_bits):
+        e = torch.zeros(num_bits)
+        e[b] = eps
+        plus = render_signs(view, wrap, e, background, clamp=False)
+        minus = render_signs(view, wrap, -e, background, clamp=False)
+        rows.append((plus - minus) / (2 * eps))
+    return torch.stack(rows)

@@ -21,6 +21,34 @@ def console_script(name: str) -> str:
     return str(cand) if cand.exists() else (shutil.which(name) or name)
 
 
+def sticker_train_argv(
+    output_dir: Path, experiment: str, max_steps: int, owner_id: str, key_path: Path, *options: str
+) -> List[str]:
+    """``ns-train geometrysticker`` on the CPU into ``OUTPUT/EXPERIMENT/geometrysticker/watermarked`` with its owner
+    key at ``key_path``; ``options``: further flags (``--load-checkpoint`` among them)."""
+    return [
+        console_script("ns-train"),
+        "geometrysticker",
+        "--machine.device-type",
+        "cpu",
+        "--vis",
+        "tensorboard",
+        "--output-dir",
+        str(output_dir),
+        "--experiment-name",
+        experiment,
+        "--timestamp",
+        "watermarked",
+        "--max-num-iterations",
+        str(max_steps),
+        "--pipeline.owner-id",
+        owner_id,
+        "--pipeline.key-path",
+        str(key_path),
+        *options,
+    ]
+
+
 def load_average() -> Optional[List[float]]:
     """1, 5 and 15 minute load averages (other work on the machine skews the timings)."""
     try:

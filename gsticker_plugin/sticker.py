@@ -218,6 +218,28 @@ class FoldedSticker(nn.Module):
         return torch.tanh(self.mlp(self.pos_in(positional_encoding(positions01, self.num_frequencies))))
 
 
+class BlindTerm(nn.Module):
+    """The per-key blind sticker term: ``amplitude * tanh(MLP(gamma(x)))`` for one fixed message, trained so the
+    frozen blind extractor reads that message from renders. The informed decoders never read it."""
+
+    def __init__(self, num_frequencies: int = 6, hidden_dim: int = 32, amplitude: float = 1.0) -> None:
+        super().__init__()
+        self.num_frequencies = num_frequencies
+        self.amplitude = amplitude
+        self.mlp = nn.Sequential(
+            nn.Linear(3 + 6 * num_frequencies, hidden_dim),
+            nn.ReLU(),
+            nn.Linear(hidden_dim, hidden_dim),
+            nn.ReLU(),
+            nn.Linear(hidden_dim, 1),
+        )
+        nn.init.uniform_(self.mlp[-1].weight, -0.1, 0.1)
+        nn.init.zeros_(self.mlp[-1].bias)
+
+    def forward(self, positions01: Float[Tensor, "N 3"]) -> Float[Tensor, "N 1"]:
+        return self.amplitude * torch.tanh(self.mlp(positional_encoding(positions01, self.num_frequencies)))
+
+
 @dataclass
 class WrapState:
     """Mutable switches shared by all wrapped fields of one model."""

@@ -33,6 +33,16 @@ from gsticker_plugin import compat
 from gsticker_plugin.fuse import FuseConfig, eval_cameras, fuse, psnr
 from gsticker_plugin.runs import final_rgb, load_run
 
+PSNR_PAIRS = (
+    "fused_vs_watermarked",
+    "fused_vs_base",
+    "watermarked_vs_base",
+    "fused_vs_gt",
+    "watermarked_vs_gt",
+    "base_vs_gt",
+)
+"""The render pairs whose PSNR the page reports."""
+
 
 @dataclass
 class BenchFuseConfig:
@@ -108,17 +118,7 @@ def psnr_table(wm_config: Path, fused_config: Path, data: Optional[Path], num: i
         fcfg, fused_pipe, _ = load_run(fused_config, data=data, device=dev)
     wm, fused = wm_pipe.model, fused_pipe.model
     ds = wm_pipe.datamanager.eval_dataset
-    rows: Dict[str, List[float]] = {
-        k: []
-        for k in (
-            "fused_vs_watermarked",
-            "fused_vs_base",
-            "watermarked_vs_base",
-            "fused_vs_gt",
-            "watermarked_vs_gt",
-            "base_vs_gt",
-        )
-    }
+    rows: Dict[str, List[float]] = {k: [] for k in PSNR_PAIRS}
     cams = eval_cameras(wm_pipe, num)
     for name, cam in cams:
         i = int(name.split("/")[1])
@@ -190,14 +190,7 @@ def write_doc(res: Dict[str, Any], doc: Path) -> None:
         "| pair | PSNR (dB) |",
         "|---|---|",
     ]
-    for k in (
-        "fused_vs_watermarked",
-        "fused_vs_base",
-        "watermarked_vs_base",
-        "fused_vs_gt",
-        "watermarked_vs_gt",
-        "base_vs_gt",
-    ):
+    for k in PSNR_PAIRS:
         lines.append(f"| {k.replace('_vs_', ' vs ').replace('_', ' ')} | {p[k]:.2f} |")
     lines += ["", "## Conclusion", "", res["conclusion"], ""]
     doc.parent.mkdir(parents=True, exist_ok=True)

@@ -30,7 +30,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import tyro
 
 from gsticker_plugin.evaluate import load_pipeline, psnr_nhw3, render_split
-from gsticker_plugin.machine import console_script
+from gsticker_plugin.machine import console_script, sticker_train_argv
 
 
 @dataclass
@@ -102,27 +102,14 @@ def train_sticker(
         print("    (exists)")
         return None
     return _run(
-        [
-            console_script("ns-train"),
-            "geometrysticker",
-            "--machine.device-type",
-            "cpu",
-            "--vis",
-            "tensorboard",
-            "--output-dir",
-            str(out),
-            "--experiment-name",
+        sticker_train_argv(
+            out,
             "bench",
-            "--timestamp",
-            "watermarked",
-            "--max-num-iterations",
-            str(cfg.steps),
+            cfg.steps,
+            cfg.owner_id,
+            wm.with_name("watermarked.gskey"),
             "--steps-per-save",
             str(cfg.steps),
-            "--pipeline.owner-id",
-            cfg.owner_id,
-            "--pipeline.key-path",
-            str(wm.with_name("watermarked.gskey")),
             "--pipeline.pool-train-views",
             str(cfg.pool_views),
             "--pipeline.pool-novel-views",
@@ -136,7 +123,7 @@ def train_sticker(
             "--load-checkpoint",
             str(base_ckpt),
             *data,
-        ],
+        ),
         logs / "train.log",
     )
 

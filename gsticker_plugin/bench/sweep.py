@@ -39,7 +39,7 @@ from gsticker_plugin.decoders.geometric import decode_suspect
 from gsticker_plugin.decoders.reference import load_base_reference
 from gsticker_plugin.evaluate import psnr_nhw3, render_split
 from gsticker_plugin.key import OwnerKey
-from gsticker_plugin.machine import console_script, machine_info
+from gsticker_plugin.machine import machine_info, sticker_train_argv
 from gsticker_plugin.model import geometry_reference
 from gsticker_plugin.runs import load_run
 from gsticker_plugin.trainer import step_key_path
@@ -172,29 +172,16 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
     if not (key_path.is_file() and final.is_file()):
         t0 = time.time()
         _run(
-            [
-                console_script("ns-train"),
-                "geometrysticker",
-                "--machine.device-type",
-                "cpu",
-                "--vis",
-                "tensorboard",
-                "--output-dir",
-                str(out),
-                "--experiment-name",
+            sticker_train_argv(
+                out,
                 name,
-                "--timestamp",
-                "watermarked",
-                "--max-num-iterations",
-                str(cfg.steps),
+                cfg.steps,
+                cfg.owner_id,
+                key_path,
                 "--steps-per-save",
                 str(cfg.save_every),
                 "--save-only-latest-checkpoint",
                 "False",
-                "--pipeline.owner-id",
-                cfg.owner_id,
-                "--pipeline.key-path",
-                str(key_path),
                 "--pipeline.pool-train-views",
                 str(cfg.pool_views),
                 "--pipeline.pool-novel-views",
@@ -210,7 +197,7 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
                 "--load-checkpoint",
                 str(Path(cfg.load_checkpoint).resolve()),
                 *(["--data", str(Path(data).resolve())] if data is not None else []),
-            ],
+            ),
             log,
         )
         wall = round(time.time() - t0, 1)

@@ -186,50 +186,39 @@ class Workspace:
             self._geo[name] = (ref, {})
         return self._geo[name]
 
-    def geo_decode(self, name: str, suspect_model, sticker: Optional[bool] = None, desc: str = "") -> Dict[str, Any]:
-        """Informed geometric decoding of a suspect model with the owner key of base ``name``."""
+    def informed_decode(self, name: str, decode, suspect_model, **options) -> Tuple[Dict[str, Any], float]:
+        """Run an informed decoder (``decode_suspect`` or ``decode_color_suspect``) with the owner key and reference
+        views of base ``name``; the summary and the seconds it took."""
         g = self.p.geometry
         ref, views = self.geo_reference(name)
         key = self.key(name)
         t0 = time.time()
         with contextlib.redirect_stdout(sys.stderr):
-            dec, _ = decode_suspect(
+            dec, _ = decode(
                 key,
                 ref,
                 suspect_model,
                 g.num_views,
                 g.sampled_share,
                 self.p.seeds[0],
-                sticker=sticker,
                 progress=self.progress,
                 ref_cache=views,
                 full_renders=False,
+                **options,
             )
-        res = self.summarize(dec["matches"], dec["bit_acc"], key.num_bits)
-        res["seconds_per_view"] = round((time.time() - t0) / max(1, res["views"]), 2)
+        return self.summarize(dec["matches"], dec["bit_acc"], key.num_bits), time.time() - t0
+
+    def geo_decode(self, name: str, suspect_model, sticker: Optional[bool] = None, desc: str = "") -> Dict[str, Any]:
+        """Informed geometric decoding of a suspect model with the owner key of base ``name``."""
+        res, seconds = self.informed_decode(name, decode_suspect, suspect_model, sticker=sticker)
+        res["seconds_per_view"] = round(seconds / max(1, res["views"]), 2)
         if desc:
             self.say(f"    geometry {desc}: matches {res['matches']} -> {'OWNED' if res['verdict'] else 'not shown'}")
         return res
 
     def color_decode(self, suspect_model, amplitude: float, desc: str = "") -> Dict[str, Any]:
-        """The color-branch baseline's informed decoder (primary base's key and reference)."""
-        g = self.p.geometry
-        ref, views = self.geo_reference(self.primary)  # the same cameras as geo_decode's: its reference views serve
-        key = self.key(self.primary)
-        with contextlib.redirect_stdout(sys.stderr):
-            dec, _ = decode_color_suspect(
-                key,
-                ref,
-                suspect_model,
-                g.num_views,
-                g.sampled_share,
-                self.p.seeds[0],
-                amplitude=amplitude,
-                progress=self.progress,
-                ref_cache=views,
-                full_renders=False,
-            )
-        res = self.summarize(dec["matches"], dec["bit_acc"], key.num_bits)
+        """The color-branch baseline's informed decoder (primary base's key and the reference views geo_decode uses)."""
+        res, _ = self.informed_decode(self.primary, decode_color_suspect, suspect_model, amplitude=amplitude)
         if desc:
             self.say(
                 f"    color baseline {desc}: matches {res['matches']} -> {'OWNED' if res['verdict'] else 'not shown'}"

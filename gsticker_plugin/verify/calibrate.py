@@ -203,22 +203,26 @@ def _calibrate_geometry(config: CalibrateConfig, key_path: Path, key: OwnerKey, 
         )
         m = [int(x) for x in dec["matches"].tolist()]
         matches += m
-        src_info.append(
-            {
-                "kind": "model",
-                "source": str(cfg),
-                "n": len(m),
-                "mean_matches": sum(m) / len(m),
-                "max_matches": max(m),
-                "skipped": 0,
-                "details": {
-                    "method": run_cfg.method_name,
-                    "sticker": "off",
-                    "undetermined_bits_mean": sum(g["undetermined"] for g in dec["geometry"]) / len(m),
-                },
-            }
-        )
+        details = {
+            "method": run_cfg.method_name,
+            "sticker": "off",
+            "undetermined_bits_mean": sum(g["undetermined"] for g in dec["geometry"]) / len(m),
+        }
+        src_info.append(null_source("model", cfg, m, 0, details))
     return _store_null(config, key_path, key, "geometry", matches, src_info, notes)
+
+
+def null_source(kind: str, source: Any, matches: List[int], skipped: int, details: Dict[str, Any]) -> Dict[str, Any]:
+    """One source's row in the key's null record: its per-view matches summarised."""
+    return {
+        "kind": kind,
+        "source": str(source),
+        "n": len(matches),
+        "mean_matches": sum(matches) / len(matches),
+        "max_matches": max(matches),
+        "skipped": skipped,
+        "details": details,
+    }
 
 
 def _calibrate_image(config: CalibrateConfig, key_path: Path, key: OwnerKey, device: torch.device) -> Dict[str, Any]:
@@ -247,17 +251,7 @@ def _calibrate_image(config: CalibrateConfig, key_path: Path, key: OwnerKey, dev
         posed, dec = decode_images_at_cameras(key, ref, views, frames, config.seed + len(src_info), config.progress)
         m = [int(x) for x in dec["matches"].tolist()]
         matches += m
-        src_info.append(
-            {
-                "kind": "images",
-                "source": str(d),
-                "n": len(m),
-                "mean_matches": sum(m) / len(m),
-                "max_matches": max(m),
-                "skipped": len(posed.skipped),
-                "details": {"cameras": str(config.cameras)},
-            }
-        )
+        src_info.append(null_source("images", d, m, len(posed.skipped), {"cameras": str(config.cameras)}))
     return _store_null(config, key_path, key, "image", matches, src_info, notes)
 
 
