@@ -24,6 +24,15 @@ def value_channel(images: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B 1 H W"]:
     return images.amax(dim=1, keepdim=True) - 0.5
 
 
+def state_sha256(module: nn.Module) -> str:
+    """sha256 over a module's state (names and float32 bytes, sorted by name)."""
+    h = hashlib.sha256()
+    for name, t in sorted(module.state_dict().items()):
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().float().numpy().tobytes())
+    return h.hexdigest()
+
+
 @dataclass
 class ExtractorConfig:
     """Shape and seed of the frozen blind extractor."""
@@ -113,11 +122,7 @@ class BlindExtractor(nn.Module):
 
     def sha256(self) -> str:
         """Hash of every weight and whitening buffer (the key records it before the message is drawn)."""
-        h = hashlib.sha256()
-        for name, t in sorted(self.state_dict().items()):
-            h.update(name.encode())
-            h.update(t.detach().cpu().contiguous().float().numpy().tobytes())
-        return h.hexdigest()
+        return state_sha256(self)
 
 
 @dataclass
@@ -158,11 +163,7 @@ class LearnedExtractor(nn.Module):
         return self.head(x.flatten(1))
 
     def sha256(self) -> str:
-        h = hashlib.sha256()
-        for name, t in sorted(self.state_dict().items()):
-            h.update(name.encode())
-            h.update(t.detach().cpu().contiguous().float().numpy().tobytes())
-        return h.hexdigest()
+        return state_sha256(self)
 
 
 def build_extractor(config: Optional[ExtractorConfig] = None) -> BlindExtractor:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, List, Optional
+from typing import Callable, Dict, List, Optional
 
 import torch
 from jaxtyping import Float
@@ -144,25 +144,33 @@ def pool_memory_mb(views: List[ViewCache]) -> float:
     return sum(v.nbytes() for v in views) / 2**20
 
 
-def render_signs(
-    view: ViewCache, wrap, signs: Tensor, background: Tensor, gain: float = 1.0, clamp: bool = True
+def render_offset(
+    view: ViewCache, wrap, offset: Callable[[Tensor], Tensor], background: Tensor, clamp: bool = True
 ) -> Float[Tensor, "H W 3"]:
-    """Render of a cached view with the (bilinear) sticker at continuous message signs (+-1 for bits) and its density
-    change scaled by ``gain``; ``clamp=False`` keeps the unclamped colours (for derivatives)."""
+    """Render of a cached view with ``psi * scale * offset(x)`` added to the density where the gate is open
+    (``offset`` maps normalized positions [N 3] to [N 1]); ``clamp=False`` keeps unclamped colours (derivatives)."""
     h, w = view.hw
     density = view.density
     psi, open_ = wrap.open_samples(density)
     delta = torch.zeros_like(density)
     if open_.any():
-        pos = wrap.normalize(view.positions.float()[open_])
-        m = wrap.sticker.mix(wrap.sticker.features(pos), signs.to(pos))
-        delta[open_] = gain * psi[open_] * wrap.gate.scale * m
+        delta[open_] = psi[open_] * wrap.gate.scale * offset(wrap.normalize(view.positions.float()[open_]))
     rgb = view.rgb.float()
     marked, _ = composite(torch.relu(density + delta), rgb, view.deltas, background)
     clean, _ = composite(density, rgb, view.deltas, background)
     flat = view.image.reshape(-1, 3)
     out = (flat + torch.zeros_like(flat).index_add(0, view.active, marked - clean)).reshape(h, w, 3)
     return out.clamp(0.0, 1.0) if clamp else out
+
+
+def render_signs(
+    view: ViewCache, wrap, signs: Tensor, background: Tensor, gain: float = 1.0, clamp: bool = True
+) -> Float[Tensor, "H W 3"]:
+    """Render with the (bilinear) sticker at continuous message signs (+-1 for bits), its change scaled by ``gain``."""
+    sticker = wrap.sticker
+    return render_offset(
+        view, wrap, lambda pos: gain * sticker.mix(sticker.features(pos), signs.to(pos)), background, clamp
+    )
 
 
 @torch.no_grad()

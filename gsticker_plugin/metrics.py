@@ -14,7 +14,7 @@ false-positive rate of the threshold ``m`` is :func:`binomial_tail_pvalue` ``(m,
 from __future__ import annotations
 
 import math
-from typing import List, NamedTuple, Sequence, Union
+from typing import List, NamedTuple, Sequence, Tuple, Union
 
 import torch
 from jaxtyping import Float, Int
@@ -173,6 +173,23 @@ def min_matches_for_fpr(k: int, fpr: float) -> int:
         if binomial_tail_pvalue(m, k) <= fpr:
             return m
     return k + 1  # unreachable: P(X >= k+1) = 0
+
+
+def soft_score(logits: Float[Tensor, "*V K"], message: Int[Tensor, " K"]) -> Tuple[float, float]:
+    """The soft correlation score ``S = sum_b (2 M_b - 1) Z_b`` of the logits summed over views (``Z``), and ``|Z|^2``."""
+    z = logits.double().reshape(-1, logits.shape[-1]).sum(0)
+    signs = message.to(z.device).double() * 2.0 - 1.0
+    return float((signs * z).sum()), float((z * z).sum())
+
+
+def soft_score_pvalue(logits: Float[Tensor, "*V K"], message: Int[Tensor, " K"]) -> float:
+    """Distribution-free bound on ``P(S >= s)`` over a uniformly random message independent of the logits
+    (Hoeffding for a Rademacher sum): ``exp(-s^2 / (2 |Z|^2))`` for ``s > 0``, else 1. Any extractor that existed
+    before the message was drawn gets this null on unmarked images."""
+    s, norm2 = soft_score(logits, message)
+    if s <= 0 or norm2 <= 0:
+        return 1.0
+    return math.exp(-s * s / (2.0 * norm2))
 
 
 # ----------------------------------------------------------------------------------------------------------------

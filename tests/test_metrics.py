@@ -176,3 +176,22 @@ def test_ssim_per_image():
     assert s.shape == (2,)
     assert s[0].item() == pytest.approx(1.0, abs=1e-5)
     assert s[1].item() < 0.5
+
+
+def test_soft_score_bound_holds_over_random_messages_for_fixed_logits():
+    # the null: logits fixed (an unmarked image), message uniformly random -> P(p <= a) <= a for every a
+    g = torch.Generator().manual_seed(0)
+    logits = torch.randn(3, 48, generator=g) * torch.linspace(0.1, 3.0, 48)
+    pvals = torch.tensor([M.soft_score_pvalue(logits, torch.randint(0, 2, (48,), generator=g)) for _ in range(4000)])
+    for a in (0.01, 0.05, 0.2, 0.5):
+        assert float((pvals <= a).float().mean()) <= a + 0.01
+
+
+def test_soft_score_is_small_when_logits_follow_the_message():
+    g = torch.Generator().manual_seed(1)
+    msg = torch.randint(0, 2, (48,), generator=g)
+    weak = (msg.float() * 2 - 1) * 0.3 + torch.randn(24, 48, generator=g)  # ~62 % bit accuracy per view
+    assert M.soft_score_pvalue(weak, msg) < 1e-6
+    assert M.soft_score_pvalue(-weak, msg) == 1.0
+    s, norm2 = M.soft_score(weak, msg)
+    assert s > 0 and norm2 > 0

@@ -249,6 +249,8 @@ def test_owned_on_marked_and_recolored_images(alice, dirs, ws, capsys, case):
         "per_view_fpr_at_used": pytest.approx(direct_tail(41), rel=1e-12),
     }
     assert min(v["matches"] for v in r["per_view"]) >= 46
+    assert r["soft_score_pvalue"] < 1e-6  # the soft correlation score agrees
+    assert "soft correlation score over all views" in stdout
     assert (out / "report.png").stat().st_size > 10_000
 
 
@@ -267,6 +269,7 @@ def test_not_shown_on_random_images_another_scene_and_another_owners_images(alic
     assert rep["verdict"] == "not shown" and rep["owned_by"] == [] and rep["exit_status"] == 1
     (r,) = rep["keys"]
     assert r["views"] >= 6 and r["views_passing"] == 0 and r["matches_max"] < 41
+    assert r["soft_score_pvalue"] > 1e-3  # unmarked (for this key): the soft score's bound stays far from evidence
 
 
 def test_pvalues_match_a_direct_binomial_computation(alice, dirs, ws, capsys):

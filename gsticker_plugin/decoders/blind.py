@@ -12,12 +12,16 @@ from gsticker_plugin.views import Views
 
 @torch.no_grad()
 def decode_views(key: OwnerKey, views: Views, device: torch.device) -> Decoded:
-    """Per view: extractor logits -> bits, matches with the key's message, and the classifier's score."""
+    """Per view: extractor logits -> bits, matches with the key's message, the classifier's score and the soft
+    correlation score's p-value (``blind`` diagnostics; ``soft_pvalue_pooled`` over all views)."""
     heads = key.build_heads().to(device)
     logits, scores = [], []
     for v in views.views:
         img = v.image[None].to(device).float()
         logits.append(heads.decode(img).float().cpu()[0])
         scores.append(torch.sigmoid(heads.classify(img).float()).cpu().reshape(-1)[0])
-    bits = metrics.decode_bits(torch.stack(logits))
-    return decoded(key, list(bits), scores=torch.stack(scores))
+    z = torch.stack(logits)
+    details = [{"soft_pvalue": metrics.soft_score_pvalue(zi, key.message)} for zi in z]
+    out = decoded(key, list(metrics.decode_bits(z)), "blind", details, scores=torch.stack(scores))
+    out["soft_pvalue_pooled"] = metrics.soft_score_pvalue(z, key.message)
+    return out

@@ -13,7 +13,8 @@ from gsticker_plugin import metrics
 class Decoded(TypedDict, total=False):
     """Per view (first dimension): ``bits`` (-1 undetermined), ``matches`` with the key's message, ``bit_acc``,
     binomial ``pvalues``; ``scores`` the classifier's (None for decoders that read no image); a decoder's
-    diagnostics under its own name (``geometry``, ``image``, ``color``)."""
+    diagnostics under its own name (``geometry``, ``image``, ``color``, ``blind``); the blind decoder's soft correlation
+    score p-value over all views in ``soft_pvalue_pooled``."""
 
     bits: Tensor
     matches: Tensor
@@ -23,6 +24,8 @@ class Decoded(TypedDict, total=False):
     geometry: List[Dict[str, Any]]
     image: List[Dict[str, Any]]
     color: List[Dict[str, Any]]
+    blind: List[Dict[str, Any]]
+    soft_pvalue_pooled: float
 
 
 def decoded(

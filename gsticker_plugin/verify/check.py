@@ -281,6 +281,8 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
         for path, key in progress_bar(keys, "decoding", config.progress and len(keys) > 1):
             dec = decode_views(key, views, device)
             results.append(key_result(key, path, dec, views, config.fpr, config.min_share))
+            # a diagnostic beside the verdict: distribution-free over the random message, not used to decide
+            results[-1]["soft_score_pvalue"] = dec["soft_pvalue_pooled"]
         decoder_info = {
             "kind": "extractor",
             "informed": False,

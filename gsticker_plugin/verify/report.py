@@ -78,6 +78,11 @@ def summary_text(report: Dict[str, Any]) -> str:
                 else f"classifier not used ({DECODER_NAMES[r.get('decoder', 'geometry')]})"
             )
         )
+        if r.get("soft_score_pvalue") is not None:
+            lines.append(
+                f"    soft correlation score over all views: p <= {_fmt_p(r['soft_score_pvalue'])} (Hoeffding over the "
+                "random message; a diagnostic, not the verdict)"
+            )
         line = (
             f"    model-level p-value {_fmt_p(r['model_pvalue'])}; FPR of this verdict <= "
             f"{r['model_fpr_bound']:.2g} under any dependence between views"
