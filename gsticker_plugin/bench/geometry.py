@@ -51,6 +51,9 @@ class StickerRunConfig:
     """Training and novel views each in the sticker's fast-path pool."""
     owner_id: str = "bench-owner"
     """Owner ID of the message."""
+    message: Optional[str] = None
+    """The message as 0/1 characters (default: drawn at random by ns-train); a benchmark records the bits it used,
+    so passing them back reproduces its numbers."""
 
     def layout(self) -> Tuple[Path, Path, List[str], Path, Path]:
         """(output folder, its logs folder (made), the --data arguments, base checkpoint, base config.yml)."""
@@ -120,6 +123,7 @@ def train_sticker(
             "50",
             "--pipeline.warmup-steps",
             str(cfg.warmup_steps),
+            *(["--pipeline.message", cfg.message] if cfg.message else []),
             "--load-checkpoint",
             str(base_ckpt),
             *data,

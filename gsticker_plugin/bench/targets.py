@@ -156,6 +156,8 @@ def main(cfg: BenchTargetsConfig) -> Dict[str, Any]:
         "pool_views": cfg.pool_views,
         "warmup_steps": cfg.warmup_steps,
         "owner_id": cfg.owner_id,
+        # a benchmark's message is not a secret: `--message BITS` reproduces this page
+        "message": "".join(str(int(b)) for b in key.message.tolist()),
         "base_checkpoint": str(cfg.load_checkpoint),
         "views_jsonl": str(rows_path),
     }
@@ -255,7 +257,8 @@ def page(results: Dict[str, Any], json_name: str, png_name: Optional[str]) -> st
     trained = results.get("train") is not None
     what = (
         f"It trained a {r['steps']}-step sticker on the base (`ns-train geometrysticker`, {r['pool_views']} + "
-        f"{r['pool_views']} pool views, warm-up {r['warmup_steps']} steps, owner id `{r['owner_id']}`)"
+        f"{r['pool_views']} pool views, warm-up {r['warmup_steps']} steps, owner id `{r['owner_id']}`"
+        + (f", message `{r['message']}`: `--message` with these bits reproduces the page)" if r.get("message") else ")")
         if trained
         else "It used the watermarked run already in the output folder (training not timed here)"
     )
