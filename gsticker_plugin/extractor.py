@@ -100,12 +100,13 @@ class Whitening(nn.Module):
 
 
 class BlindExtractor(nn.Module):
-    """The random CNN followed by its whitening: whitened logits, one per bit (positive reads 1)."""
+    """A network (default: the random CNN) followed by its whitening: whitened logits, one per bit (positive reads
+    1). The whitening's mean also removes the scene's own bias per bit, which would otherwise weigh on every view."""
 
-    def __init__(self, config: ExtractorConfig) -> None:
+    def __init__(self, config: ExtractorConfig, network: Optional[nn.Module] = None) -> None:
         super().__init__()
         self.config = config
-        self.cnn = RandomCNN(config)
+        self.cnn = network if network is not None else RandomCNN(config)
         self.whitening = Whitening(config.num_bits)
 
     def forward(self, images: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B K"]:

@@ -227,3 +227,29 @@ def test_cameras_file_frames_names_and_intrinsics_at_the_image_size(tmp_path):
             I.read_cameras_file(path)
     with pytest.raises(GStickerError, match="does not exist"):
         I.read_cameras_file(tmp_path / "missing.json")
+
+
+def test_a_hue_shifted_image_is_read_by_its_value_channel():
+    """V = max(R, G, B) is exactly invariant under the HSV hue shift: the V-channel fit reads a hue-shifted marked
+    image as well as the unshifted one, where the RGB fit cannot; the V mode is chosen from image and base only."""
+    from gsticker_plugin.attacks import hue_shift
+
+    torch.manual_seed(0)
+    st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
+    h = w = 24
+    ref = _view(st, r=h * w, s=16, seed=1)
+    msg = parse_message(MESSAGE)
+    with torch.no_grad():
+        marked_rays = I.predict_image_change(ref, st, message_to_signs(msg))
+    marked = marked_rays.reshape(h, w, 3)
+    base = ref.base_rgb.reshape(h, w, 3).permute(2, 0, 1)
+    shifted = hue_shift(marked.permute(2, 0, 1)[None], 0.3)[0].permute(1, 2, 0)
+    assert I.reads_value(shifted, base) and not I.reads_value(marked, base)
+    as_value = I.decode_image_view(ref, st, shifted.reshape(-1, 3), torch.Generator().manual_seed(0), value=True)
+    as_rgb = I.decode_image_view(ref, st, shifted.reshape(-1, 3), torch.Generator().manual_seed(0))
+    assert as_value["signals"] == ["value"] and int((as_value["bits"] == msg).sum()) >= 46, as_value
+    assert int((as_rgb["bits"] == msg).sum()) < int((as_value["bits"] == msg).sum()) - 4
+    # unmarked but hue-shifted: V is unchanged, so nothing is read (every bit undetermined, a mismatch)
+    clean = hue_shift(base[None], 0.3)[0].permute(1, 2, 0)
+    none = I.decode_image_view(ref, st, clean.reshape(-1, 3), torch.Generator().manual_seed(0), value=True)
+    assert none["undetermined"] == 48 and int((none["bits"] == msg).sum()) == 0

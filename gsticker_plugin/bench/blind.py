@@ -92,6 +92,12 @@ class BlindBenchConfig:
     """The mark's strength (PSNR of marked vs clean) the extractor is pre-trained for and evaluated at."""
     start_psnr: float = 25.0
     anneal_steps: int = 1000
+    keep: bool = True
+    """Keep the other routes' results already in the page's JSON (each route records its own command)."""
+
+
+CHANGED = {"linear_steps": 1500, "lr": 1e-3, "every": 50, "random_steps": 600, "work_psnr": 36.0}
+"""Options whose value, when changed, the recorded command spells out."""
 
 
 def setup_pool(cfg: BlindBenchConfig):
@@ -164,6 +170,21 @@ class Curve:
         print({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}, flush=True)
 
 
+def default_init_spread(images: torch.Tensor, config: ExtractorConfig) -> Dict[str, float]:
+    """The same layer shapes with PyTorch's default initialisation and no normalisation: its per-bit output spread
+    across ``images`` (the trap: nearly a constant function of the image)."""
+    torch.manual_seed(config.seed)
+    chans = [1, config.widths[0], *config.widths]
+    layers: List[torch.nn.Module] = []
+    for i, (cin, cout) in enumerate(zip(chans[:-1], chans[1:])):
+        layers += [torch.nn.Conv2d(cin, cout, 3, stride=1 if i == 0 else 2, padding=1), torch.nn.GELU()]
+    net = torch.nn.Sequential(*layers)
+    head = torch.nn.Linear(chans[-1], config.num_bits)
+    with torch.no_grad():
+        spread = head(net(images.amax(dim=1, keepdim=True) - 0.5).mean(dim=(-2, -1))).std(0)
+    return {"min": float(spread.min()), "median": float(spread.median()), "max": float(spread.max())}
+
+
 def random_route(cfg: BlindBenchConfig, pipe) -> Dict[str, Any]:
     wrap, bg = pipe.model.final_wrap, pipe.model.background_color()
     pool, held = pipe.pool, pipe.monitor
@@ -182,6 +203,7 @@ def random_route(cfg: BlindBenchConfig, pipe) -> Dict[str, Any]:
             k_: float(f(spread)) for k_, f in (("min", torch.min), ("median", torch.median), ("max", torch.max))
         },
         "whitening": wstats,
+        "default_init_spread": default_init_spread(clean_pool, cfg.extractor),
     }
     message = draw_message(k)  # after the extractor and its whitening are fixed
     heldc = quantize(chw([v.image for v in held]))
@@ -342,12 +364,29 @@ def linear_route(cfg: BlindBenchConfig, pipe) -> Dict[str, Any]:
         "message_loss": at20k["message_loss"],
         "fired": at20k["message_loss"] > 0.65,
     }
-    res["extractor_sha256"] = ext.sha256()  # frozen here; the owner's message is drawn below
+    # frozen here and whitened over clean (and distorted) pool renders; the owner's message is drawn below
+    white = BlindExtractor(
+        ExtractorConfig(num_bits=k, pca_eps=cfg.extractor.pca_eps), network=ext.requires_grad_(False)
+    )
+    dgen = torch.Generator().manual_seed(cfg.seed + 4)
+    distort = RandomDistortion(RandomDistortionConfig())
+    clean_pool = chw([v.image for v in pool])
+    with torch.no_grad():
+        res["whitening"] = white.fit_whitening(
+            [clean_pool] + [distort(clean_pool, generator=dgen) for _ in range(cfg.whiten_distortions)]
+        )
+    res["extractor_sha256"] = white.sha256()
+    torch.save({"state": white.state_dict(), "sha256": res["extractor_sha256"]}, cfg.output_dir / "extractor-linear.pt")
     message = draw_message(k)
     with torch.no_grad():
         marked = quantize(chw([render_signs(v, wrap, message.float() * 2 - 1, bg, gain=a_work) for v in held]))
-        res["final"] = {"marked": read_views(ext(marked), message), "clean": read_views(ext(heldc), message)}
-        res["final"]["marked_psnr"] = float(metrics.psnr(marked, heldc).mean())
+        res["final"] = {
+            "marked": read_views(ext(marked), message),
+            "clean": read_views(ext(heldc), message),
+            "marked_whitened": read_views(white(marked), message),
+            "clean_whitened": read_views(white(heldc), message),
+            "marked_psnr": float(metrics.psnr(marked, heldc).mean()),
+        }
     return res
 
 
@@ -358,14 +397,15 @@ def fmt_p(p: float) -> str:
 def write_doc(cfg: BlindBenchConfig, res: Dict[str, Any]) -> None:
     cfg.doc.parent.mkdir(parents=True, exist_ok=True)
     cfg.doc.with_suffix(".json").write_text(json.dumps(res, indent=1))
+    routes = [name for name in ("random", "linear") if name in res]
     lines = [
         "# Reading the message from images alone: the blind routes",
         "",
-        f"Command ({res['date']}, {res['machine'].get('cpu', '')}; every number here is in "
-        f"[{cfg.doc.with_suffix('.json').name}]({cfg.doc.with_suffix('.json').name}), written by it):",
+        f"Commands (every number here is in [{cfg.doc.with_suffix('.json').name}]({cfg.doc.with_suffix('.json').name}), "
+        "written by them; each route's date and machine are recorded there):",
         "",
         "```bash",
-        res["command"],
+        *sorted({res[name]["command"] for name in routes}),
         "```",
         "",
         f"Pool: {cfg.pool_train_views} training + {cfg.pool_novel_views} orbit views of the lego100 nerfacto-small base; "
@@ -374,21 +414,23 @@ def write_doc(cfg: BlindBenchConfig, res: Dict[str, Any]) -> None:
     ]
     r = res.get("random")
     if r:
+        rc = r["config"]
         sp = r["raw_spread_across_clean_views"]
         f1 = r["F1"]
         fin = r["final"]
         lines += [
             "## Route 1-2: a frozen random CNN, a per-key blind term trained against it",
             "",
-            f"Extractor (V channel, Kaiming/GELU init, per-stage scale normalisation, seed {cfg.extractor.seed}, sha256 "
+            f"Extractor (V channel, Kaiming/GELU init, per-stage scale normalisation, seed {rc['extractor']['seed']}, sha256 "
             f"`{r['extractor_sha256'][:16]}…`): raw output spread across clean views {sp['min']:.3g} to {sp['max']:.3g} "
-            f"(median {sp['median']:.3g}) per bit: not degenerate (PyTorch's default init gave 3e-12 to 5e-8). Whitened over "
+            f"(median {sp['median']:.3g}) per bit: not degenerate (the same layers with PyTorch's default init and no "
+            f"normalisation: {r['default_init_spread']['min']:.2g} to {r['default_init_spread']['max']:.2g}). Whitened over "
             f"{r['whitening']['samples']} clean and distorted pool renders (eigenvalues {r['whitening']['eig_min']:.2g} to "
-            f"{r['whitening']['eig_max']:.2g}, epsilon {r['whitening']['eps']:.2g} = {cfg.extractor.pca_eps:g} x mean).",
+            f"{r['whitening']['eig_max']:.2g}, epsilon {r['whitening']['eps']:.2g} = {rc['extractor']['pca_eps']:g} x mean).",
             "",
             f"**F1 {'fired' if f1['fired'] else 'passed'}**: held-out bit accuracy {f1['heldout_bit_acc']:.3f} after "
-            f"{f1['step']} steps (PSNR {f1['heldout_psnr']:.1f} dB, budget {cfg.loose_psnr:g} dB, no distortions; the rule "
-            f"asks >= 0.75). End of the run ({cfg.random_steps} steps): marked held-out {fin['marked']['bit_acc']:.3f} "
+            f"{f1['step']} steps (PSNR {f1['heldout_psnr']:.1f} dB, budget {rc['loose_psnr']:g} dB, no distortions; the rule "
+            f"asks >= 0.75). End of the run ({rc['random_steps']} steps): marked held-out {fin['marked']['bit_acc']:.3f} "
             f"(soft-score p pooled over views {fmt_p(fin['marked']['soft_pvalue_pooled'])}), clean "
             f"{fin['clean']['bit_acc']:.3f} (p {fmt_p(fin['clean']['soft_pvalue_pooled'])}).",
             "",
@@ -402,13 +444,14 @@ def write_doc(cfg: BlindBenchConfig, res: Dict[str, Any]) -> None:
         lines.append("")
     li = res.get("linear")
     if li:
+        lc = li["config"]
         f5, f6, fin = li["F5"], li["F6"], li["final"]
         lines += [
             "## Route 3: an extractor pre-trained on linearised marks of random messages",
             "",
-            f"Per-bit render derivatives of the sticker for {cfg.pool_train_views + cfg.pool_novel_views + cfg.heldout_views} "
+            f"Per-bit render derivatives of the sticker for {lc['pool_train_views'] + lc['pool_novel_views'] + lc['heldout_views']} "
             f"views ({li['jacobian_seconds']:.0f} s); synthetic `I0 + alpha R s` for random s, strength annealed from "
-            f"{cfg.start_psnr:g} to {cfg.work_psnr:g} dB over {cfg.anneal_steps} steps, batch {cfg.batch}, Adam {cfg.lr:g}. "
+            f"{lc['start_psnr']:g} to {lc['work_psnr']:g} dB over {lc['anneal_steps']} steps, batch {lc['batch']}, Adam {lc['lr']:g}. "
             f"Held-out exact renders at the working strength: {li['heldout_exact_psnr']:.1f} dB (worst view "
             f"{li['heldout_exact_psnr_min']:.1f} dB).",
             "",
@@ -418,11 +461,22 @@ def write_doc(cfg: BlindBenchConfig, res: Dict[str, Any]) -> None:
             f"synthetic samples (rule: > 0.65 -> abandon).",
             "",
             f"Frozen extractor (sha256 `{li['extractor_sha256'][:16]}…`), then a fresh random message: held-out marked views "
-            f"{fin['marked']['bit_acc']:.3f} bit accuracy ({fin['marked']['views_41']} of {cfg.heldout_views} views >= 41/48; "
+            f"{fin['marked']['bit_acc']:.3f} bit accuracy ({fin['marked']['views_41']} of {lc['heldout_views']} views >= 41/48; "
             f"soft-score p median per view {fmt_p(fin['marked']['soft_pvalue_median'])}, pooled over the views "
             f"{fmt_p(fin['marked']['soft_pvalue_pooled'])}) at {fin['marked_psnr']:.1f} dB; the same views clean: "
             f"{fin['clean']['bit_acc']:.3f} (pooled p {fmt_p(fin['clean']['soft_pvalue_pooled'])}).",
             "",
+        ]
+        if "marked_whitened" in fin:
+            mw, cw = fin["marked_whitened"], fin["clean_whitened"]
+            lines += [
+                f"Whitened (mean + PCA over {li['whitening']['samples']} clean and distorted pool renders, before the message "
+                f"was drawn; the mean removes the extractor's per-bit bias on this scene): marked {mw['bit_acc']:.3f} "
+                f"({mw['views_41']} views >= 41/48; soft-score p median per view {fmt_p(mw['soft_pvalue_median'])}, pooled "
+                f"{fmt_p(mw['soft_pvalue_pooled'])}); clean {cw['bit_acc']:.3f} (pooled p {fmt_p(cw['soft_pvalue_pooled'])}).",
+                "",
+            ]
+        lines += [
             "| samples | message loss | held-out exact | held-out synthetic | pool exact | pool synthetic |",
             "|---|---|---|---|---|---|",
         ]
@@ -442,20 +496,23 @@ def main(cfg: BlindBenchConfig) -> Dict[str, Any]:
         raise SystemExit(f"unknown route(s) {bad}; use random and/or linear")
     torch.manual_seed(cfg.seed)
     pipe = setup_pool(cfg)
-    res: Dict[str, Any] = {
-        "command": "python -m gsticker_plugin.bench.blind "
-        + " ".join(
-            [f"--load-checkpoint {cfg.load_checkpoint}"]
-            + ([f"--data {cfg.data}"] if cfg.data else [])
-            + [f"--routes {' '.join(cfg.routes)} --doc {cfg.doc}"]
-        ),
-        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "machine": machine_info(),
-        "config": json.loads(json.dumps(vars(cfg), default=lambda o: vars(o) if hasattr(o, "__dict__") else str(o))),
-    }
+    js = cfg.doc.with_suffix(".json")
+    res: Dict[str, Any] = json.loads(js.read_text()) if cfg.keep and js.is_file() else {}
+    command = "python -m gsticker_plugin.bench.blind " + " ".join(
+        [f"--load-checkpoint {cfg.load_checkpoint}"]
+        + ([f"--data {cfg.data}"] if cfg.data else [])
+        + [f"--routes {' '.join(cfg.routes)} --doc {cfg.doc}"]
+        + [f"--{k.replace('_', '-')} {v}" for k, v in vars(cfg).items() if k in CHANGED and v != CHANGED[k]]
+    )
     for route in cfg.routes:
         print(f"== route {route}", flush=True)
         res[route] = random_route(cfg, pipe) if route == "random" else linear_route(cfg, pipe)
+        res[route].update(
+            command=command,
+            date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            machine=machine_info(),
+            config=json.loads(json.dumps(vars(cfg), default=lambda o: vars(o) if hasattr(o, "__dict__") else str(o))),
+        )
         write_doc(cfg, res)
     return res
 
