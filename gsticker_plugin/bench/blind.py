@@ -33,6 +33,7 @@ import tyro
 
 from gsticker_plugin import metrics
 from gsticker_plugin.attacks import RandomDistortion, RandomDistortionConfig
+from gsticker_plugin.bench.sticker import sticker_trainer_config
 from gsticker_plugin.extractor import (
     BlindExtractor,
     ExtractorConfig,
@@ -102,22 +103,15 @@ CHANGED = {"linear_steps": 1500, "lr": 1e-3, "every": 50, "random_steps": 600, "
 
 def setup_pool(cfg: BlindBenchConfig):
     """A sticker-stage pipeline on the base with its fast-path pool rendered (or reused from the cache)."""
-    # deferred: an ns-train entry point module, not a library
-    from method_configs.geometrysticker import geometrysticker_config
-
-    tcfg = geometrysticker_config(10)
-    tcfg.load_checkpoint = cfg.load_checkpoint
-    tcfg.data = cfg.data
-    tcfg.machine.device_type = "cpu"
-    tcfg.output_dir = cfg.output_dir / "run"
-    tcfg.experiment_name = "bench-blind"
-    tcfg.set_timestamp()
-    p = tcfg.pipeline
-    p.pool_train_views, p.pool_novel_views, p.monitor_views = (
-        cfg.pool_train_views,
-        cfg.pool_novel_views,
-        cfg.heldout_views,
+    tcfg = sticker_trainer_config(
+        cfg.load_checkpoint,
+        cfg.data,
+        cfg.output_dir / "run",
+        "bench-blind",
+        10,
+        (cfg.pool_train_views, cfg.pool_novel_views, cfg.heldout_views),
     )
+    p = tcfg.pipeline
     p.seed = cfg.seed
     p.pool_cache = cfg.output_dir / "pool.pt"
     p.key_path = cfg.output_dir / "run" / "unused.gskey"

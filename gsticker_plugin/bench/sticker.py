@@ -68,23 +68,43 @@ def variant_overrides(name: str) -> Dict[str, object]:
     raise ValueError(f"unknown variant {name!r}; use fast, naive, paper or owner")
 
 
-def run_variant(cfg: StickerBenchConfig, name: str) -> Dict[str, object]:
+def sticker_trainer_config(
+    load_checkpoint: Path,
+    data: Optional[Path],
+    output_dir: Path,
+    experiment: str,
+    steps: int,
+    pool_views: Tuple[int, int, int],
+    device: str = "cpu",
+):
+    """An ``ns-train geometrysticker`` config for an in-process benchmark: base, data, output folder, steps and the
+    pool's (training, novel, held-out) view counts."""
     # deferred: an ns-train entry point module, not a library
     from method_configs.geometrysticker import geometrysticker_config
 
-    tcfg = geometrysticker_config(cfg.max_steps)
-    tcfg.load_checkpoint = cfg.load_checkpoint
-    tcfg.data = cfg.data
-    tcfg.machine.device_type = "cuda" if torch.cuda.is_available() else "cpu"
-    tcfg.output_dir = Path("outputs/bench-sticker")
-    tcfg.experiment_name = name
+    tcfg = geometrysticker_config(steps)
+    tcfg.load_checkpoint = load_checkpoint
+    tcfg.data = data
+    tcfg.machine.device_type = device
+    tcfg.output_dir = output_dir
+    tcfg.experiment_name = experiment
     tcfg.set_timestamp()
     p = tcfg.pipeline
-    p.pool_train_views, p.pool_novel_views, p.monitor_views = (
-        cfg.pool_train_views,
-        cfg.pool_novel_views,
-        cfg.monitor_views,
+    p.pool_train_views, p.pool_novel_views, p.monitor_views = pool_views
+    return tcfg
+
+
+def run_variant(cfg: StickerBenchConfig, name: str) -> Dict[str, object]:
+    tcfg = sticker_trainer_config(
+        cfg.load_checkpoint,
+        cfg.data,
+        Path("outputs/bench-sticker"),
+        name,
+        cfg.max_steps,
+        (cfg.pool_train_views, cfg.pool_novel_views, cfg.monitor_views),
+        "cuda" if torch.cuda.is_available() else "cpu",
     )
+    p = tcfg.pipeline
     p.steps_per_monitor = cfg.steps_per_monitor
     p.pool_cache = cfg.pool_cache
     for k, v in variant_overrides(name).items():

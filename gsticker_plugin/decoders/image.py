@@ -131,60 +131,38 @@ def decode_image_view(
 ) -> Dict[str, Any]:
     """Fit the continuous message to one image's colour change (image minus base render) and decide the bits;
     ``luma``: read the change's luma only (what JPEG keeps at full resolution); ``value``: read the change of
-    V = max(R, G, B) only, which an HSV hue shift leaves exactly as it is."""
+    V = max(R, G, B) only, which an HSV hue shift leaves exactly as it is (its Jacobian: the rows of the channel
+    that holds the maximum)."""
     if value:
-        return decode_value_view(ref, sticker, image_rgb, generator, iterations)
+        signal = "value"
+        target = image_rgb.float().amax(dim=-1) - ref.base_rgb.amax(dim=-1)
 
-    def jac(x: Tensor) -> Optional[Tensor]:
-        j = image_change_jacobian(ref, sticker, x)
-        return None if j is None else observe(j, luma)
+        def predict(x: Tensor) -> Tensor:
+            return predict_image_change(ref, sticker, x).amax(dim=-1)
 
-    target = observe((image_rgb.float() - ref.base_rgb).reshape(-1), luma)
+        def jac(x: Tensor) -> Optional[Tensor]:
+            j = image_change_jacobian(ref, sticker, x)
+            if j is None:
+                return None
+            top = predict_image_change(ref, sticker, x).detach().argmax(dim=-1)  # [R]
+            j = j.reshape(-1, 3, j.shape[-1])
+            return j[torch.arange(j.shape[0]), top]
+
+    else:
+        signal = "luma" if luma else "rgb"
+        target = observe((image_rgb.float() - ref.base_rgb).reshape(-1), luma)
+
+        def predict(x: Tensor) -> Tensor:
+            return observe(predict_image_change(ref, sticker, x).reshape(-1), luma)
+
+        def jac(x: Tensor) -> Optional[Tensor]:
+            j = image_change_jacobian(ref, sticker, x)
+            return None if j is None else observe(j, luma)
+
     fit, bits, undetermined = fit_and_decide(
-        lambda x: observe(predict_image_change(ref, sticker, x).reshape(-1), luma),
-        jac,
-        target,
-        sticker.num_bits,
-        ref.view.rays.numel() > 0,
-        generator,
-        iterations,
+        predict, jac, target, sticker.num_bits, ref.view.rays.numel() > 0, generator, iterations
     )
-    return {
-        "bits": bits,
-        **fit_summary(fit, undetermined, int(ref.view.rays.numel())),
-        "signals": ["luma" if luma else "rgb"],
-    }
-
-
-def decode_value_view(
-    ref: ImageReferenceView,
-    sticker: Sticker,
-    image_rgb: Float[Tensor, "R 3"],
-    generator: torch.Generator,
-    iterations: int = 10,
-) -> Dict[str, Any]:
-    """:func:`decode_image_view` on the V channel: the image's V minus the base render's V against the predicted
-    render's V (its Jacobian: the rows of the channel that holds the maximum)."""
-
-    def jac(x: Tensor) -> Optional[Tensor]:
-        j = image_change_jacobian(ref, sticker, x)
-        if j is None:
-            return None
-        top = predict_image_change(ref, sticker, x).detach().argmax(dim=-1)  # [R]
-        j = j.reshape(-1, 3, j.shape[-1])
-        return j[torch.arange(j.shape[0]), top]
-
-    target = image_rgb.float().amax(dim=-1) - ref.base_rgb.amax(dim=-1)
-    fit, bits, undetermined = fit_and_decide(
-        lambda x: predict_image_change(ref, sticker, x).amax(dim=-1),
-        jac,
-        target,
-        sticker.num_bits,
-        ref.view.rays.numel() > 0,
-        generator,
-        iterations,
-    )
-    return {"bits": bits, **fit_summary(fit, undetermined, int(ref.view.rays.numel())), "signals": ["value"]}
+    return {"bits": bits, **fit_summary(fit, undetermined, int(ref.view.rays.numel())), "signals": [signal]}
 
 
 VALUE_MARGIN = 0.25
@@ -458,6 +436,7 @@ def decode_posed_images(
     ref_cache: Optional[Dict[Any, Any]] = None,
     progress: bool = False,
     degradations: Optional[str] = "match",
+    value_mode: bool = True,
 ) -> Dict[str, Any]:
     """Decode ``images[i]``, taken at ``cameras[i] = (name, camera)`` of the owner's scene, with the informed image
     decoder. ``images``: a ``[V H W 3]`` tensor or a list of ``[H W 3]`` images (sizes may differ, each its camera's).
@@ -468,7 +447,8 @@ def decode_posed_images(
     ``degradations="match"``: first estimate each image's blur, resize, rotation or JPEG quality from the base
     render alone (:func:`match_degradation` over :data:`DEGRADATION_GRID`), fit through it and without it, and keep
     the fit with the smaller residual (:func:`decode_selected`);
-    ``None``: compare the image with the base render as it is.
+    ``None``: compare the image with the base render as it is. ``value_mode``: read an image whose V matches the base
+    render's far better than its RGB (a hue shift, :func:`reads_value`) by its V channel.
     Returns per image ``bits``, ``matches``, ``bit_acc``, ``pvalues``, ``scores`` (None) and ``image`` (the fits).
     """
 
@@ -485,7 +465,7 @@ def decode_posed_images(
         ref = image_reference(ref_view, background)
         image_at_rays(image, ref_view.rays, ref_view.hw)  # checks the size
         deg = match_degradation(image, ref_view.image)[0] if degradations == "match" else Degradation()
-        if degradations == "match" and deg.name == "none" and reads_value(image, ref_view.image):
+        if value_mode and degradations == "match" and deg.name == "none" and reads_value(image, ref_view.image):
             d = decode_image_view(
                 ref, st, image_at_rays(image, ref_view.rays, ref_view.hw), gen, iterations, value=True
             )
