@@ -39,39 +39,30 @@ def calibrate(config: CalibrateConfig) -> Dict[str, Any]:
         return _calibrate_image(config, key_path, key, device)
     sources: List[Views] = []
     notes: List[str] = []
+
+    def unmarked(run_config) -> Views:  # a run's renders with its sticker off (its unmarked base)
+        return model_views(
+            Path(run_config),
+            config.num_views,
+            config.sampled_share,
+            config.seed,
+            None,
+            device,
+            sticker=False,
+            progress=config.progress,
+        )
+
     if config.base:
         base_cfg = (key.base or {}).get("config")
         if base_cfg and Path(base_cfg).is_file():
-            sources.append(
-                model_views(
-                    Path(base_cfg),
-                    config.num_views,
-                    config.sampled_share,
-                    config.seed,
-                    None,
-                    device,
-                    sticker=False,
-                    progress=config.progress,
-                )
-            )
+            sources.append(unmarked(base_cfg))
         else:
             notes.append(
                 f"base run skipped: its config {base_cfg!r} recorded in the key does not exist here "
                 "(pass it with --load-config, or --no-base)"
             )
     for cfg in config.load_config:
-        sources.append(
-            model_views(
-                Path(cfg),
-                config.num_views,
-                config.sampled_share,
-                config.seed,
-                None,
-                device,
-                sticker=False,
-                progress=config.progress,
-            )
-        )
+        sources.append(unmarked(cfg))
     for d in config.images:
         sources.append(images_views(Path(d), config.max_side, config.min_side, config.max_pixels, config.progress))
     if config.random_images > 0:
