@@ -444,7 +444,7 @@ def write_doc(cfg: BlindBenchConfig, res: Dict[str, Any]) -> None:
             "## Route 3: an extractor pre-trained on linearised marks of random messages",
             "",
             f"Per-bit render derivatives of the sticker for {lc['pool_train_views'] + lc['pool_novel_views'] + lc['heldout_views']} "
-            f"views ({li['jacobian_seconds']:.0f} s); synthetic `I0 + alpha R s` for random s, strength annealed from "
+            f"views ({li['jacobian_seconds']:.0f} s here, a reuse of the cache file in the output folder when it matches); synthetic `I0 + alpha R s` for random s, strength annealed from "
             f"{lc['start_psnr']:g} to {lc['work_psnr']:g} dB over {lc['anneal_steps']} steps, batch {lc['batch']}, Adam {lc['lr']:g}. "
             f"Held-out exact renders at the working strength: {li['heldout_exact_psnr']:.1f} dB (worst view "
             f"{li['heldout_exact_psnr_min']:.1f} dB).",
