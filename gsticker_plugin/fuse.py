@@ -1,5 +1,7 @@
 """Fused export: a run of the base's *own* method whose field reproduces the watermarked (marked) density.
 
+Over 600 lines on purpose: the distillation, its sample cache and the export command share one configuration.
+
 A GeometrySticker run shares the frozen base plus a separable sticker (``sigma~ = relu(sigma + psi * scale * m)``)
 and needs this plugin to open. The fused export distils the marked model back into a plain run of the base's
 method (e.g. a stock ``nerfacto`` run):

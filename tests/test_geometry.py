@@ -1,5 +1,7 @@
 """Informed geometric decoding (gsticker_plugin/decoders/, ``ns-verify-owner --decode geometry``).
 
+Over 600 lines on purpose: the real-run tests share one base, sticker and recolorings (module fixtures).
+
 Pure functions first (the sticker's continuous-message path, the least-squares fit, the tie rule), then the owner
 key's version-2 geometry reference, then real runs: a 2-step nerfacto base and a 10-step ``geometrysticker`` run on
 the 32 px tiny scene (real ``ns-train``), recolored with ``ns-recolor`` (palette, hue, color-only fine-tune), a copy

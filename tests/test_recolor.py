@@ -1,5 +1,7 @@
 """``ns-recolor`` on tiny scenes, on the CPU.
 
+Over 600 lines on purpose: the tests share bases trained once per module (module fixtures).
+
 Bases (trained once per module by the real ``ns-train``, concurrently): a TensoRF trained 300 steps (it learns
 the scene's red/green/blue objects, so edits can be measured), 2-step nerfacto and vanilla-nerf (for the
 per-model mechanics), and a 3-step ``geometrysticker`` run on the TensoRF (watermarked vs unwatermarked).

@@ -1,5 +1,8 @@
 """The informed *image* decoder: read the owner's message from images of the scene taken at known cameras.
 
+Over 600 lines on purpose: the fit, its degradation matching and the suspect images' cameras are one decoder; split
+further, each piece would import the others.
+
 The geometric decoder (:mod:`gsticker_plugin.decoders.geometric`) reads a suspect *model's* accumulation and depth. An
 image shows only colour, but the colour a NeRF renders is the composite of its sample colours with the density the
 sticker changed: ``pixel = clamp(sum_i w_i(sigma~) c_i + (1 - acc(sigma~)) bg)``. Given the owner's base (the key
