@@ -16,7 +16,8 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 GELU_GAIN = math.sqrt(2.0 / 0.425)
-"""Kaiming gain for GELU: 1 / E[GELU(z)^2] for z ~ N(0, 1) is about 1 / 0.425."""
+"""Weight gain of the GELU stages (E[GELU(z)^2] is about 0.425 for z ~ N(0, 1)); the per-stage scale normalisation
+sets each stage's output scale anyway, so the gain only keeps the pre-activations in GELU's curved range."""
 
 
 def value_channel(images: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B 1 H W"]:
@@ -143,15 +144,16 @@ class LearnedExtractor(nn.Module):
     def __init__(self, config: LearnedExtractorConfig) -> None:
         super().__init__()
         self.config = config
-        torch.manual_seed(config.seed)
         w = config.widths
-        layers = [nn.Conv2d(3, w[0], 3, padding=1), nn.GroupNorm(4, w[0]), nn.GELU()]
-        cin = w[0]
-        for cout in w:
-            layers += [nn.Conv2d(cin, cout, 3, stride=2, padding=1), nn.GroupNorm(4, cout), nn.GELU()]
-            cin = cout
-        self.backbone = nn.Sequential(*layers)
-        self.head = nn.Linear(cin * config.grid * config.grid, config.num_bits)
+        with torch.random.fork_rng(devices=[]):  # seeded initialisation, the caller's random state untouched
+            torch.manual_seed(config.seed)
+            layers = [nn.Conv2d(3, w[0], 3, padding=1), nn.GroupNorm(4, w[0]), nn.GELU()]
+            cin = w[0]
+            for cout in w:
+                layers += [nn.Conv2d(cin, cout, 3, stride=2, padding=1), nn.GroupNorm(4, cout), nn.GELU()]
+                cin = cout
+            self.backbone = nn.Sequential(*layers)
+            self.head = nn.Linear(cin * config.grid * config.grid, config.num_bits)
 
     def forward(self, images: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B K"]:
         b, _, h, w = images.shape
@@ -165,7 +167,3 @@ class LearnedExtractor(nn.Module):
 
     def sha256(self) -> str:
         return state_sha256(self)
-
-
-def build_extractor(config: Optional[ExtractorConfig] = None) -> BlindExtractor:
-    return BlindExtractor(config or ExtractorConfig())

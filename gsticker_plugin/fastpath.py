@@ -128,16 +128,18 @@ def render_cached(view: ViewCache, wrap, message: Tensor, background: Tensor) ->
 
     Returns the image [H W 3] and the gate values psi at the active samples (for the sparsity loss).
     """
+    delta, psi = wrap.delta(view.density, view.positions.float(), message)
+    return with_density_change(view, delta, background).clamp(0.0, 1.0), psi
+
+
+def with_density_change(view: ViewCache, delta: Tensor, background: Tensor) -> Float[Tensor, "H W 3"]:
+    """The cached view's clean image plus the colour change of adding ``delta`` to its samples' density (unclamped)."""
     h, w = view.hw
-    density = view.density
-    positions = view.positions.float()
-    delta, psi = wrap.delta(density, positions, message)
     rgb = view.rgb.float()
-    marked, _ = composite(torch.relu(density + delta), rgb, view.deltas, background)
-    clean, _ = composite(density, rgb, view.deltas, background)
+    marked, _ = composite(torch.relu(view.density + delta), rgb, view.deltas, background)
+    clean, _ = composite(view.density, rgb, view.deltas, background)
     flat = view.image.reshape(-1, 3)
-    change = torch.zeros_like(flat).index_add(0, view.active, marked - clean)
-    return (flat + change).clamp(0.0, 1.0).reshape(h, w, 3), psi
+    return (flat + torch.zeros_like(flat).index_add(0, view.active, marked - clean)).reshape(h, w, 3)
 
 
 def pool_memory_mb(views: List[ViewCache]) -> float:
@@ -149,17 +151,11 @@ def render_offset(
 ) -> Float[Tensor, "H W 3"]:
     """Render of a cached view with ``psi * scale * offset(x)`` added to the density where the gate is open
     (``offset`` maps normalized positions [N 3] to [N 1]); ``clamp=False`` keeps unclamped colours (derivatives)."""
-    h, w = view.hw
-    density = view.density
-    psi, open_ = wrap.open_samples(density)
-    delta = torch.zeros_like(density)
+    psi, open_ = wrap.open_samples(view.density)
+    delta = torch.zeros_like(view.density)
     if open_.any():
         delta[open_] = psi[open_] * wrap.gate.scale * offset(wrap.normalize(view.positions.float()[open_]))
-    rgb = view.rgb.float()
-    marked, _ = composite(torch.relu(density + delta), rgb, view.deltas, background)
-    clean, _ = composite(density, rgb, view.deltas, background)
-    flat = view.image.reshape(-1, 3)
-    out = (flat + torch.zeros_like(flat).index_add(0, view.active, marked - clean)).reshape(h, w, 3)
+    out = with_density_change(view, delta, background)
     return out.clamp(0.0, 1.0) if clamp else out
 
 

@@ -21,7 +21,6 @@ Curves go to ``OUTPUT/curve-<route>.jsonl`` as they are measured; the page and i
 from __future__ import annotations
 
 import json
-import secrets
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +33,7 @@ import tyro
 from gsticker_plugin import metrics
 from gsticker_plugin.attacks import RandomDistortion, RandomDistortionConfig
 from gsticker_plugin.bench.sticker import sticker_trainer_config
+from gsticker_plugin.evaluation.workspace import as_8_bit
 from gsticker_plugin.extractor import (
     BlindExtractor,
     ExtractorConfig,
@@ -42,6 +42,7 @@ from gsticker_plugin.extractor import (
     state_sha256,
 )
 from gsticker_plugin.fastpath import render_offset, render_signs, sign_jacobian
+from gsticker_plugin.key import random_message
 from gsticker_plugin.machine import machine_info
 from gsticker_plugin.sticker import BlindTerm
 
@@ -125,16 +126,12 @@ def setup_pool(cfg: BlindBenchConfig):
 
 
 def quantize(img: torch.Tensor) -> torch.Tensor:
-    """8-bit rounding (straight-through), as a saved render."""
-    return img + ((img * 255).round() / 255 - img).detach()
+    """8-bit rounding as a saved render, straight-through for gradients."""
+    return img + (as_8_bit(img) - img).detach()
 
 
 def chw(images: List[torch.Tensor]) -> torch.Tensor:
     return torch.stack(images).permute(0, 3, 1, 2)
-
-
-def draw_message(k: int) -> torch.Tensor:
-    return torch.tensor([int(b) for b in format(secrets.randbits(k), f"0{k}b")])
 
 
 def read_views(logits: torch.Tensor, message: torch.Tensor) -> Dict[str, Any]:
@@ -144,7 +141,7 @@ def read_views(logits: torch.Tensor, message: torch.Tensor) -> Dict[str, Any]:
         "bit_acc": float(matches.float().mean() / message.numel()),
         "mean_matches": float(matches.float().mean()),
         "max_matches": int(matches.max()),
-        "views_41": int((matches >= 41).sum()),
+        "views_41": int((matches >= metrics.min_matches_for_fpr(message.numel(), 1e-6)).sum()),
         "soft_pvalue_median": float(torch.tensor([metrics.soft_score_pvalue(z, message) for z in logits]).median()),
         "soft_pvalue_pooled": metrics.soft_score_pvalue(logits, message),
     }
@@ -199,7 +196,7 @@ def random_route(cfg: BlindBenchConfig, pipe) -> Dict[str, Any]:
         "whitening": wstats,
         "default_init_spread": default_init_spread(clean_pool, cfg.extractor),
     }
-    message = draw_message(k)  # after the extractor and its whitening are fixed
+    message = random_message(k)  # after the extractor and its whitening are fixed
     heldc = quantize(chw([v.image for v in held]))
     term = BlindTerm(cfg.frequencies, cfg.hidden, cfg.amplitude)
     opt = torch.optim.Adam(term.parameters(), lr=cfg.blind_lr)
@@ -371,7 +368,7 @@ def linear_route(cfg: BlindBenchConfig, pipe) -> Dict[str, Any]:
         )
     res["extractor_sha256"] = white.sha256()
     torch.save({"state": white.state_dict(), "sha256": res["extractor_sha256"]}, cfg.output_dir / "extractor-linear.pt")
-    message = draw_message(k)
+    message = random_message(k)
     with torch.no_grad():
         marked = quantize(chw([render_signs(v, wrap, message.float() * 2 - 1, bg, gain=a_work) for v in held]))
         res["final"] = {

@@ -27,6 +27,7 @@ from gsticker_plugin.attacks import hue_shift
 from gsticker_plugin.decoders.image import decode_posed_images
 from gsticker_plugin.decoders.reference import load_base_reference
 from gsticker_plugin.evaluate import render_split
+from gsticker_plugin.evaluation.workspace import as_8_bit
 from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.machine import machine_info
 from gsticker_plugin.runs import load_run
@@ -53,10 +54,6 @@ class BenchHueConfig:
     """The page; its JSON goes beside it."""
 
 
-def quantize8(images: torch.Tensor) -> torch.Tensor:
-    return (images.clamp(0, 1) * 255).round() / 255
-
-
 def main(cfg: BenchHueConfig) -> Dict[str, Any]:
     compat.apply()
     warnings.filterwarnings("ignore")  # nerfstudio 1.1.5's camera indexing warns on every render with this torch
@@ -76,9 +73,9 @@ def main(cfg: BenchHueConfig) -> Dict[str, Any]:
     for shift in cfg.shifts:
         for name, images, modes in (("marked", marked, (True, False)), ("unmarked", clean, (True,))):
             x = (
-                quantize8(hue_shift(images.permute(0, 3, 1, 2), shift).permute(0, 2, 3, 1))
+                as_8_bit(hue_shift(images.permute(0, 3, 1, 2), shift).permute(0, 2, 3, 1))
                 if shift
-                else quantize8(images)
+                else as_8_bit(images)
             )
             for value_mode in modes:
                 t0 = time.time()
