@@ -11,6 +11,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from gsticker_plugin import metrics
+from gsticker_plugin.background import background_of
 from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.runs import final_rgb
 
@@ -35,6 +36,7 @@ def render_split(
     n = len(dataset) if limit is None else min(limit, len(dataset))
     model = pipeline.model
     ctx = model.sticker_enabled(sticker) if (sticker is not None and hasattr(model, "sticker_enabled")) else None
+    bg = background_of(model).image_color()
     rgbs: List[Tensor] = []
     gts: List[Tensor] = []
     iterator = range(n)
@@ -49,7 +51,7 @@ def render_split(
             rgbs.append(final_rgb(out).clamp(0, 1).cpu())
             img = dataset.get_image_float32(i)
             if img.shape[-1] == 4:
-                img = img[..., :3] * img[..., 3:] + (1.0 - img[..., 3:])  # Blender scenes: white background
+                img = img[..., :3] * img[..., 3:] + bg * (1.0 - img[..., 3:])
             gts.append(img[..., :3])
     finally:
         if ctx is not None:

@@ -17,6 +17,7 @@ from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
+from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.sticker import composite
 
 
@@ -105,9 +106,9 @@ def cache_view(
     density = torch.cat([r["density"].reshape(-1, *r["density"].shape[-2:]) for r in records]).float().cpu()
     rgb = torch.cat([r["rgb"].reshape(-1, *r["rgb"].shape[-2:]) for r in records]).cpu()
     if pos.shape[0] != h * w:
-        raise RuntimeError(
-            f"captured {pos.shape[0]} rays for a {h}x{w} image; the base renders in a way the "
-            "fast path does not understand: pass --pipeline.fast-path False"
+        raise GStickerError(
+            f"captured {pos.shape[0]} rays for a {h}x{w} image: the base does not render a fixed number of samples "
+            "per ray (packed samples, e.g. instant-ngp); watermark a nerfacto, tensorf or vanilla-nerf base"
         )
     thr = 0.0 if min_density is None else min_density
     active = (density.squeeze(-1) > thr).any(dim=-1).nonzero().squeeze(-1)

@@ -40,7 +40,7 @@ import time
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple, Union
 
 import torch
 import tyro
@@ -50,6 +50,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 from torch import Tensor
 
 from gsticker_plugin import compat, runs
+from gsticker_plugin.background import Background
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import orbit_cameras
 from gsticker_plugin.runs import final_rgb, load_run, relocate
@@ -90,7 +91,7 @@ def distill_losses(
     teacher_rgb: Tensor,
     deltas: Tensor,
     steps: Tensor,
-    background: Tensor,
+    background: Union[Tensor, Background],
     depth_scale: float,
     density_floor: float,
     w: LossWeights,
@@ -107,11 +108,11 @@ def distill_losses(
         tt = transmittance(teacher_density, deltas)
         acc_t = wt.sum(dim=-2)
         depth_t = (wt * steps).sum(dim=-2) / depth_scale
-        rgb_t = (wt * teacher_rgb).sum(dim=-2) + background * (1.0 - acc_t)
+        rgb_t = (wt * teacher_rgb).sum(dim=-2) + Background.of(background).fill(teacher_rgb) * (1.0 - acc_t)
         log_t = torch.log(teacher_density.clamp_min(density_floor))
     acc_s = ws.sum(dim=-2)
     depth_s = (ws * steps).sum(dim=-2) / depth_scale
-    rgb_s = (ws * student_rgb).sum(dim=-2) + background * (1.0 - acc_s)
+    rgb_s = (ws * student_rgb).sum(dim=-2) + Background.of(background).fill(student_rgb) * (1.0 - acc_s)
     log_s = torch.log(student_density.clamp_min(density_floor))
     terms = {
         "weights": ((ws - wt) ** 2).sum(dim=-2).mean(),
@@ -400,7 +401,7 @@ def distill(
     student,
     pool: SamplePool,
     cfg: FuseConfig,
-    background: Tensor,
+    background: Background,
     mu: float,
     device: torch.device,
     log: Optional[List[Dict[str, float]]] = None,

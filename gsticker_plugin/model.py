@@ -20,6 +20,7 @@ from nerfstudio.models.base_model import Model, ModelConfig
 from torch import Tensor, nn
 from torch.nn import Parameter
 
+from gsticker_plugin.background import Background, background_of
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.sticker import DensityWrap, FoldedSticker, Gate, Sticker, WrapState
 
@@ -336,20 +337,9 @@ class GeometryStickerModel(Model):
             if old_message is not None:
                 self.set_message(old_message)
 
-    def background_color(self) -> Tensor:
-        renderer = getattr(self.base, "renderer_rgb", None)
-        bg = getattr(renderer, "background_color", None)
-        if isinstance(bg, Tensor):
-            return bg.detach().float().reshape(3)
-        if bg == "white":
-            return torch.ones(3)
-        if bg == "black":
-            return torch.zeros(3)
-        raise GStickerError(
-            f"the base's background '{bg}' is not supported by the fast trainer; retrain the "
-            "base with --pipeline.model.background-color white (or black), or pass "
-            "--pipeline.fast-path False"
-        )
+    def background_color(self) -> Background:
+        """The base's background (any Nerfstudio setting; see :class:`gsticker_plugin.background.Background`)."""
+        return background_of(self.base)
 
 
 def shareable_state(model: nn.Module) -> Dict[str, Tensor]:

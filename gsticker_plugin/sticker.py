@@ -18,11 +18,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Dict, Optional, Tuple
+from typing import Callable, Dict, Optional, Tuple, Union
 
 import torch
 from jaxtyping import Float
 from torch import Tensor, nn
+
+from gsticker_plugin.background import Background
 
 # ---------------------------------------------------------------------------------------------- pure functions
 
@@ -65,12 +67,13 @@ def composite(
     density: Float[Tensor, "R S 1"],
     rgb: Float[Tensor, "R S 3"],
     deltas: Float[Tensor, "R S 1"],
-    background: Float[Tensor, " 3"],
+    background: Union[Float[Tensor, " 3"], Background],
 ) -> Tuple[Float[Tensor, "R 3"], Float[Tensor, "R S 1"]]:
-    """Volume rendering (same quadrature as Nerfstudio's RaySamples.get_weights + RGBRenderer)."""
+    """Volume rendering (same quadrature as Nerfstudio's RaySamples.get_weights + RGBRenderer) on a colour or a
+    :class:`Background` (``last_sample``: each ray's last sample colour)."""
     weights = render_weights(density, deltas)
     acc = weights.sum(dim=-2)
-    color = (weights * rgb).sum(dim=-2) + background * (1.0 - acc)
+    color = (weights * rgb).sum(dim=-2) + Background.of(background).fill(rgb) * (1.0 - acc)
     return color, weights
 
 

@@ -225,7 +225,7 @@ class GeometryStickerTrainer(Trainer):
     def train(self) -> None:
         try:
             super().train()
-        except GStickerError as e:  # e.g. a base background the fast path cannot composite
+        except GStickerError as e:  # e.g. a base whose samples the fast path cannot capture
             exit_with_error(e)
         CONSOLE.rule("\\[gsticker] done")
         CONSOLE.print(f"Watermarked model (shareable): {self.base_dir / 'config.yml'}")

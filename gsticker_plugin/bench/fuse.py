@@ -129,7 +129,7 @@ def psnr_table(wm_config: Path, fused_config: Path, data: Optional[Path], num: i
         f = final_rgb(fused.get_outputs_for_camera(cam)).cpu()
         gt = ds.get_image_float32(i)
         if gt.shape[-1] == 4:
-            bg = wm.background_color()
+            bg = wm.background_color().image_color()
             gt = gt[..., :3] * gt[..., 3:] + bg * (1.0 - gt[..., 3:])
         rows["fused_vs_watermarked"].append(psnr(f, a))
         rows["fused_vs_base"].append(psnr(f, b))

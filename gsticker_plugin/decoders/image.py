@@ -36,7 +36,7 @@ import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import torch
 from jaxtyping import Float, Int
@@ -45,6 +45,7 @@ from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConf
 from torch import Tensor
 
 from gsticker_plugin.attacks import ATTACKS, gaussian_blur, resize, rotate
+from gsticker_plugin.background import Background
 from gsticker_plugin.decoders.fit import (
     fit_and_decide,
     fit_message,
@@ -69,16 +70,16 @@ class ImageReferenceView:
     view: (
         Any  # gsticker_plugin.decoders.reference.ReferenceView (rays, samples, gate, sticker features, sample colours)
     )
-    background: Float[Tensor, " 3"]
+    background: Background
     base_rgb: Float[Tensor, "R 3"]  # the base render at the rays (what the suspect image is compared with)
 
 
-def image_reference(ref_view, background: Float[Tensor, " 3"]) -> ImageReferenceView:
+def image_reference(ref_view, background: Union[Float[Tensor, " 3"], Background]) -> ImageReferenceView:
     if ref_view.rgb is None:
         raise GStickerError("the reference view holds no sample colours (made by an older gsticker); rebuild it")
     h, w = ref_view.hw
     base = ref_view.image.permute(1, 2, 0).reshape(h * w, 3)[ref_view.rays].float()
-    return ImageReferenceView(view=ref_view, background=background.float().cpu().reshape(3), base_rgb=base)
+    return ImageReferenceView(view=ref_view, background=Background.of(background).to("cpu"), base_rgb=base)
 
 
 def rgb_of_sticker(ref: ImageReferenceView, m: Float[Tensor, "N 1"]) -> Float[Tensor, "R 3"]:
@@ -87,7 +88,7 @@ def rgb_of_sticker(ref: ImageReferenceView, m: Float[Tensor, "N 1"]) -> Float[Te
 
     v = ref.view
     w = render_weights(marked_density(v, m), v.deltas)
-    rgb = (w * v.rgb).sum(dim=-2) + ref.background * (1.0 - w.sum(dim=-2))
+    rgb = (w * v.rgb).sum(dim=-2) + ref.background.fill(v.rgb) * (1.0 - w.sum(dim=-2))
     return rgb.clamp(0.0, 1.0)
 
 

@@ -16,6 +16,7 @@ import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gsticker_plugin.attacks import hue_shift
+from gsticker_plugin.background import background_of
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.recolor import palette as P
 from gsticker_plugin.recolor import runs
@@ -258,7 +259,7 @@ def cmd_finetune(args: FinetuneArgs) -> int:
     cameras = dataset.cameras
     n = min(args.max_views, len(dataset))
     require_color_fields(unwrap(model))
-    bg = runs.background_of(model)
+    bg = background_of(model).image_color()
     size = (int(cameras.height[0]), int(cameras.width[0]))
     if args.targets:
         targets = [runs.composite_on(t, bg) for t in _target_images(args.targets, dataset, size)][:n]

@@ -26,7 +26,7 @@ from gsticker_plugin import runs
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import file_sha256
 from gsticker_plugin.model import shareable_state
-from gsticker_plugin.recolor.model import RecolorModelConfig, unwrap
+from gsticker_plugin.recolor.model import RecolorModelConfig
 from gsticker_plugin.runs import copy_datamanager, latest_checkpoint
 
 # ---------------------------------------------------------------------------------------------- paths
@@ -252,14 +252,6 @@ def foreground_pixels(images: Sequence[Tensor]) -> Tensor:
         else:
             px.append(im[..., :3].reshape(-1, 3))
     return torch.cat(px)
-
-
-def background_of(model) -> Tensor:
-    inner = unwrap(model)
-    bg = getattr(getattr(inner, "renderer_rgb", None), "background_color", None)
-    if isinstance(bg, Tensor):
-        return bg.detach().float().reshape(3).cpu()
-    return torch.zeros(3) if bg == "black" else torch.ones(3)
 
 
 def composite_on(img: Tensor, bg: Tensor) -> Tensor:

@@ -5,9 +5,10 @@ from __future__ import annotations
 import time
 from typing import Any, Dict
 
+from gsticker_plugin.background import background_of
 from gsticker_plugin.evaluation.workspace import Workspace
 from gsticker_plugin.recolor.finetune import finetune_color
-from gsticker_plugin.recolor.runs import background_of, composite_on, training_images
+from gsticker_plugin.recolor.runs import composite_on, training_images
 
 
 def run(ws: Workspace) -> Dict[str, Any]:
@@ -17,7 +18,7 @@ def run(ws: Workspace) -> Dict[str, Any]:
     pipe = ws.load(ws.wm_dir(ws.primary) / "config.yml")
     model = pipe.model
     ds = pipe.datamanager.train_dataset
-    bg = background_of(model)
+    bg = background_of(model).image_color()
     targets = [composite_on(t, bg) for t in training_images(ds)]
     params = {
         n: p
