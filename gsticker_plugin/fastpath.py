@@ -18,7 +18,7 @@ from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.sticker import composite
+from gsticker_plugin.sticker import composite, render_weights
 
 
 @dataclass
@@ -76,6 +76,70 @@ def orbit_cameras(cameras: Cameras, num: int, generator: torch.Generator, max_ti
         height=cameras.height[idx],
         camera_type=cameras.camera_type[idx],
     )
+
+
+def camera_layout(cameras: Cameras, max_spread_deg: float = 90.0) -> str:
+    """``"orbit"`` when the cameras look at the scene from around it (two viewing directions more than
+    ``max_spread_deg`` apart), else ``"capture"`` (a forward-facing capture: every camera faces one way)."""
+    fwd = -cameras.camera_to_worlds[:, :3, 2].float()
+    fwd = fwd / fwd.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    cos = (fwd @ fwd.T).clamp(-1.0, 1.0)
+    return "orbit" if float(torch.rad2deg(torch.acos(cos.min()))) > max_spread_deg else "capture"
+
+
+def capture_cameras(
+    cameras: Cameras, num: int, generator: torch.Generator, jitter_deg: float = 5.0, jitter_share: float = 0.1
+) -> Cameras:
+    """Novel cameras within a capture's own trajectory: between two random training cameras (position and
+    viewing direction interpolated), moved by up to ``jitter_share`` of the trajectory's extent and turned by up
+    to ``jitter_deg``, keeping the first camera's intrinsics."""
+    n = cameras.shape[0]
+    c2w = cameras.camera_to_worlds.float()
+    i = torch.randint(0, n, (num,), generator=generator)
+    j = torch.randint(0, n, (num,), generator=generator)
+    t = torch.rand(num, 1, generator=generator)
+    extent = (c2w[:, :, 3].amax(dim=0) - c2w[:, :, 3].amin(dim=0)).norm()
+    move = (torch.rand(num, 3, generator=generator) * 2 - 1) * jitter_share * extent
+    axis = torch.randn(num, 3, generator=generator)
+    angle = (torch.rand(num, generator=generator) * 2 - 1) * math.radians(jitter_deg)
+    pos = (1 - t) * c2w[i, :, 3] + t * c2w[j, :, 3] + move
+    back = (1 - t) * c2w[i, :, 2] + t * c2w[j, :, 2]
+    up = (1 - t) * c2w[i, :, 1] + t * c2w[j, :, 1]
+    out = []
+    for k in range(num):
+        z = back[k] / back[k].norm().clamp_min(1e-12)
+        x = torch.linalg.cross(up[k], z)
+        x = x / x.norm().clamp_min(1e-12)
+        r = torch.stack([x, torch.linalg.cross(z, x), z], dim=1)
+        a = axis[k] / axis[k].norm().clamp_min(1e-12)
+        kx = torch.tensor([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+        turn = torch.eye(3) + math.sin(angle[k]) * kx + (1 - math.cos(angle[k])) * (kx @ kx)
+        out.append(torch.cat([turn @ r, pos[k][:, None]], dim=1))
+    return Cameras(
+        camera_to_worlds=torch.stack(out) if out else torch.zeros(0, 3, 4),
+        fx=cameras.fx[i],
+        fy=cameras.fy[i],
+        cx=cameras.cx[i],
+        cy=cameras.cy[i],
+        width=cameras.width[i],
+        height=cameras.height[i],
+        camera_type=cameras.camera_type[i],
+    )
+
+
+def novel_cameras(cameras: Cameras, num: int, generator: torch.Generator, layout: str = "auto") -> Cameras:
+    """Novel cameras that fit the scene (``layout="auto"``: :func:`camera_layout`): :func:`orbit_cameras` around an
+    object, :func:`capture_cameras` within a forward-facing capture's trajectory."""
+    if (camera_layout(cameras) if layout == "auto" else layout) == "orbit":
+        return orbit_cameras(cameras, num, generator)
+    return capture_cameras(cameras, num, generator)
+
+
+def coverage(view: ViewCache, threshold: float = 0.5) -> float:
+    """Share of a cached view's pixels whose accumulation exceeds ``threshold`` (how much of it sees the scene)."""
+    acc = render_weights(view.density, view.deltas).sum(dim=-2).squeeze(-1)
+    h, w = view.hw
+    return float((acc > threshold).sum()) / float(h * w)
 
 
 @torch.no_grad()

@@ -52,7 +52,7 @@ from torch import Tensor
 from gsticker_plugin import compat, runs
 from gsticker_plugin.background import Background
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.fastpath import orbit_cameras
+from gsticker_plugin.fastpath import novel_cameras
 from gsticker_plugin.runs import final_rgb, load_run, relocate
 from gsticker_plugin.sticker import render_weights
 
@@ -302,7 +302,7 @@ class FuseConfig:
     train_views: int = 24
     """Training cameras of the run in the pool (evenly spaced; all when larger)."""
     orbit_views: int = 12
-    """Sampled orbit poses in the pool (fastpath.orbit_cameras, seeded by --seed)."""
+    """Sampled novel poses in the pool (fastpath.novel_cameras: orbit or within a capture; seeded by --seed)."""
     keep_other: float = 0.1
     """Share of the empty rays (nothing seen, no sample changed) kept in the pool."""
     steps: int = 800
@@ -367,7 +367,7 @@ def pool_cameras(pipeline, train_views: int, orbit_views: int, seed: int) -> Lis
     idx = sorted({int(round(j * (n - 1) / max(1, k - 1))) for j in range(k)}) if k > 1 else ([0] if k else [])
     out = [(f"train/{i:03d}", cams[i : i + 1]) for i in idx]
     if orbit_views > 0:
-        orbit = orbit_cameras(cams, orbit_views, torch.Generator().manual_seed(seed))
+        orbit = novel_cameras(cams, orbit_views, torch.Generator().manual_seed(seed))
         out += [(f"orbit/{i:03d}", orbit[i : i + 1]) for i in range(orbit_views)]
     return out
 

@@ -22,7 +22,15 @@ from torch import Tensor
 
 from gsticker_plugin import metrics
 from gsticker_plugin.attacks import RandomDistortion, RandomDistortionConfig
-from gsticker_plugin.fastpath import ViewCache, cache_view, orbit_cameras, pool_memory_mb, render_cached
+from gsticker_plugin.fastpath import (
+    ViewCache,
+    cache_view,
+    camera_layout,
+    coverage,
+    novel_cameras,
+    pool_memory_mb,
+    render_cached,
+)
 from gsticker_plugin.heads import HeadConfig, Heads, count_parameters
 from gsticker_plugin.key import OwnerKey, message_from_owner_id, parse_message, random_message
 from gsticker_plugin.model import GeometryStickerModel, GeometryStickerModelConfig, geometry_reference, shareable_state
@@ -60,7 +68,10 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     pool_train_views: int = 48
     """Training cameras rendered into the fast-path pool."""
     pool_novel_views: int = 48
-    """Novel orbit cameras rendered into the pool (random poses around the training views)."""
+    """Novel cameras rendered into the pool (see ``novel_layout``)."""
+    novel_layout: Literal["auto", "orbit", "capture"] = "auto"
+    """How novel cameras are drawn: orbit (training cameras turned about the world z axis: an object in the middle),
+    capture (between training cameras of a forward-facing capture), auto (chosen from the training cameras)."""
     monitor_views: int = 8
     """Held-out novel views on which bit accuracy is reported during training."""
     steps_per_monitor: int = 100
@@ -212,8 +223,9 @@ class GeometryStickerPipeline(VanillaPipeline):
         gen = torch.Generator().manual_seed(self.config.seed)
         n_train = min(self.config.pool_train_views, cams.shape[0])
         train_idx = torch.randperm(cams.shape[0], generator=gen)[:n_train]
-        novel = orbit_cameras(cams, self.config.pool_novel_views, gen)
-        held = orbit_cameras(cams, self.config.monitor_views, gen)
+        layout = camera_layout(cams) if self.config.novel_layout == "auto" else self.config.novel_layout
+        novel = novel_cameras(cams, self.config.pool_novel_views, gen, layout)
+        held = novel_cameras(cams, self.config.monitor_views, gen, layout)
         if not model.calibrated:
             calib = [cache_view(model, cams[int(i) : int(i) + 1].to(self.device), False) for i in train_idx[:4]]
             dens = torch.cat([v.density.reshape(-1, 1) for v in calib])
@@ -238,6 +250,7 @@ class GeometryStickerPipeline(VanillaPipeline):
             "train": n_train,
             "novel": self.config.pool_novel_views,
             "held": self.config.monitor_views,
+            "layout": layout,
             "mu": round(mu, 6),
         }
         path = self.config.pool_cache
@@ -261,6 +274,11 @@ class GeometryStickerPipeline(VanillaPipeline):
             for cam, is_novel, dest in jobs:
                 dest.append(cache_view(model, cam.to(self.device), is_novel, min_density=0.05 * mu))
                 progress.advance(task)
+        seen = [coverage(v) for v in self.pool + self.monitor if v.novel]
+        CONSOLE.print(
+            f"\\[gsticker] novel views ({layout} layout) see the scene in "
+            f"{100 * min(seen, default=0):.0f}-{100 * max(seen, default=0):.0f} % of their pixels (accumulation > 0.5)"
+        )
         CONSOLE.print(
             f"\\[gsticker] pool: {len(self.pool)} views + {len(self.monitor)} held out, "
             f"{pool_memory_mb(self.pool + self.monitor):.0f} MiB, {time.time() - t0:.0f} s; "

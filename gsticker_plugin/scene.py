@@ -1,9 +1,11 @@
-"""``ns-gsticker-scene``: render a small textured multi-object demo scene as a Blender-format dataset.
+"""``ns-gsticker-scene``: render a small textured multi-object demo scene as a Nerfstudio dataset.
 
-The scene (or a user's own mesh) is rendered off screen with pyvista/VTK from cameras on the upper
-hemisphere, radius 4, looking at the origin, and written in the layout that Nerfstudio's
-``blender-data`` dataparser reads: ``transforms_{train,val,test}.json`` plus RGBA PNGs (alpha is the
-object coverage over a transparent background) and a float32 OpenEXR z-depth map per view.
+``--layout object`` (default): the scene (or a user's own mesh) seen from cameras on the upper hemisphere, radius 4,
+looking at the origin, in the layout of Nerfstudio's ``blender-data`` dataparser: ``transforms_{train,val,test}.json``
+plus RGBA PNGs (alpha: the object's coverage) and a float32 OpenEXR z-depth map per view.
+``--layout capture``: a forward-facing handheld-style capture of the same scene in front of a wall and on a floor
+(every pixel sees something; RGB PNGs), cameras on a small arc, in the ``nerfstudio-data`` layout: one
+``transforms.json`` with OpenCV-style intrinsics and ``train/val/test_filenames``.
 """
 
 from __future__ import annotations
@@ -33,6 +35,10 @@ SCENE_RADIUS = 1.2
 """Every vertex lies within this distance of the origin (so inside the default [-1.5, 1.5]^3 box)."""
 CAMERA_ANGLE_X = 0.6911112070083618
 """Horizontal field of view in radians (that of the original Blender synthetic scenes)."""
+CAPTURE_CENTER = (0.0, -3.6, 1.2)
+"""``--layout capture``: the middle of the camera trajectory; cameras look toward the origin from there."""
+CAPTURE_SPREAD = (1.2, 0.35, 0.35)
+"""``--layout capture``: half-extent (x, y, z) of the box the camera positions are drawn from."""
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tga", ".bmp", ".tif", ".tiff", ".exr", ".webp")
 SPLITS = ("train", "val", "test")
@@ -62,6 +68,9 @@ class SceneConfig:
     """Your own mesh instead of the built-in scene: an .obj/.ply/.glb/.gltf/.off/.stl file or a folder holding one."""
     mesh_up: Literal["y", "z"] = "y"
     """Up axis of --mesh (.obj/.glb files are usually y-up); the dataset is z-up like Blender."""
+    layout: Literal["object", "capture"] = "object"
+    """object: a Blender-format turntable dataset (transparent background); capture: a forward-facing capture with
+    a wall and floor behind the scene, in the nerfstudio-data format (transforms.json)."""
     supersample: int = 3
     """Render at this many times the resolution and average down, giving soft alpha edges."""
     overwrite: bool = False
@@ -110,10 +119,27 @@ def sample_camera_poses(
     return np.stack([look_at(p) for p in positions]) if num else np.zeros((0, 4, 4))
 
 
-def split_poses(seed: int, counts: Dict[str, int]) -> Dict[str, Float[np.ndarray, "n 4 4"]]:
+def sample_capture_poses(num: int, rng: np.random.Generator) -> Float[np.ndarray, "n 4 4"]:
+    """``num`` forward-facing cameras: positions in a box around :data:`CAPTURE_CENTER`, each looking at a point
+    near the origin (a handheld sweep in front of the scene)."""
+    draws = rng.random((num, 5)) * 2.0 - 1.0
+    out = []
+    for d in draws:
+        pos = np.asarray(CAPTURE_CENTER) + np.asarray(CAPTURE_SPREAD) * d[:3]
+        target = np.array([0.25 * d[3], 0.0, -0.2 + 0.1 * d[4]])
+        c2w = look_at(pos - target)
+        c2w[:3, 3] = pos
+        out.append(c2w)
+    return np.stack(out) if num else np.zeros((0, 4, 4))
+
+
+def split_poses(
+    seed: int, counts: Dict[str, int], layout: Literal["object", "capture"] = "object"
+) -> Dict[str, Float[np.ndarray, "n 4 4"]]:
     """Poses per split, each split from its own child stream so changing one count leaves the others alone."""
     streams = np.random.SeedSequence(seed).spawn(len(SPLITS))
-    return {s: sample_camera_poses(counts[s], np.random.default_rng(st)) for s, st in zip(SPLITS, streams)}
+    sample = sample_camera_poses if layout == "object" else sample_capture_poses
+    return {s: sample(counts[s], np.random.default_rng(st)) for s, st in zip(SPLITS, streams)}
 
 
 # ----------------------------------------------------------------------------- scene assembly
@@ -193,6 +219,26 @@ def builtin_scene() -> List[Part]:
             "cylinder",
         ),
     ]
+
+
+def capture_backdrop() -> List[Part]:
+    """``--layout capture``: a textured wall behind the scene and a floor under it, large enough that every view of
+    :func:`sample_capture_poses` sees only geometry."""
+    # deferred: the scene generator's textures
+    import skimage.data
+
+    def quad(corners: np.ndarray, texture: np.ndarray, repeat: Tuple[float, float]) -> Part:
+        verts = np.asarray(corners, dtype=np.float64)
+        uv = np.array([[0.0, 0.0], [repeat[0], 0.0], [repeat[0], repeat[1]], [0.0, repeat[1]]])
+        return Part(verts, np.array([[0, 1, 2], [0, 2, 3]]), uv=uv, texture=texture)
+
+    brick = np.stack([skimage.data.brick()] * 3, axis=-1)
+    brick = (brick.astype(np.float64) * np.array([1.0, 0.8, 0.65])).astype(np.uint8)
+    gravel = np.stack([skimage.data.gravel()] * 3, axis=-1)
+    gravel = (gravel.astype(np.float64) * np.array([0.7, 0.8, 0.7])).astype(np.uint8)
+    wall = quad(np.array([[-8.0, 2.5, -0.6], [8.0, 2.5, -0.6], [8.0, 2.5, 6.0], [-8.0, 2.5, 6.0]]), brick, (4, 1.6))
+    floor = quad(np.array([[-8.0, -9.0, -0.6], [8.0, -9.0, -0.6], [8.0, 2.5, -0.6], [-8.0, 2.5, -0.6]]), gravel, (4, 3))
+    return [wall, floor]
 
 
 def read_texture(path: Path) -> UInt8[np.ndarray, "h w 3"]:
@@ -391,6 +437,14 @@ def write_png(path: Path, rgba: UInt8[np.ndarray, "h w 4"]) -> None:
     _write_image(path, spec, rgba)
 
 
+def write_rgb_png(path: Path, rgb: UInt8[np.ndarray, "h w 3"]) -> None:
+    """Write an opaque 8-bit RGB PNG with OpenImageIO."""
+    # deferred: native image library, only image I/O needs it
+    import OpenImageIO as oiio
+
+    _write_image(path, oiio.ImageSpec(rgb.shape[1], rgb.shape[0], 3, oiio.UINT8), rgb)
+
+
 def write_depth_exr(path: Path, depth: Float[np.ndarray, "h w"]) -> None:
     """Write z-depth (world units along the optical axis, 0 = background) as a one-channel float32 EXR."""
     # deferred: native image library, only image I/O needs it
@@ -415,7 +469,11 @@ def _write_image(path: Path, spec, pixels: np.ndarray) -> None:
 
 
 def write_dataset(parts: Sequence[Part], folder: Path, config: SceneConfig, progress: bool = True) -> None:
-    """Render every split into ``folder`` (which must exist): PNGs, depth EXRs and transforms_*.json."""
+    """Render every split into ``folder`` (which must exist): PNGs, depth EXRs and transforms_*.json (``--layout
+    capture``: :func:`write_capture`)."""
+    if config.layout == "capture":
+        write_capture([*parts, *capture_backdrop()], folder, config, progress)
+        return
     counts = {"train": config.num_train, "val": config.num_val, "test": config.num_test}
     poses = split_poses(config.seed, counts)
     plotter = make_plotter(parts, config.resolution * config.supersample)
@@ -453,6 +511,52 @@ def write_dataset(parts: Sequence[Part], folder: Path, config: SceneConfig, prog
         plotter.close()
 
 
+def write_capture(parts: Sequence[Part], folder: Path, config: SceneConfig, progress: bool = True) -> None:
+    """The forward-facing capture in the nerfstudio-data layout: ``images/<split>_NNN.png`` (RGB) and one
+    ``transforms.json`` (intrinsics ``fl_x, fl_y, cx, cy, w, h``, OpenGL camera-to-world frames, split file lists)."""
+    counts = {"train": config.num_train, "val": config.num_val, "test": config.num_test}
+    poses = split_poses(config.seed, counts, "capture")
+    n = config.resolution
+    focal = 0.5 * n / math.tan(0.5 * CAMERA_ANGLE_X)
+    (folder / "images").mkdir()
+    frames: List[Dict] = []
+    names: Dict[str, List[str]] = {s: [] for s in SPLITS}
+    plotter = make_plotter(parts, n * config.supersample)
+    try:
+        with tqdm(
+            total=sum(counts.values()), desc="rendering views", unit="view", disable=None if progress else True
+        ) as bar:
+            for split in SPLITS:
+                for i, c2w in enumerate(poses[split]):
+                    rgba, _ = render_view(plotter, c2w, n, config.supersample)
+                    if int(rgba[..., 3].min()) < 255:
+                        raise SceneError(
+                            f"view {split} {i} sees past the capture's wall and floor; use the built-in scene or a "
+                            "mesh within 1.2 units of the origin"
+                        )
+                    name = f"images/{split}_{i:03d}.png"
+                    write_rgb_png(folder / name, rgba[..., :3])
+                    frames.append({"file_path": name, "transform_matrix": c2w.tolist()})
+                    names[split].append(name)
+                    bar.update(1)
+    finally:
+        plotter.close()
+    meta = {
+        "camera_model": "OPENCV",
+        "fl_x": focal,
+        "fl_y": focal,
+        "cx": n / 2.0,
+        "cy": n / 2.0,
+        "w": n,
+        "h": n,
+        "scene": (str(config.mesh) if config.mesh else "builtin") + " (forward-facing capture)",
+        "seed": config.seed,
+        "frames": frames,
+        **{f"{s}_filenames": names[s] for s in SPLITS},
+    }
+    (folder / "transforms.json").write_text(json.dumps(meta, indent=2) + "\n")
+
+
 # ----------------------------------------------------------------------------- command line
 
 
@@ -480,10 +584,11 @@ def _prepare_output(output: Path, overwrite: bool) -> Tuple[Path, Optional[Path]
             raise SceneError(
                 f"output folder {output} already exists; pass --overwrite to replace it or choose another --output-dir"
             )
-        if not output.is_dir() or (any(output.iterdir()) and not (output / "transforms_train.json").exists()):
+        ours = (output / "transforms_train.json").exists() or (output / "transforms.json").exists()
+        if not output.is_dir() or (any(output.iterdir()) and not ours):
             raise SceneError(
                 f"output path {output} exists and is not a dataset written by this command (no "
-                "transforms_train.json), so --overwrite will not delete it; choose another --output-dir"
+                "transforms_train.json or transforms.json), so --overwrite will not delete it; choose another --output-dir"
             )
     missing = [p for p in output.parents if not p.exists()]
     blocker = next((p for p in output.parents if p.exists() and not p.is_dir()), None)

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from gsticker_plugin.attacks import apply_attacks, parse_attack_spec
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.fastpath import orbit_cameras
+from gsticker_plugin.fastpath import novel_cameras
 from gsticker_plugin.runs import final_rgb, load_run
 
 
@@ -220,8 +220,8 @@ def select_cameras(pipeline, num_views: int, sampled_share: float, seed: int):
     if n_sampled > 0:
         g = torch.Generator().manual_seed(seed)
         cams = dm.train_dataset.cameras
-        orbit = orbit_cameras(cams, n_sampled, g)
-        chosen += [(f"sampled/{i:03d}", orbit[i : i + 1]) for i in range(n_sampled)]
+        novel = novel_cameras(cams, n_sampled, g)
+        chosen += [(f"sampled/{i:03d}", novel[i : i + 1]) for i in range(n_sampled)]
     return chosen
 
 

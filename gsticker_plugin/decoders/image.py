@@ -42,6 +42,7 @@ import torch
 from jaxtyping import Float, Int
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from torch import Tensor
 
 from gsticker_plugin.attacks import ATTACKS, gaussian_blur, resize, rotate
@@ -522,6 +523,7 @@ def read_cameras_file(path) -> Dict[str, Dict[str, Any]]:
             "camera_angle_x and frames with file_path and transform_matrix)"
         )
     top = {k: meta[k] for k in INTRINSIC_KEYS if k in meta}
+    applied = applied_transform_of(meta, path)
     out: Dict[str, Dict[str, Any]] = {}
     for i, fr in enumerate(frames):
         try:
@@ -545,8 +547,22 @@ def read_cameras_file(path) -> Dict[str, Dict[str, Any]]:
             raise GStickerError(
                 f"--cameras {path}: frame {i} ({name}) gives fl_x without the image size w, h it refers to"
             )
-        out[name] = {"c2w": c2w, "intrinsics": intr}
+        out[name] = {"c2w": c2w, "intrinsics": intr, "applied": applied}
     return out
+
+
+def applied_transform_of(meta: Dict[str, Any], path) -> Tuple[Tensor, float]:
+    """A nerfstudio transforms file's ``applied_transform`` (3x4 -> 4x4) and ``applied_scale``: what its poses already
+    underwent from the original capture coordinates (identity and 1 when absent)."""
+    a = torch.eye(4)
+    if "applied_transform" in meta:
+        try:
+            a[:3] = torch.tensor(meta["applied_transform"], dtype=torch.float32).reshape(3, 4)
+        except (TypeError, ValueError, RuntimeError) as e:
+            raise GStickerError(
+                f"--cameras {path}: applied_transform is not a 3x4 matrix ({type(e).__name__})"
+            ) from None
+    return a, float(meta.get("applied_scale", 1.0))
 
 
 def match_frame(image_name: str, frames: Dict[str, Dict[str, Any]]) -> Optional[str]:
@@ -560,10 +576,31 @@ def match_frame(image_name: str, frames: Dict[str, Dict[str, Any]]) -> Optional[
     return hits[0] if len(hits) == 1 else None
 
 
-def camera_for_image(frame: Dict[str, Any], height: int, width: int, scale_factor: float = 1.0):
+@dataclass(frozen=True)
+class PoseMap:
+    """How a base run's dataparser maps the poses of its data files to run coordinates: ``c2w -> transform @ c2w``,
+    then the translation times ``scale`` (nerfstudio's ``dataparser_transforms.json``)."""
+
+    transform: Float[Tensor, "3 4"]
+    scale: float
+
+    def apply(self, c2w: Float[Tensor, "4 4"], applied: Optional[Tuple[Tensor, float]] = None) -> Float[Tensor, "3 4"]:
+        """``c2w`` of a transforms file in run coordinates; ``applied``: the file's own applied transform and scale
+        (:func:`applied_transform_of`), which the run's transform already includes."""
+        t = torch.cat([self.transform.float(), torch.tensor([[0.0, 0.0, 0.0, 1.0]])])
+        scale = self.scale
+        if applied is not None:
+            t = t @ torch.linalg.inv(applied[0])
+            scale = scale / applied[1]
+        out = (t @ c2w.float())[:3].clone()
+        out[:, 3] *= scale
+        return out
+
+
+def camera_for_image(frame: Dict[str, Any], height: int, width: int, pose_map: Union[float, PoseMap] = 1.0):
     """A nerfstudio camera for an image of ``height x width`` px taken at ``frame`` (:func:`read_cameras_file`):
-    the intrinsics scaled to the image's size, the pose put in the base run's coordinates the way nerfstudio's
-    Blender dataparser does (translation times its ``scale_factor``)."""
+    the intrinsics scaled to the image's size, the pose put in the base run's coordinates by ``pose_map``
+    (:func:`base_pose_map`; a number: Blender's, the translation times it)."""
 
     intr = frame["intrinsics"]
     if "fl_x" in intr:
@@ -581,8 +618,9 @@ def camera_for_image(frame: Dict[str, Any], height: int, width: int, scale_facto
         fx = 0.5 * width / math.tan(0.5 * float(intr["camera_angle_x"]))
         fy = 0.5 * height / math.tan(0.5 * float(intr["camera_angle_y"])) if "camera_angle_y" in intr else fx
         cx, cy = width / 2.0, height / 2.0
-    c2w = frame["c2w"][:3].clone()
-    c2w[:, 3] *= float(scale_factor)
+    if not isinstance(pose_map, PoseMap):
+        pose_map = PoseMap(torch.eye(4)[:3], float(pose_map))
+    c2w = pose_map.apply(frame["c2w"], frame.get("applied"))
     return Cameras(
         camera_to_worlds=c2w[None],
         fx=fx,
@@ -595,23 +633,28 @@ def camera_for_image(frame: Dict[str, Any], height: int, width: int, scale_facto
     )
 
 
-def base_pose_scale(reference) -> float:
-    """How the owner's base run maps a transforms file's poses to its own coordinates: only Blender-format data
-    (nerfstudio's ``blender-data`` dataparser: the translation times ``scale_factor``) is supported; other
-    dataparsers re-orient and re-center poses with transforms a transforms file of other images does not record."""
+POSE_DATAPARSERS = (BlenderDataParserConfig, NerfstudioDataParserConfig)
+"""Dataparsers whose pose normalization is fully recorded in their outputs' ``dataparser_transform`` and
+``dataparser_scale`` (what nerfstudio writes to ``dataparser_transforms.json``)."""
+
+
+def base_pose_map(reference) -> PoseMap:
+    """How the owner's base run maps a transforms file's poses to its own coordinates: Blender-format data (the
+    translation times ``scale_factor``) or nerfstudio-data (the run's recorded orientation, centering and scale)."""
     dm = reference.pipeline.datamanager
     parser_cfg = getattr(getattr(dm, "config", None), "dataparser", None)
-    if not isinstance(parser_cfg, BlenderDataParserConfig):
+    if not isinstance(parser_cfg, POSE_DATAPARSERS):
         raise GStickerError(
-            f"--cameras needs a base trained on Blender-format data (blender-data dataparser); this "
-            f"base used {type(parser_cfg).__name__}, whose pose normalization a transforms file "
-            "does not carry; decode these images with --decode extractor"
+            f"--cameras needs a base trained with the blender-data or nerfstudio-data dataparser; this base used "
+            f"{type(parser_cfg).__name__}, whose pose normalization gsticker does not read; decode these images "
+            "without --cameras"
         )
-    return float(parser_cfg.scale_factor)
+    outputs = dm.train_dataparser_outputs
+    return PoseMap(outputs.dataparser_transform.detach().float().cpu(), float(outputs.dataparser_scale))
 
 
 def posed_views(
-    views: Views, frames: Dict[str, Dict[str, Any]], scale_factor: float
+    views: Views, frames: Dict[str, Dict[str, Any]], pose_map: Union[float, PoseMap]
 ) -> Tuple[Views, List[Tuple[str, Any]]]:
     """The images that have a camera in ``frames`` (:func:`gsticker_plugin.decoders.image.read_cameras_file`), each
     with a camera of its own size; the others are added to ``skipped``."""
@@ -630,7 +673,7 @@ def posed_views(
             continue
         h, w = v.image.shape[-2:]
         try:
-            cam = camera_for_image(frames[f], int(h), int(w), scale_factor)
+            cam = camera_for_image(frames[f], int(h), int(w), pose_map)
         except GStickerError as e:
             out.skipped.append({"name": v.name, "reason": str(e)})
             continue
@@ -653,7 +696,7 @@ def decode_images_at_cameras(
     """The informed image decoder on the images of ``views`` that have a camera in ``frames``, against the owner's
     base ``ref`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`): the posed views and the decoded bits."""
 
-    posed, cams = posed_views(views, frames, base_pose_scale(ref))
+    posed, cams = posed_views(views, frames, base_pose_map(ref))
     with contextlib.redirect_stdout(sys.stderr):
         dec = decode_posed_images(
             key, ref, [v.image.permute(1, 2, 0) for v in posed.views], cams, seed, progress=progress
