@@ -1,6 +1,6 @@
 """``make demo``: the whole story on the embedded scene, on a CPU, with stock Nerfstudio commands.
 
-1. ``ns-gsticker-scene``: render the built-in textured scene (100 px, Blender format).
+1. ``ns-gsticker-scene``: render the built-in textured scene (64 px, Blender format).
 2. ``ns-train gsticker-nerfacto-small``: train the right-sized base.
 3. ``ns-train geometrysticker --load-checkpoint``: stick the owner message onto its geometry.
 4. Decode test views of the watermarked model and of the unwatermarked base with the owner key (quality + bits).
@@ -37,19 +37,21 @@ class DemoConfig:
 
     output_dir: Path = Path("outputs/demo")
     """Where everything is written."""
-    resolution: int = 100
+    resolution: int = 64
     """Scene resolution in pixels."""
-    base_iterations: int = 1500
+    num_train: int = 60
+    """Training views of the scene."""
+    base_iterations: int = 800
     """Training steps of the small nerfacto base."""
-    sticker_iterations: int = 1000
+    sticker_iterations: int = 300
     """Training steps of the sticker stage."""
-    test_views: int = 50
+    test_views: int = 10
     """Test views decoded in the verification stage."""
     owner_id: str = "demo-owner"
-    """Owner ID the message is derived from."""
-    verify_views: int = 16
+    """The owner's label in the key and the verdicts (the message itself is random and secret)."""
+    verify_views: int = 8
     """Views rendered per model by ns-verify-owner (blind extractor)."""
-    geometry_views: int = 8
+    geometry_views: int = 6
     """Views per model for the informed geometric decoder (each renders the suspect and the owner's base)."""
 
 
@@ -92,7 +94,7 @@ def main(cfg: DemoConfig) -> None:
                 "--resolution",
                 str(cfg.resolution),
                 "--num-train",
-                "100",
+                str(cfg.num_train),
                 "--num-val",
                 "10",
                 "--num-test",

@@ -1,4 +1,4 @@
-"""Right-sized base presets for small (<= 200 px) Blender-format scenes.
+"""Right-sized base presets for small (<= 200 px) Blender-format scenes and forward-facing captures.
 
 "Model no more than a scene needs": stock nerfacto (2^19-entry hash grids, 4096 rays) costs ~7 s per
 iteration on a 2-core CPU; these presets keep the stock model classes and only shrink their sizes.
@@ -11,6 +11,7 @@ from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
 from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig, RAdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
@@ -26,9 +27,11 @@ from gsticker_plugin.small_nerf import SmallNeRFModelConfig
 compat.apply()
 
 
-def _small_trainer(method_name: str, max_num_iterations: int, model, optimizers, viewer_chunk: int) -> TrainerConfig:
-    """The trainer every preset shares: Blender data, 1024 training rays, checkpoints every 500 steps (latest only),
-    an eval image every 1000, no mixed precision (CPU), tensorboard."""
+def _small_trainer(
+    method_name: str, max_num_iterations: int, model, optimizers, viewer_chunk: int, dataparser=None
+) -> TrainerConfig:
+    """The trainer every preset shares: Blender data (or ``dataparser``), 1024 training rays, checkpoints every 500
+    steps (latest only), an eval image every 1000, no mixed precision (CPU), tensorboard."""
     return TrainerConfig(
         method_name=method_name,
         steps_per_eval_batch=500,
@@ -40,7 +43,7 @@ def _small_trainer(method_name: str, max_num_iterations: int, model, optimizers,
         mixed_precision=False,
         pipeline=VanillaPipelineConfig(
             datamanager=VanillaDataManagerConfig(
-                dataparser=BlenderDataParserConfig(),
+                dataparser=BlenderDataParserConfig() if dataparser is None else dataparser,
                 train_num_rays_per_batch=1024,
                 eval_num_rays_per_batch=4096,
             ),
@@ -49,6 +52,61 @@ def _small_trainer(method_name: str, max_num_iterations: int, model, optimizers,
         optimizers=optimizers,
         viewer=ViewerConfig(num_rays_per_chunk=viewer_chunk),
         vis="tensorboard",
+    )
+
+
+def _nerfacto_optimizers() -> dict:
+    return {
+        "proposal_networks": {
+            "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
+            "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=200000),
+        },
+        # The stock 1e-2 saturates the torch-implementation color head on small grids (r = g = b).
+        "fields": {
+            "optimizer": AdamOptimizerConfig(lr=3e-3, eps=1e-15),
+            "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=200000),
+        },
+        "camera_opt": {
+            "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
+            "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
+        },
+    }
+
+
+def nerfacto_capture_config(max_num_iterations: int = 2000) -> TrainerConfig:
+    """nerfacto (torch implementation) sized for a 100-200 px forward-facing capture in the nerfstudio-data format:
+    stock nerfacto's scene contraction, near 0.05 / far 1000, piecewise proposal sampler and ``last_sample``
+    background, with the small preset's grids, no camera optimizer (the dataset's poses are the run's) and the
+    origin at the cameras' focus (centring on the camera positions puts a forward-facing scene in the contracted
+    region: 16.4 dB test PSNR after 3000 steps on the generated capture, 26.8 dB with focus after 600)."""
+    return _small_trainer(
+        "gsticker-nerfacto-capture",
+        max_num_iterations,
+        model=NerfactoModelConfig(
+            implementation="torch",
+            log2_hashmap_size=15,
+            num_levels=8,
+            max_res=512,
+            hidden_dim=32,
+            hidden_dim_color=64,
+            num_nerf_samples_per_ray=32,
+            num_proposal_samples_per_ray=(64, 32),
+            proposal_net_args_list=[
+                {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 128, "use_linear": False},
+                {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 256, "use_linear": False},
+            ],
+            background_color="last_sample",
+            near_plane=0.05,
+            far_plane=1000.0,
+            proposal_initial_sampler="piecewise",
+            disable_scene_contraction=False,
+            use_average_appearance_embedding=False,
+            camera_optimizer=CameraOptimizerConfig(mode="off"),
+            eval_num_rays_per_chunk=1 << 13,
+        ),
+        optimizers=_nerfacto_optimizers(),
+        viewer_chunk=1 << 13,
+        dataparser=NerfstudioDataParserConfig(center_method="focus"),
     )
 
 
@@ -81,21 +139,7 @@ def nerfacto_small_config(max_num_iterations: int = 3000) -> TrainerConfig:
             camera_optimizer=CameraOptimizerConfig(mode="off"),
             eval_num_rays_per_chunk=1 << 13,
         ),
-        optimizers={
-            "proposal_networks": {
-                "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=200000),
-            },
-            # The stock 1e-2 saturates the torch-implementation color head on small grids (r = g = b).
-            "fields": {
-                "optimizer": AdamOptimizerConfig(lr=3e-3, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=200000),
-            },
-            "camera_opt": {
-                "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
-            },
-        },
+        optimizers=_nerfacto_optimizers(),
         viewer_chunk=1 << 13,
     )
 
@@ -160,6 +204,10 @@ def vanilla_nerf_small_config(max_num_iterations: int = 3000) -> TrainerConfig:
 nerfacto_small = MethodSpecification(
     config=nerfacto_small_config(),
     description="[gsticker] nerfacto sized for <=200 px object scenes on a CPU (2^15 hash, 8 levels, 1024 rays).",
+)
+nerfacto_capture = MethodSpecification(
+    config=nerfacto_capture_config(),
+    description="[gsticker] nerfacto for <=200 px forward-facing captures (nerfstudio-data, contraction) on a CPU.",
 )
 tensorf_small = MethodSpecification(
     config=tensorf_small_config(),

@@ -218,7 +218,8 @@ def test_sticker_pool_draws_novel_views_inside_the_capture(capture):
 
 
 @pytest.mark.slow
-def test_capture_run_is_owned_from_the_model_and_from_ns_render_images_at_its_transforms_cameras(capture, capsys):
+def test_capture_run_is_owned_from_the_model_its_palette_recolor_and_ns_render_images_at_its_cameras(capture, capsys):
+    """Stock nerfacto defaults (nerfstudio-data, contraction, proposal sampler, last_sample) end to end."""
     ws = capture["ws"]
     status, stdout, rep = _verify(
         capsys, ws / "rep-model", "--load-config", str(capture["run"]), "--key", str(capture["key"]), "--num-views", "4"
@@ -235,6 +236,19 @@ def test_capture_run_is_owned_from_the_model_and_from_ns_render_images_at_its_tr
         str(capture["key"]),
     )
     assert rep["decoder"]["kind"] == "image" and len(rep["keys"][0]["per_view"]) == 2, stdout[-2000:]
+    assert status == 0 and stdout.startswith("VERDICT: OWNED"), stdout[-2000:]
+    from gsticker_plugin.recolor import cli as recolor
+
+    dest = ws / "recolored"
+    assert (
+        recolor.run(["palette", "--set", "0=blue", "--load-config", str(capture["run"]), "--output-dir", str(dest)])
+        == 0
+    )
+    (recolored,) = dest.glob("**/config.yml")
+    capsys.readouterr()
+    status, stdout, rep = _verify(
+        capsys, ws / "rep-recolored", "--load-config", str(recolored), "--key", str(capture["key"]), "--num-views", "4"
+    )
     assert status == 0 and stdout.startswith("VERDICT: OWNED"), stdout[-2000:]
     status, stdout, rep = _verify(
         capsys, ws / "rep-base", "--load-config", str(capture["base"]), "--key", str(capture["key"]), "--num-views", "4"

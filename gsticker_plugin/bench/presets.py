@@ -124,9 +124,12 @@ def train_config(preset: str, bench: BenchConfig, data: Path):
 
 def validate(bench: BenchConfig) -> Path:
     data = bench.data.expanduser()
-    for split in ("train", "test"):
-        if not (data / f"transforms_{split}.json").is_file():
-            raise BenchError(f"{data} is not a Blender-format scene (no transforms_{split}.json); pass --data")
+    blender = all((data / f"transforms_{split}.json").is_file() for split in ("train", "test"))
+    if not blender and not (data / "transforms.json").is_file():
+        raise BenchError(
+            f"{data} is neither a Blender-format scene (transforms_train/test.json) nor nerfstudio-data "
+            "(transforms.json); pass --data"
+        )
     if not bench.presets:
         raise BenchError("no presets given; pass --presets NAME [NAME ...]")
     if bench.iterations_for(1) < 1:

@@ -59,9 +59,10 @@ ALL_STAGES = (
 @dataclass
 class SceneSpec:
     data: Optional[Path] = None
-    """An existing Blender-format dataset folder."""
+    """An existing dataset folder (Blender-format or nerfstudio-data)."""
     generate: Optional[Dict[str, Any]] = None
-    """Or: generate the embedded scene with ns-gsticker-scene (keys: resolution, num_train, num_val, num_test, seed)."""
+    """Or: generate the embedded scene with ns-gsticker-scene (keys: resolution, num_train, num_val, num_test, seed,
+    layout: object or capture)."""
 
 
 @dataclass

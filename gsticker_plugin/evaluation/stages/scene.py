@@ -13,7 +13,7 @@ def run(ws: Workspace) -> Dict[str, Any]:
         return {"data": str(ws.p.scene.data), "generated": False}
     g = dict(ws.p.scene.generate or {})
     scene = ws.out / "scene"
-    if not (scene / "transforms_test.json").is_file():
+    if not ((scene / "transforms_test.json").is_file() or (scene / "transforms.json").is_file()):
         cmd = [console_script("ns-gsticker-scene"), "--output-dir", str(scene)]
         for k, v in g.items():
             cmd += [f"--{k.replace('_', '-')}", str(v)]
