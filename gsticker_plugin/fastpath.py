@@ -59,15 +59,24 @@ def orbit_cameras(cameras: Cameras, num: int, generator: torch.Generator, max_ti
         pos = rz @ c2w[i, :, 3]
         axis = torch.linalg.cross(pos, torch.tensor([0.0, 0.0, 1.0]))
         if axis.norm() > 1e-6:
-            axis = axis / axis.norm()
-            k = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-            rt = torch.eye(3) + math.sin(tilt[i]) * k + (1 - math.cos(tilt[i])) * (k @ k)
+            rt = axis_angle_matrix(axis / axis.norm(), float(tilt[i]))
         else:
             rt = torch.eye(3)
         r = rt @ rz
         out.append(torch.cat([r @ c2w[i, :, :3], (r @ c2w[i, :, 3:])], dim=1))
+    return cameras_at(cameras, idx, out)
+
+
+def axis_angle_matrix(axis: Float[Tensor, " 3"], angle: float) -> Float[Tensor, "3 3"]:
+    """Rotation by ``angle`` (radians) about the unit vector ``axis`` (Rodrigues' formula)."""
+    k = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return torch.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+
+
+def cameras_at(cameras: Cameras, idx: Tensor, c2w: List[Tensor]) -> Cameras:
+    """Cameras with the intrinsics of ``cameras[idx]`` and the poses ``c2w`` (one [3 4] per index)."""
     return Cameras(
-        camera_to_worlds=torch.stack(out),
+        camera_to_worlds=torch.stack(c2w) if c2w else torch.zeros(0, 3, 4),
         fx=cameras.fx[idx],
         fy=cameras.fy[idx],
         cx=cameras.cx[idx],
@@ -111,20 +120,9 @@ def capture_cameras(
         x = torch.linalg.cross(up[k], z)
         x = x / x.norm().clamp_min(1e-12)
         r = torch.stack([x, torch.linalg.cross(z, x), z], dim=1)
-        a = axis[k] / axis[k].norm().clamp_min(1e-12)
-        kx = torch.tensor([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-        turn = torch.eye(3) + math.sin(angle[k]) * kx + (1 - math.cos(angle[k])) * (kx @ kx)
+        turn = axis_angle_matrix(axis[k] / axis[k].norm().clamp_min(1e-12), float(angle[k]))
         out.append(torch.cat([turn @ r, pos[k][:, None]], dim=1))
-    return Cameras(
-        camera_to_worlds=torch.stack(out) if out else torch.zeros(0, 3, 4),
-        fx=cameras.fx[i],
-        fy=cameras.fy[i],
-        cx=cameras.cx[i],
-        cy=cameras.cy[i],
-        width=cameras.width[i],
-        height=cameras.height[i],
-        camera_type=cameras.camera_type[i],
-    )
+    return cameras_at(cameras, i, out)
 
 
 def novel_cameras(cameras: Cameras, num: int, generator: torch.Generator, layout: str = "auto") -> Cameras:

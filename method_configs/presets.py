@@ -73,6 +73,27 @@ def _nerfacto_optimizers() -> dict:
     }
 
 
+def _nerfacto_model(**scene) -> NerfactoModelConfig:
+    """nerfacto (torch implementation) with the small presets' grids, heads and samples; ``scene``: the rest."""
+    return NerfactoModelConfig(
+        implementation="torch",
+        log2_hashmap_size=15,
+        num_levels=8,
+        hidden_dim=32,
+        hidden_dim_color=64,
+        num_nerf_samples_per_ray=32,
+        num_proposal_samples_per_ray=(64, 32),
+        proposal_net_args_list=[
+            {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 128, "use_linear": False},
+            {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 256, "use_linear": False},
+        ],
+        use_average_appearance_embedding=False,
+        camera_optimizer=CameraOptimizerConfig(mode="off"),
+        eval_num_rays_per_chunk=1 << 13,
+        **scene,
+    )
+
+
 def nerfacto_capture_config(max_num_iterations: int = 2000) -> TrainerConfig:
     """nerfacto (torch implementation) sized for a 100-200 px forward-facing capture in the nerfstudio-data format:
     stock nerfacto's scene contraction, near 0.05 / far 1000, piecewise proposal sampler and ``last_sample``
@@ -82,27 +103,13 @@ def nerfacto_capture_config(max_num_iterations: int = 2000) -> TrainerConfig:
     return _small_trainer(
         "gsticker-nerfacto-capture",
         max_num_iterations,
-        model=NerfactoModelConfig(
-            implementation="torch",
-            log2_hashmap_size=15,
-            num_levels=8,
+        model=_nerfacto_model(
             max_res=512,
-            hidden_dim=32,
-            hidden_dim_color=64,
-            num_nerf_samples_per_ray=32,
-            num_proposal_samples_per_ray=(64, 32),
-            proposal_net_args_list=[
-                {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 128, "use_linear": False},
-                {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 256, "use_linear": False},
-            ],
             background_color="last_sample",
             near_plane=0.05,
             far_plane=1000.0,
             proposal_initial_sampler="piecewise",
             disable_scene_contraction=False,
-            use_average_appearance_embedding=False,
-            camera_optimizer=CameraOptimizerConfig(mode="off"),
-            eval_num_rays_per_chunk=1 << 13,
         ),
         optimizers=_nerfacto_optimizers(),
         viewer_chunk=1 << 13,
@@ -115,29 +122,15 @@ def nerfacto_small_config(max_num_iterations: int = 3000) -> TrainerConfig:
     return _small_trainer(
         "gsticker-nerfacto-small",
         max_num_iterations,
-        model=NerfactoModelConfig(
-            implementation="torch",
-            log2_hashmap_size=15,
-            num_levels=8,
+        model=_nerfacto_model(
             max_res=256,
-            hidden_dim=32,
-            hidden_dim_color=64,
-            num_nerf_samples_per_ray=32,
-            num_proposal_samples_per_ray=(64, 32),
-            proposal_net_args_list=[
-                {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 128, "use_linear": False},
-                {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 256, "use_linear": False},
-            ],
             background_color="white",
             near_plane=2.0,
             far_plane=6.0,
             proposal_initial_sampler="uniform",
             disable_scene_contraction=True,
             distortion_loss_mult=0.0,
-            use_average_appearance_embedding=False,
             average_init_density=0.01,
-            camera_optimizer=CameraOptimizerConfig(mode="off"),
-            eval_num_rays_per_chunk=1 << 13,
         ),
         optimizers=_nerfacto_optimizers(),
         viewer_chunk=1 << 13,
