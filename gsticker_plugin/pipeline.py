@@ -2,6 +2,10 @@
 
 The extractor and classifier (the *heads*) are the owner's secret: they are held outside the pipeline's
 module tree, so they never enter the shareable checkpoint; the trainer writes them into the owner key.
+
+With several processes (``--machine.num-devices N``) the model is not wrapped in DDP: every rank starts from rank 0's
+sticker, gates and heads (:meth:`GeometryStickerPipeline.sync_from_rank0`), draws its own batches, and the trainer's
+optimizers average the gradients over the ranks before each step (:meth:`GeometryStickerPipeline.average_gradients`).
 """
 
 from __future__ import annotations
@@ -9,13 +13,15 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Literal, Mapping, Optional, Type
+from typing import Any, Dict, Iterable, List, Literal, Mapping, Optional, Sequence, Type
 
 import torch
+import torch.distributed as dist
 import torch.nn.functional as F
 import tyro
 from nerfstudio.data.datamanagers.base_datamanager import DataManagerConfig, VanillaDataManagerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import Progress
 from torch import Tensor
@@ -106,9 +112,15 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     sparse_weight: float = 0.01
     """Weight of the gate's sparsity loss."""
     seed: int = 0
-    """Seed of the pool cameras, messages and distortions."""
+    """Seed of the pool cameras, messages and distortions (rank r of a distributed run draws its batches with
+    seed + r)."""
     pool_cache: Optional[Path] = None
     """Optional file to keep the rendered pool in (reused when base checkpoint, cameras and sizes match)."""
+
+
+def is_distributed(world_size: int) -> bool:
+    """True when ``world_size`` > 1 processes share an initialized torch.distributed process group."""
+    return world_size > 1 and dist.is_available() and dist.is_initialized()
 
 
 class GeometryStickerPipeline(VanillaPipeline):
@@ -126,7 +138,11 @@ class GeometryStickerPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler=None,
     ):
-        super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
+        # The parent is built single-process: no DDP wrap (the training step runs the sticker and heads on cached
+        # samples, not the model's forward, so DDP's hooks would sync nothing) and no device_ids barrier.
+        super().__init__(config, device, test_mode, 1, 0, grad_scaler)
+        self.world_size, self.local_rank = world_size, local_rank
+        self.rank = comms.get_rank() if self.distributed else 0
         # training draws (or takes) the owner's message; a loaded shared run has none (its sticker is folded)
         self.owner_message: Optional[Tensor] = self.resolve_message(config) if test_mode == "val" else None
         if self.owner_message is not None:
@@ -137,7 +153,7 @@ class GeometryStickerPipeline(VanillaPipeline):
         # Heads: plain attribute, not a registered submodule (keeps them out of the shareable state dict).
         self.__dict__["heads"] = Heads(config.heads, config.model.num_bits).to(device) if test_mode == "val" else None
         self.distort = RandomDistortion(config.distortion)
-        self.generator = torch.Generator().manual_seed(config.seed)
+        self.generator = torch.Generator().manual_seed(config.seed + self.rank)
         self.pool: List[ViewCache] = []
         self.monitor: List[ViewCache] = []
         self.history: List[Dict[str, float]] = []
@@ -182,6 +198,67 @@ class GeometryStickerPipeline(VanillaPipeline):
     @property
     def heads(self) -> Optional[Heads]:
         return self.__dict__.get("heads")
+
+    # ------------------------------------------------------------------------------------ several processes
+    @property
+    def distributed(self) -> bool:
+        """True when this pipeline is one rank of a multi-process run (torch.distributed initialized)."""
+        return is_distributed(self.world_size)
+
+    @torch.no_grad()
+    def broadcast_(self, tensors: Iterable[Tensor]) -> None:
+        """Overwrite ``tensors`` in place with rank 0's values (a no-op in a single process)."""
+        if not self.distributed:
+            return
+        for t in tensors:
+            buf = t.detach().to(self.device, torch.uint8 if t.dtype == torch.bool else t.dtype).contiguous()
+            dist.broadcast(buf, src=0)
+            t.copy_(buf)
+
+    def from_rank0(self, tensor: Tensor) -> Tensor:
+        """A copy of rank 0's ``tensor`` (``tensor`` itself in a single process)."""
+        if not self.distributed:
+            return tensor
+        out = tensor.clone()
+        self.broadcast_([out])
+        return out
+
+    def sync_from_rank0(self) -> None:
+        """Every rank takes rank 0's sticker, gates, message and heads: all the state but the frozen base."""
+        if not self.distributed:
+            return
+        state = [v for k, v in self.model.state_dict().items() if not k.startswith("base.")]
+        if self.heads is not None:
+            state += list(self.heads.state_dict().values())
+        self.broadcast_(state)
+
+    @torch.no_grad()
+    def average_gradients(self, params: Sequence[torch.nn.Parameter]) -> None:
+        """Replace each gradient by its mean over the ranks (a rank without one counts zeros); a parameter that no
+        rank has a gradient for keeps None. A no-op in a single process."""
+        if not self.distributed:
+            return
+        params = list({id(p): p for p in params}.values())
+        if not params:
+            return
+        grads = [
+            p.grad.detach().reshape(-1).to(self.device, torch.float32)
+            if p.grad is not None
+            else torch.zeros(p.numel(), device=self.device)
+            for p in params
+        ]
+        present = torch.tensor([float(p.grad is not None) for p in params], device=self.device)
+        flat = torch.cat([*grads, present])
+        dist.all_reduce(flat)
+        sums, present = flat[: -len(params)], flat[-len(params) :]
+        for p, g, any_rank in zip(params, sums.split([p.numel() for p in params]), present.tolist()):
+            if not any_rank:
+                continue
+            mean = (g / self.world_size).view_as(p).to(p.dtype)
+            if p.grad is None:
+                p.grad = mean.to(p.device)
+            else:
+                p.grad.copy_(mean)
 
     # ------------------------------------------------------------------------------------ state handling
     def get_param_groups(self) -> Dict[str, List[torch.nn.Parameter]]:
@@ -284,7 +361,7 @@ class GeometryStickerPipeline(VanillaPipeline):
             f"{pool_memory_mb(self.pool + self.monitor):.0f} MiB, {time.time() - t0:.0f} s; "
             f"gate mu={mu:.4g}, beta={float(model.final_wrap.gate.beta):.4g}"
         )
-        if path is not None:
+        if path is not None and comms.is_main_process():  # one writer when several ranks render the pool
             tmp = Path(str(path) + ".tmp")
             torch.save(
                 {"id": cache_id, "pool": [vars(v) for v in self.pool], "monitor": [vars(v) for v in self.monitor]}, tmp
@@ -392,6 +469,7 @@ class GeometryStickerPipeline(VanillaPipeline):
         if not self.config.fast_path and not self.model.calibrated:
             self.build_pool()
         if self._t0 is None:
+            self.sync_from_rank0()  # several ranks: all start from rank 0's sticker, gates (calibrated) and heads
             self._t0 = time.time()
         self.model.train()
         self.heads.train()

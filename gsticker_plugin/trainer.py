@@ -9,6 +9,8 @@
   extractor/classifier, no optimizer state of the sticker; the owner key (default: the per-user keys folder,
   :func:`gsticker_plugin.key.default_key_path`) is written at every save. The saved config.yml records no owner
   ID, message or key path.
+* Several processes (``--machine.num-devices N``): rank 0 draws the message and the others take it; the optimizers
+  average the gradients over the ranks before each step; only rank 0 writes config.yml, checkpoints and the key.
 """
 
 from __future__ import annotations
@@ -18,11 +20,15 @@ import os
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Optional, Type
+from typing import Callable, Dict, List, Literal, Optional, Type
 
 import torch
+from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils import comms
+from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
+from torch.nn import Parameter
 
 from gsticker_plugin import runs
 from gsticker_plugin.errors import GStickerError
@@ -52,6 +58,36 @@ def exit_with_error(error: GStickerError) -> None:
     sys.stderr.write(f"error: {error}\n")
     sys.stderr.flush()
     raise SystemExit(2)
+
+
+class GradientAveragingOptimizers(Optimizers):
+    """The host's optimizers, each step preceded by ``average`` on the gradients of the groups it steps (a
+    distributed run: :meth:`GeometryStickerPipeline.average_gradients`)."""
+
+    def __init__(
+        self, config: Dict, param_groups: Dict[str, List[Parameter]], average: Callable[[List[Parameter]], None]
+    ) -> None:
+        super().__init__(config, param_groups)
+        self.average = average
+
+    def _average(self, groups: List[str]) -> None:
+        self.average([p for group in groups for p in self.parameters[group]])
+
+    def optimizer_step(self, param_group_name: str) -> None:
+        self._average([param_group_name])
+        super().optimizer_step(param_group_name)
+
+    def optimizer_step_all(self) -> None:
+        self._average(list(self.optimizers))
+        super().optimizer_step_all()
+
+    def optimizer_scaler_step_all(self, grad_scaler) -> None:
+        self._average(list(self.optimizers))
+        super().optimizer_scaler_step_all(grad_scaler)
+
+    def optimizer_scaler_step_some(self, grad_scaler, param_groups: List[str]) -> None:
+        self._average(list(param_groups))
+        super().optimizer_scaler_step_some(grad_scaler, param_groups)
 
 
 class GeometryStickerTrainer(Trainer):
@@ -151,10 +187,20 @@ class GeometryStickerTrainer(Trainer):
         source = GeometryStickerPipeline.source_of_message(pcfg)
         label = pcfg.owner_id
         pcfg.owner_id, pcfg.message, pcfg.key_path, pcfg.message_source = "", None, None, source
-        self.save_shared_config()  # again, now with the base filled in: stock ns-viewer/ns-render rebuild from it
+        if comms.is_main_process():
+            self.save_shared_config()  # again, now with the base filled in: stock ns-viewer/ns-render rebuild from it
         super().setup(test_mode)
+        message = self.pipeline.from_rank0(message)  # several ranks: rank 0's draw
         self.pipeline.set_owner(message, source, label, self._resume_key)
         CONSOLE.print(f"\\[gsticker] {self.pipeline.describe()}; message source {source}; owner key {self._key_path}")
+
+    def setup_optimizers(self) -> Optimizers:
+        """The host's optimizers; in a distributed run, ones that average the gradients over the ranks first."""
+        if not self.pipeline.distributed:
+            return super().setup_optimizers()
+        return GradientAveragingOptimizers(
+            self.config.optimizers.copy(), self.pipeline.get_param_groups(), self.pipeline.average_gradients
+        )
 
     def _load_checkpoint(self) -> None:
         ckpt = self._checkpoint
@@ -186,9 +232,10 @@ class GeometryStickerTrainer(Trainer):
         self._start_step = state["step"] + 1
         CONSOLE.print(f"\\[gsticker] resumed from {ckpt} (step {state['step']}) with heads from {self.key_path}")
 
+    @check_main_thread
     def save_checkpoint(self, step: int) -> None:
         """Shareable checkpoint (atomic): the folded sticker, no heads, message or sticker optimizer state; then the
-        owner key (atomic) with what was left out."""
+        owner key (atomic) with what was left out. Rank 0 only."""
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         ckpt_path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
         opts = self.optimizers
@@ -227,6 +274,8 @@ class GeometryStickerTrainer(Trainer):
             super().train()
         except GStickerError as e:  # e.g. a base whose samples the fast path cannot capture
             exit_with_error(e)
+        if not comms.is_main_process():
+            return
         CONSOLE.rule("\\[gsticker] done")
         CONSOLE.print(f"Watermarked model (shareable): {self.base_dir / 'config.yml'}")
         CONSOLE.print(f"Owner key (secret, keep it apart): {self.key_path}")
