@@ -41,9 +41,9 @@ class DemoConfig:
     """Scene resolution in pixels."""
     num_train: int = 60
     """Training views of the scene."""
-    base_iterations: int = 400
+    base_iterations: int = 600
     """Training steps of the small nerfacto base."""
-    sticker_iterations: int = 200
+    sticker_iterations: int = 250
     """Training steps of the sticker stage."""
     test_views: int = 10
     """Test views decoded in the verification stage."""

@@ -190,7 +190,8 @@ def test_bench_rejects_bad_input_with_one_line(tmp_path):
         cwd=REPO_ROOT,
     )
     assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines()[-1].startswith("error: ") and "transforms_train.json" in proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("error: ") and "transforms_train.json" in last and "transforms.json" in last, last
     assert not (tmp_path / "p.md").exists()
     cfg = bench.BenchConfig(quick=True)
     assert cfg.iterations_for(3000) == 20 and cfg.test_views() == 3

@@ -127,8 +127,8 @@ def validate(bench: BenchConfig) -> Path:
     blender = all((data / f"transforms_{split}.json").is_file() for split in ("train", "test"))
     if not blender and not (data / "transforms.json").is_file():
         raise BenchError(
-            f"{data} is neither a Blender-format scene (transforms_train/test.json) nor nerfstudio-data "
-            "(transforms.json); pass --data"
+            f"{data} is neither a Blender-format scene (no transforms_train.json and transforms_test.json) nor "
+            "nerfstudio-data (no transforms.json); pass --data with a dataset folder"
         )
     if not bench.presets:
         raise BenchError("no presets given; pass --presets NAME [NAME ...]")
