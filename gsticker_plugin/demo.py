@@ -209,9 +209,7 @@ def main(cfg: DemoConfig) -> None:
 
     print("[6/6] ns-verify-owner: verdicts", flush=True)
     null_done = out / "verify" / "calibrated"
-    if not cfg.blind:
-        pass
-    elif not null_done.exists():
+    if cfg.blind and not null_done.exists():  # the blind extractor's empirical null
         _run(
             [
                 console_script("ns-verify-owner"),
@@ -227,7 +225,7 @@ def main(cfg: DemoConfig) -> None:
         )
         null_done.parent.mkdir(parents=True, exist_ok=True)
         null_done.write_text("calibrated\n")
-    else:
+    elif cfg.blind:
         print("    (key already calibrated)")
     suspects = {
         "watermarked": wm_run / "config.yml",

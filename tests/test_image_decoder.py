@@ -204,7 +204,7 @@ def test_cameras_file_frames_names_and_intrinsics_at_the_image_size(tmp_path):
     assert I.match_frame("test/r_0.png", frames) == "test/r_0" and I.match_frame("a.PNG", frames) == "shots/a"
     assert I.match_frame("r_0.png", frames) is None  # two frames end in r_0: ambiguous, not guessed
     assert I.frame_name("./x/y.z.png") == "x/y.z"
-    cam = I.camera_for_image(frames["test/r_0"], 50, 100, pose_map=2.0)
+    cam = I.camera_for_image(frames["test/r_0"], 50, 100, I.PoseMap(torch.eye(4)[:3], 2.0))
     assert math.isclose(float(cam.fx), 0.5 * 100 / math.tan(0.3), rel_tol=1e-6) and float(cam.fy) == float(cam.fx)
     assert (float(cam.cx), float(cam.cy), int(cam.width), int(cam.height)) == (50.0, 25.0, 100, 50)
     assert torch.allclose(cam.camera_to_worlds[0, :, 3], torch.tensor([1.0, -2.0, 8.0]))  # translation scaled

@@ -597,10 +597,10 @@ class PoseMap:
         return out
 
 
-def camera_for_image(frame: Dict[str, Any], height: int, width: int, pose_map: Union[float, PoseMap] = 1.0):
+def camera_for_image(frame: Dict[str, Any], height: int, width: int, pose_map: Optional[PoseMap] = None):
     """A nerfstudio camera for an image of ``height x width`` px taken at ``frame`` (:func:`read_cameras_file`):
     the intrinsics scaled to the image's size, the pose put in the base run's coordinates by ``pose_map``
-    (:func:`base_pose_map`; a number: Blender's, the translation times it)."""
+    (:func:`base_pose_map`; None: the file's own coordinates)."""
 
     intr = frame["intrinsics"]
     if "fl_x" in intr:
@@ -618,9 +618,7 @@ def camera_for_image(frame: Dict[str, Any], height: int, width: int, pose_map: U
         fx = 0.5 * width / math.tan(0.5 * float(intr["camera_angle_x"]))
         fy = 0.5 * height / math.tan(0.5 * float(intr["camera_angle_y"])) if "camera_angle_y" in intr else fx
         cx, cy = width / 2.0, height / 2.0
-    if not isinstance(pose_map, PoseMap):
-        pose_map = PoseMap(torch.eye(4)[:3], float(pose_map))
-    c2w = pose_map.apply(frame["c2w"], frame.get("applied"))
+    c2w = (pose_map or PoseMap(torch.eye(4)[:3], 1.0)).apply(frame["c2w"], frame.get("applied"))
     return Cameras(
         camera_to_worlds=c2w[None],
         fx=fx,
@@ -654,7 +652,7 @@ def base_pose_map(reference) -> PoseMap:
 
 
 def posed_views(
-    views: Views, frames: Dict[str, Dict[str, Any]], pose_map: Union[float, PoseMap]
+    views: Views, frames: Dict[str, Dict[str, Any]], pose_map: PoseMap
 ) -> Tuple[Views, List[Tuple[str, Any]]]:
     """The images that have a camera in ``frames`` (:func:`gsticker_plugin.decoders.image.read_cameras_file`), each
     with a camera of its own size; the others are added to ``skipped``."""
