@@ -30,6 +30,9 @@ from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.machine import console_script, sticker_train_argv
 from gsticker_plugin.runs import latest_checkpoint
 
+HEADS_OFF = ("--pipeline.msg-weight", "0", "--pipeline.negative-weight", "0", "--pipeline.cls-weight", "0")
+"""Sticker-stage flags that switch the extractor and classifier off (pipeline.trains_heads)."""
+
 
 @dataclass
 class DemoConfig:
@@ -52,10 +55,13 @@ class DemoConfig:
     verify_views: int = 8
     """Views rendered per model by ns-verify-owner (blind extractor)."""
     geometry_views: int = 6
-    blind: bool = False
-    """Also read with the blind extractor (its bits on the test views, its empirical null, its verdicts): off by
-    default, as it does not learn the message yet (docs/geometrysticker.md, Status)."""
     """Views per model for the informed geometric decoder (each renders the suspect and the owner's base)."""
+    pool_views: int = 24
+    """Training and as many novel cameras in the sticker stage's cached pool (the stage's default is 48 + 48)."""
+    blind: bool = False
+    """Also train and read the blind extractor (its bits on the test views, its empirical null, its verdicts): off by
+    default, as it does not learn the message yet (docs/geometrysticker.md, Status); without it the sticker stage
+    skips the extractor and classifier passes, which the informed geometric decoder does not use."""
 
 
 def _run(cmd: List[str], log: Path, ok: tuple = (0,)) -> int:
@@ -151,6 +157,11 @@ def main(cfg: DemoConfig) -> None:
                 key_path,
                 "--load-checkpoint",
                 str(base_ckpt),
+                "--pipeline.pool-train-views",
+                str(cfg.pool_views),
+                "--pipeline.pool-novel-views",
+                str(cfg.pool_views),
+                *([] if cfg.blind else HEADS_OFF),
             ),
             logs / "sticker.log",
         )
