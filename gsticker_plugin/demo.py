@@ -261,6 +261,7 @@ def main(cfg: DemoConfig) -> None:
     for name, by_decoder in blind.items():
         verdicts.setdefault(name, {}).update(by_decoder)
     summary["verdicts"] = verdicts
+    summary["seconds"] = round(time.time() - t_start, 1)  # this run's stages (a rerun skips finished ones)
     (out / "demo_summary.json").write_text(json.dumps(summary, indent=2))
 
     print(f"\nDone in {(time.time() - t_start) / 60:.1f} min.")

@@ -273,3 +273,32 @@ def synthetic_reference_view(st, r: int = 600, s: int = 24, seed: int = 0, with_
         signals=("accumulation", "expected_depth"),
         rgb=rgb,
     )
+
+
+def tiny_view_and_wrap(k=6):
+    """A 4x4 view whose 16 rays each cross 8 samples, a calibrated gate and a bilinear sticker."""
+    import torch  # after triton (above)
+
+    from gsticker_plugin.fastpath import ViewCache, render_signs
+    from gsticker_plugin.sticker import DensityWrap, Gate, Sticker, WrapState
+
+    g = torch.Generator().manual_seed(0)
+    n, s = 16, 8
+    density = torch.rand(n, s, 1, generator=g) * 4.0
+    view = ViewCache(
+        image=torch.zeros(4, 4, 3),
+        active=torch.arange(n),
+        positions=torch.rand(n, s, 3, generator=g) * 2 - 1,
+        deltas=torch.full((n, s, 1), 0.1),
+        density=density,
+        rgb=torch.rand(n, s, 3, generator=g),
+    )
+    sticker, gate = Sticker(num_bits=k, num_frequencies=2, hidden_dim=8, init_scale=0.5), Gate()
+    gate.calibrate(density, torch.ones_like(density), quantile=0.3, amplitude=1.0)
+    field = torch.nn.Module()
+    field.get_density = lambda *a, **kw: None
+    wrap = DensityWrap(field, "f", sticker, gate, WrapState(), torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    bg = torch.ones(3)
+    # the cached clean image is the clean composite (as cache_view records it)
+    view.image = render_signs(view, wrap, torch.zeros(k), bg)
+    return view, wrap, bg

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import torch
+from conftest import tiny_view_and_wrap
 
 from gsticker_plugin.attacks import hue_shift
 from gsticker_plugin.extractor import (
@@ -14,8 +15,8 @@ from gsticker_plugin.extractor import (
     Whitening,
     value_channel,
 )
-from gsticker_plugin.fastpath import ViewCache, render_signs, sign_jacobian
-from gsticker_plugin.sticker import BlindTerm, DensityWrap, Gate, Sticker, WrapState
+from gsticker_plugin.fastpath import render_signs, sign_jacobian
+from gsticker_plugin.sticker import BlindTerm
 
 
 def images(n=6, h=32, w=32, seed=0):
@@ -82,30 +83,6 @@ def test_blind_term_is_bounded_by_its_amplitude():
     with torch.no_grad():
         out = term(torch.rand(200, 3))
     assert out.shape == (200, 1) and float(out.abs().max()) <= 0.5
-
-
-def tiny_view_and_wrap(k=6):
-    """A 4x4 view whose 16 rays each cross 8 samples, a calibrated gate and a bilinear sticker."""
-    g = torch.Generator().manual_seed(0)
-    n, s = 16, 8
-    density = torch.rand(n, s, 1, generator=g) * 4.0
-    view = ViewCache(
-        image=torch.zeros(4, 4, 3),
-        active=torch.arange(n),
-        positions=torch.rand(n, s, 3, generator=g) * 2 - 1,
-        deltas=torch.full((n, s, 1), 0.1),
-        density=density,
-        rgb=torch.rand(n, s, 3, generator=g),
-    )
-    sticker, gate = Sticker(num_bits=k, num_frequencies=2, hidden_dim=8, init_scale=0.5), Gate()
-    gate.calibrate(density, torch.ones_like(density), quantile=0.3, amplitude=1.0)
-    field = torch.nn.Module()
-    field.get_density = lambda *a, **kw: None
-    wrap = DensityWrap(field, "f", sticker, gate, WrapState(), torch.tensor([[-1.0] * 3, [1.0] * 3]))
-    bg = torch.ones(3)
-    # the cached clean image is the clean composite (as cache_view records it)
-    view.image = render_signs(view, wrap, torch.zeros(k), bg)
-    return view, wrap, bg
 
 
 def test_render_signs_at_zero_is_the_clean_render_and_moves_with_the_signs():

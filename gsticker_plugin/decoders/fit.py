@@ -73,11 +73,13 @@ def fit_message(
     iterations: int = 10,
     damping: float = 1e-3,
     jac: Optional[Callable[[Tensor], Optional[Tensor]]] = None,
+    corner_rounds: int = 2,
 ) -> Fit:
     """Least squares ``min_s |target - (predict(s) - predict(0))|^2`` over ``s in [-1, 1]^K``.
 
     Levenberg-Marquardt from ``s = 0`` (Jacobians from ``jac(s)`` when it gives one, else by forward-mode AD;
-    normal equations in float64, steps clamped to the box). A zero target returns ``s = 0`` exactly.
+    normal equations in float64, steps clamped to the box), then ``corner_rounds`` rounds of :func:`corner_search`.
+    A zero target returns ``s = 0`` exactly.
     """
     s = torch.zeros(num_bits, dtype=target.dtype, device=target.device)
     with torch.no_grad():
@@ -116,7 +118,34 @@ def fit_message(
             lam *= 10.0
         if not improved or gain <= 1e-10 * cost0:
             break
+    if corner_rounds > 0:
+        s, cost = corner_search(lambda x: target - (predict(x).reshape(-1) - f0), s, cost, corner_rounds)
     return Fit(signs=s.detach(), explained=1.0 - cost / cost0, residual_rms=rms, iterations=it)
+
+
+@torch.no_grad()
+def corner_search(
+    residual: Callable[[Tensor], Tensor], s: Float[Tensor, " K"], cost: float, rounds: int = 2, tol: float = 1e-6
+) -> Tuple[Float[Tensor, " K"], float]:
+    """Greedy single-bit flips over the box's corners, from the corner ``sign(s)``: a marked suspect's geometry is
+    a corner's exactly, and a fit stuck beside it is pulled there. Bits with ``|s_i| <= tol`` stay 0; the least
+    certain bits are tried first; a corner replaces ``s`` only if its squared residual is below ``cost``."""
+    determined = s.abs() > tol
+    corner = torch.where(determined, torch.sign(s), torch.zeros_like(s))
+    c = float((residual(corner).double() ** 2).sum())
+    order = [int(i) for i in torch.argsort(s.abs()) if bool(determined[i])]
+    for _ in range(rounds):
+        flipped = False
+        for i in order:
+            corner[i] = -corner[i]
+            c_try = float((residual(corner).double() ** 2).sum())
+            if c_try < c:
+                c, flipped = c_try, True
+            else:
+                corner[i] = -corner[i]
+        if not flipped:
+            break
+    return (corner, c) if c < cost else (s, cost)
 
 
 def fit_and_decide(
