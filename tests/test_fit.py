@@ -48,3 +48,22 @@ def test_fit_message_recovers_every_bit_of_a_corner_and_reads_nothing_from_a_zer
         assert undetermined == 0 and torch.equal(bits, (truth > 0).long())
     fit = fit_message(predict, torch.zeros(200, dtype=torch.float64), 16)
     assert decide_bits(fit.signs)[1] == 16
+
+
+def _saturated(seed, k=16):
+    """A sticker-like problem: 40 outputs sum 300 saturated tanh samples of the bits' mixture."""
+    g = torch.Generator().manual_seed(seed)
+    f = torch.randn(300, k, generator=g, dtype=torch.float64)
+    a = torch.rand(40, 300, generator=g, dtype=torch.float64)
+    truth = torch.randint(0, 2, (k,), generator=g).double() * 2 - 1
+    predict = lambda s: a @ torch.tanh(8.0 * (f @ s.double()) / k**0.5)  # noqa: E731
+    return predict, truth, predict(truth) - predict(torch.zeros(k, dtype=torch.float64))
+
+
+def test_restart_from_the_fits_corner_and_corner_search_find_marks_a_single_fit_misses():
+    for seed, plain_matches in ((2, 14), (24, 15)):
+        predict, truth, target = _saturated(seed)
+        plain, _ = decide_bits(fit_message(predict, target, 16, restart=False, corner_rounds=0).signs)
+        full, _ = decide_bits(fit_message(predict, target, 16).signs)
+        assert int((plain == (truth > 0).long()).sum()) == plain_matches  # one Levenberg-Marquardt run stops short
+        assert torch.equal(full, (truth > 0).long())

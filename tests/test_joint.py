@@ -71,7 +71,7 @@ def test_train_reads_an_owner_message_drawn_after_training_and_writes_the_page_f
         "aabb": wrap.aabb,
         "num_bits": 6,
         "sticker": {"num_frequencies": 2, "hidden_dim": 8},
-        "source": {"checkpoint": "tiny", "novel_in_training": False, "max_abs_error": 0.0},
+        "source": {"checkpoint": "tiny", "train_cameras": "training", "max_abs_error": 0.0},
     }
     torch.save(data, tmp_path / "pool.pt")
     cfg = Train(

@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import secrets
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Dict, List, Tuple, Union
+from typing import Annotated, Any, Dict, List, Literal, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -31,6 +32,11 @@ from gsticker_plugin.heads import ConvHead, HeadConfig, count_parameters
 from gsticker_plugin.sticker import Sticker, laplace_cdf_gate, render_weights
 
 PACK_VERSION = 1
+CAMERAS = {
+    "training": "the dataset's training cameras",
+    "orbit": "orbit cameras drawn like the held-out ones",
+    "both": "training and orbit cameras",
+}
 
 
 @dataclass
@@ -48,8 +54,9 @@ class Pack:
     pool_train_views: int = 48
     pool_novel_views: int = 48
     heldout_views: int = 24
-    novel_in_training: bool = False
-    """Also pack the pool's novel (orbit) cameras for training (twice the file)."""
+    train_cameras: Literal["training", "orbit", "both"] = "training"
+    """Which pool views to pack for training: the dataset's training cameras, the pool's orbit cameras (drawn like the
+    held-out ones), or both (twice the file)."""
     output: Path = Path("outputs/joint/pool-packed.pt")
     seed: int = 0
 
@@ -78,8 +85,10 @@ class Train:
     sticker_init_scale: float = 0.5
     """Range of the sticker's last-layer init: 0.5 starts the mark near 27 dB on lego100 (the plugin's 0.1 near 40 dB,
     too faint for an untrained extractor to find)."""
-    extractor_lr: Tuple[float, ...] = (1e-4, 1e-3)
-    """Extractor learning rate per backbone (same order)."""
+    vgg16_lr: float = 1e-4
+    """Adam learning rate of the vgg16 extractor (no normalisation layers)."""
+    small_lr: float = 1e-3
+    """Adam learning rate of the small extractor."""
     negative_weight: float = 0.5
     """Weight of the honesty loss (clean renders' logits pushed to p = 1/2)."""
     eval_every: float = 20.0
@@ -142,7 +151,8 @@ def pack(cfg: Pack) -> Dict[str, Any]:
     wrap, bg = pipe.model.final_wrap, pipe.model.background_color()
     if bg.color is None:
         raise SystemExit("error: the packed pool needs a base with a fixed background colour (white, black, a colour)")
-    train_views = [v for v in pipe.pool if cfg.novel_in_training or not v.novel]
+    wanted = {"training": (False,), "orbit": (True,), "both": (False, True)}[cfg.train_cameras]
+    train_views = [v for v in pipe.pool if bool(v.novel) in wanted]
     views = {"train": train_views, "heldout": list(pipe.monitor)}
     packed = {split: [pack_view(v, wrap) for v in vs] for split, vs in views.items()}
     # The pack's error: a random message's change through the fast path and through the packed samples.
@@ -171,7 +181,7 @@ def pack(cfg: Pack) -> Dict[str, Any]:
         "sticker": {"num_frequencies": wrap.sticker.num_frequencies, "hidden_dim": wrap.sticker.pos_in.out_features},
         "source": {
             "checkpoint": str(cfg.load_checkpoint),
-            "novel_in_training": cfg.novel_in_training,
+            "train_cameras": cfg.train_cameras,
             "max_abs_error": max(errs),
         },
     }
@@ -423,8 +433,7 @@ def train(cfg: Train) -> Dict[str, Any]:
     data = torch.load(cfg.pool, map_location="cpu", weights_only=False)  # a file this benchmark wrote
     if data.get("version") != PACK_VERSION:
         raise SystemExit(f"error: {cfg.pool} is not a version-{PACK_VERSION} packed pool; run `pack` again")
-    lrs = list(cfg.extractor_lr) + [cfg.extractor_lr[-1]] * len(cfg.backbones)
-    runs = [train_one(cfg, data, b, lr, device) for b, lr in zip(cfg.backbones, lrs)]
+    runs = [train_one(cfg, data, b, cfg.vgg16_lr if b == "vgg16" else cfg.small_lr, device) for b in cfg.backbones]
     machine: Dict[str, Any] = {"device": cfg.device, "torch": torch.__version__}
     if device.type == "cuda":
         machine["gpu"] = torch.cuda.get_device_name(device)
@@ -447,7 +456,7 @@ def train(cfg: Train) -> Dict[str, Any]:
     }
     cfg.doc.parent.mkdir(parents=True, exist_ok=True)
     cfg.doc.with_suffix(".json").write_text(json.dumps(res, indent=2))
-    cfg.doc.write_text(page(res))
+    cfg.doc.write_text(page(res, cfg.doc.with_suffix(".json").name))
     print(f"wrote {cfg.doc} and {cfg.doc.with_suffix('.json')}")
     return res
 
@@ -462,22 +471,29 @@ def command_line(cfg: Train) -> str:
     return " ".join(["python -m gsticker_plugin.bench.joint train", *opts])
 
 
-def page(res: Dict[str, Any]) -> str:
-    """The Markdown page of a ``train`` result."""
+def page(res: Dict[str, Any], json_name: str) -> str:
+    """The Markdown page of a ``train`` result whose JSON is ``json_name`` beside it."""
     pool = res["pool"]
+    cameras = pool.get("train_cameras") or ("both" if pool.get("novel_in_training") else "training")
+    pack_cmd = "python -m gsticker_plugin.bench.joint pack"
+    if cameras != "training":
+        pack_cmd += f" --train-cameras {cameras}"
+    found = re.search(r"--pool (\S+)", res["command"])
+    if found:
+        pack_cmd += f" --output {found.group(1)}"
     lines = [
         "# Joint training when compute is not the limit (the paper's setting, honestly)",
         "",
-        "Command (every number here is in [bench-joint.json](bench-joint.json), written by it):",
+        f"Commands (every number here is in [{json_name}]({json_name}), written by the second):",
         "",
         "```bash",
-        "python -m gsticker_plugin.bench.joint pack   # the pool of the lego100 nerfacto-small base, packed",
+        pack_cmd + "   # the fast-path pool of the lego100 nerfacto-small base, packed",
         res["command"],
         "```",
         "",
         f"Machine: {res['machine'].get('gpu', res['machine']['device'])}, torch {res['machine']['torch']}; "
         f"{res['date']}. Pool: {pool['train_views']} training views "
-        f"({'training and orbit cameras' if pool['novel_in_training'] else 'the training cameras'}), "
+        f"({CAMERAS[cameras]}), "
         f"{pool['heldout_views']} held-out orbit views never trained on, {pool['size'][0]} px, 8-bit renders; "
         f"packed renders differ from the fast path's by at most {pool['max_abs_error']:.1e} (a random message).",
         "",
@@ -516,13 +532,25 @@ def page(res: Dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+@dataclass
+class Page:
+    """Write the Markdown page of a ``train`` result again from its JSON (the page goes beside it, same stem)."""
+
+    json: Path = Path("docs/bench-joint.json")
+
+
 Command = Union[
     Annotated[Pack, tyro.conf.subcommand("pack", description="Pack the fast-path pool of a base (needs Nerfstudio).")],
     Annotated[Train, tyro.conf.subcommand("train", description="Joint training from a packed pool (PyTorch alone).")],
+    Annotated[Page, tyro.conf.subcommand("page", description="Write a result's page again from its JSON.")],
 ]
 
 
-def main(cmd: Union[Pack, Train]) -> Dict[str, Any]:
+def main(cmd: Union[Pack, Train, Page]) -> Dict[str, Any]:
+    if isinstance(cmd, Page):
+        res = json.loads(cmd.json.read_text())
+        cmd.json.with_suffix(".md").write_text(page(res, cmd.json.name))
+        return res
     return pack(cmd) if isinstance(cmd, Pack) else train(cmd)
 
 

@@ -54,6 +54,9 @@ class BenchOwnershipConfig(StickerRunConfig):
     """Per-view false-positive rate of the verdicts."""
     doc: Optional[Path] = None
     """Also write the results page here (and its JSON beside it, same stem)."""
+    more_messages: int = 0
+    """Also watermark the base with this many more random secret messages (same settings, one sticker run each) and
+    read each back: how the watermarked bit accuracy spreads over messages."""
 
 
 def verify_run(
@@ -186,14 +189,23 @@ def page(res: Dict[str, Any]) -> str:
         "| model | watermarked | verdict | views passing | matches min / median / max | bit accuracy | undetermined bits / view | seconds |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for row in [wm, *res["nulls"]]:
+    marked = [wm, *res.get("more_messages", [])]
+    for row in [*marked, *res["nulls"]]:
         m = sorted(row["matches"])
         lines.append(
-            f"| {row['name']} | {'yes' if row is wm else 'no'} | {row['verdict'].upper()} | "
+            f"| {row['name']} | {'yes' if any(row is x for x in marked) else 'no'} | {row['verdict'].upper()} | "
             f"{row['views_passing']}/{row['views']} | {m[0]} / {m[len(m) // 2]} / {m[-1]} | "
             f"{100 * row['bit_accuracy']:.2f} % | {row['undetermined_mean']:.1f} | {row['seconds']:.0f} |"
         )
     n = res["distinct_null_models"]
+    if len(marked) > 1:
+        accs = [100 * r["bit_accuracy"] for r in marked]
+        lines += [
+            "",
+            f"{len(marked)} random secret messages, each its own sticker run: watermarked bit accuracy "
+            f"{min(accs):.2f} % to {max(accs):.2f} % (mean {sum(accs) / len(accs):.2f} %), lowest view "
+            f"{min(min(r['matches']) for r in marked)}/48.",
+        ]
     lines += [
         "",
         f"{n} distinct unwatermarked models, {res['null_views']} null views: "
@@ -220,6 +232,7 @@ def main(cfg: BenchOwnershipConfig) -> Dict[str, Any]:
             [f"--load-checkpoint {cfg.load_checkpoint}"]
             + ([f"--data {cfg.data}"] if cfg.data else [])
             + [f"--steps {cfg.steps} --null-steps {cfg.null_steps} --num-views {cfg.num_views}"]
+            + ([f"--more-messages {cfg.more_messages}"] if cfg.more_messages else [])
             + ([f"--nulls {' '.join(map(str, cfg.nulls))}"] if cfg.nulls else [])
             + ([f"--doc {cfg.doc}"] if cfg.doc else [])
         ),
@@ -243,6 +256,18 @@ def main(cfg: BenchOwnershipConfig) -> Dict[str, Any]:
         nulls.append(
             verify_run(cfg, f"null {i + 1}: {Path(c).parent.parent.parent.name}", Path(c).resolve(), key_path, out, d)
         )
+    more = []
+    for i in range(1, cfg.more_messages + 1):
+        print(f"[4/4] message {i + 1}: ns-train geometrysticker, ns-verify-owner", flush=True)
+        sub = out / f"message-{i + 1}"
+        sub_logs = sub / "logs"
+        sub_logs.mkdir(parents=True, exist_ok=True)
+        train_sticker(cfg, sub, base_ckpt, data, sub_logs)
+        sub_wm = sub / "bench" / "geometrysticker" / "watermarked"
+        sub_key = sub_wm.with_name("watermarked.gskey")
+        row = verify_run(cfg, f"watermarked run, message {i + 1}", sub_wm / "config.yml", sub_key, out, None)
+        more.append({**row, "message_source": OwnerKey.load(sub_key).message_source})
+    res["more_messages"] = more
     res["nulls"] = nulls
     res["distinct_null_models"] = len({n["config"] for n in nulls})
     res["null_views"] = sum(n["views"] for n in nulls)

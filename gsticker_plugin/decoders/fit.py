@@ -73,13 +73,15 @@ def fit_message(
     iterations: int = 10,
     damping: float = 1e-3,
     jac: Optional[Callable[[Tensor], Optional[Tensor]]] = None,
+    restart: bool = True,
     corner_rounds: int = 2,
 ) -> Fit:
     """Least squares ``min_s |target - (predict(s) - predict(0))|^2`` over ``s in [-1, 1]^K``.
 
     Levenberg-Marquardt from ``s = 0`` (Jacobians from ``jac(s)`` when it gives one, else by forward-mode AD;
-    normal equations in float64, steps clamped to the box), then ``corner_rounds`` rounds of :func:`corner_search`.
-    A zero target returns ``s = 0`` exactly.
+    normal equations in float64, steps clamped to the box); ``restart``: once more from the corner ``sign(s)`` of
+    that fit, keeping the lower residual (a fit stuck between basins beside a marked corner slides into it from
+    there); then ``corner_rounds`` rounds of :func:`corner_search` from each fit, the lowest residual kept. A zero target returns ``s = 0`` exactly.
     """
     s = torch.zeros(num_bits, dtype=target.dtype, device=target.device)
     with torch.no_grad():
@@ -89,8 +91,38 @@ def fit_message(
     rms = (cost0 / max(1, target.numel())) ** 0.5
     if cost0 == 0.0:
         return Fit(signs=s, explained=0.0, residual_rms=0.0, iterations=0)
-    e = target.clone()
-    cost = cost0
+
+    def residual(x: Tensor) -> Tensor:
+        with torch.no_grad():
+            return target - (predict(x).reshape(-1) - f0)
+
+    s, cost, it = levenberg_marquardt(predict, f0, residual, s, iterations, damping, jac, cost0)
+    fits = [(s, cost)]
+    if restart:
+        corner = torch.where(s.abs() > 1e-6, torch.sign(s), torch.zeros_like(s))
+        s2, cost2, it2 = levenberg_marquardt(predict, f0, residual, corner, iterations, damping, jac, cost0)
+        fits.append((s2, cost2))
+        it += it2
+    if corner_rounds > 0:
+        fits = [corner_search(residual, x, c, corner_rounds) for x, c in fits]
+    s, cost = min(fits, key=lambda f: f[1])
+    return Fit(signs=s.detach(), explained=1.0 - cost / cost0, residual_rms=rms, iterations=it)
+
+
+def levenberg_marquardt(
+    predict: Callable[[Tensor], Tensor],
+    f0: Tensor,
+    residual: Callable[[Tensor], Tensor],
+    s: Float[Tensor, " K"],
+    iterations: int,
+    damping: float,
+    jac: Optional[Callable[[Tensor], Optional[Tensor]]],
+    cost0: float,
+) -> Tuple[Float[Tensor, " K"], float, int]:
+    """Damped Gauss-Newton steps from ``s`` (clamped to the box) on ``|residual(s)|^2``; returns ``s``, its cost and
+    the iterations run (stops when a step gains less than 1e-10 of ``cost0``)."""
+    e = residual(s)
+    cost = float((e.double() ** 2).sum())
     lam = damping
     it = 0
     for it in range(1, iterations + 1):
@@ -102,12 +134,11 @@ def fit_message(
         g = j.T @ e.double()
         diag = torch.diagonal(a).clone()
         ridge = 1e-12 * float(diag.max()) if float(diag.max()) > 0 else 1e-30
-        improved = False
+        improved, gain = False, 0.0
         while lam < 1e8:
             step = torch.linalg.solve(a + torch.diag(lam * diag + ridge), g)
             s_try = (s + step.to(s.dtype)).clamp(-1.0, 1.0)
-            with torch.no_grad():
-                e_try = target - (predict(s_try).reshape(-1) - f0)
+            e_try = residual(s_try)
             c_try = float((e_try.double() ** 2).sum())
             if c_try < cost:
                 s, e, improved = s_try, e_try, True
@@ -118,9 +149,7 @@ def fit_message(
             lam *= 10.0
         if not improved or gain <= 1e-10 * cost0:
             break
-    if corner_rounds > 0:
-        s, cost = corner_search(lambda x: target - (predict(x).reshape(-1) - f0), s, cost, corner_rounds)
-    return Fit(signs=s.detach(), explained=1.0 - cost / cost0, residual_rms=rms, iterations=it)
+    return s, cost, it
 
 
 @torch.no_grad()
