@@ -15,7 +15,7 @@ from typing import Dict
 import numpy as np
 import pytest
 import torch
-from conftest import CPU_ARGS, console_script, run_parallel, subprocess_env
+from conftest import CPU_ARGS, TINY_MESSAGE, console_script, run_parallel, subprocess_env
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
@@ -185,6 +185,9 @@ def capture(tmp_path_factory) -> Dict[str, Path]:
         "20",
         "--pipeline.key-path",
         str(key),
+        # one fixed message: a regression test of the pipeline (the spread over random messages is benchmarked)
+        "--pipeline.message",
+        TINY_MESSAGE,
     ]
     (proc,) = run_parallel([sticker], ws / "logs-wm")
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]

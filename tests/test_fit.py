@@ -63,7 +63,7 @@ def _saturated(seed, k=16):
 def test_restart_from_the_fits_corner_and_corner_search_find_marks_a_single_fit_misses():
     for seed, plain_matches in ((2, 14), (24, 15)):
         predict, truth, target = _saturated(seed)
-        plain, _ = decide_bits(fit_message(predict, target, 16, restart=False, corner_rounds=0).signs)
+        plain, _ = decide_bits(fit_message(predict, target, 16, restarts=0, corner_rounds=0).signs)
         full, _ = decide_bits(fit_message(predict, target, 16).signs)
         assert int((plain == (truth > 0).long()).sum()) == plain_matches  # one Levenberg-Marquardt run stops short
         assert torch.equal(full, (truth > 0).long())

@@ -73,15 +73,16 @@ def fit_message(
     iterations: int = 10,
     damping: float = 1e-3,
     jac: Optional[Callable[[Tensor], Optional[Tensor]]] = None,
-    restart: bool = True,
+    restarts: int = 3,
     corner_rounds: int = 2,
 ) -> Fit:
     """Least squares ``min_s |target - (predict(s) - predict(0))|^2`` over ``s in [-1, 1]^K``.
 
     Levenberg-Marquardt from ``s = 0`` (Jacobians from ``jac(s)`` when it gives one, else by forward-mode AD;
-    normal equations in float64, steps clamped to the box); ``restart``: once more from the corner ``sign(s)`` of
-    that fit, keeping the lower residual (a fit stuck between basins beside a marked corner slides into it from
-    there); then ``corner_rounds`` rounds of :func:`corner_search` from each fit, the lowest residual kept. A zero target returns ``s = 0`` exactly.
+    normal equations in float64, steps clamped to the box); up to ``restarts`` times again from the corner
+    ``sign(s)`` of the best fit so far while that lowers the residual (a fit stuck between basins beside a marked
+    corner slides into it from there); then ``corner_rounds`` rounds of :func:`corner_search` from each fit, the
+    lowest residual kept. A zero target returns ``s = 0`` exactly.
     """
     s = torch.zeros(num_bits, dtype=target.dtype, device=target.device)
     with torch.no_grad():
@@ -98,11 +99,18 @@ def fit_message(
 
     s, cost, it = levenberg_marquardt(predict, f0, residual, s, iterations, damping, jac, cost0)
     fits = [(s, cost)]
-    if restart:
+    tried = set()
+    for _ in range(restarts):
         corner = torch.where(s.abs() > 1e-6, torch.sign(s), torch.zeros_like(s))
+        if tuple(corner.tolist()) in tried:
+            break
+        tried.add(tuple(corner.tolist()))
         s2, cost2, it2 = levenberg_marquardt(predict, f0, residual, corner, iterations, damping, jac, cost0)
         fits.append((s2, cost2))
         it += it2
+        if cost2 >= cost:
+            break
+        s, cost = s2, cost2
     if corner_rounds > 0:
         fits = [corner_search(residual, x, c, corner_rounds) for x, c in fits]
     s, cost = min(fits, key=lambda f: f[1])
