@@ -26,6 +26,11 @@ PValues = Union[Sequence[float], Tensor]
 # ----------------------------------------------------------------------------------------------------------------
 # bits
 # ----------------------------------------------------------------------------------------------------------------
+def as_8_bit(images: Tensor) -> Tensor:
+    """Images rounded to 8 bits, as a saved PNG holds them."""
+    return torch.round(images.float().clamp(0, 1) * 255.0) / 255.0
+
+
 def message_to_bits(message: Union[int, str, Sequence[int], Tensor], k: int | None = None) -> Int[Tensor, "... K"]:
     """A message as a long tensor of 0/1 bits.
 

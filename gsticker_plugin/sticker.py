@@ -49,6 +49,12 @@ def positional_encoding(x: Float[Tensor, "*bs 3"], num_frequencies: int) -> Floa
     return torch.cat([x, enc], dim=-1)
 
 
+def normalize_positions(positions: Float[Tensor, "*bs 3"], aabb: Float[Tensor, "2 3"]) -> Float[Tensor, "*bs 3"]:
+    """World positions to the sticker's [0, 1]^3 inside ``aabb`` (clamped outside it)."""
+    lo, hi = aabb[0].to(positions), aabb[1].to(positions)
+    return ((positions - lo) / (hi - lo)).clamp(0.0, 1.0)
+
+
 def message_to_signs(message: Tensor) -> Tensor:
     """0/1 bits -> -1/+1 float inputs for the sticker."""
     return message.float() * 2.0 - 1.0
@@ -285,8 +291,7 @@ class DensityWrap:
             del self.field.__dict__["get_density"]
 
     def normalize(self, positions: Tensor) -> Tensor:
-        lo, hi = self.aabb[0].to(positions), self.aabb[1].to(positions)
-        return ((positions - lo) / (hi - lo)).clamp(0.0, 1.0)
+        return normalize_positions(positions, self.aabb)
 
     def open_samples(self, sigma: Tensor) -> Tuple[Tensor, Tensor]:
         """psi at each sample and where the gate is open (psi above the threshold of a calibrated gate): the one

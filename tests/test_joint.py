@@ -12,7 +12,7 @@ from gsticker_plugin.fastpath import with_density_change
 
 
 def _gate(wrap):
-    return wrap.sticker, wrap.gate.mu, wrap.gate.beta, wrap.gate.scale, wrap.gate_threshold
+    return wrap.sticker, (wrap.gate.mu, wrap.gate.beta, wrap.gate.scale, wrap.gate_threshold)
 
 
 def ray_view():

@@ -33,7 +33,6 @@ import tyro
 from gsticker_plugin import metrics
 from gsticker_plugin.attacks import RandomDistortion, RandomDistortionConfig
 from gsticker_plugin.bench.sticker import sticker_trainer_config
-from gsticker_plugin.evaluation.workspace import as_8_bit
 from gsticker_plugin.extractor import (
     BlindExtractor,
     ExtractorConfig,
@@ -44,6 +43,7 @@ from gsticker_plugin.extractor import (
 from gsticker_plugin.fastpath import render_offset, render_signs, sign_jacobian
 from gsticker_plugin.key import random_message
 from gsticker_plugin.machine import machine_info
+from gsticker_plugin.metrics import as_8_bit
 from gsticker_plugin.sticker import BlindTerm
 
 

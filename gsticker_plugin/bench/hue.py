@@ -27,9 +27,9 @@ from gsticker_plugin.attacks import hue_shift
 from gsticker_plugin.decoders.image import decode_posed_images
 from gsticker_plugin.decoders.reference import load_base_reference
 from gsticker_plugin.evaluate import render_split
-from gsticker_plugin.evaluation.workspace import as_8_bit
 from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.machine import machine_info
+from gsticker_plugin.metrics import as_8_bit
 from gsticker_plugin.runs import load_run
 
 

@@ -29,7 +29,7 @@ from torch import Tensor
 
 from gsticker_plugin import metrics
 from gsticker_plugin.heads import ConvHead, HeadConfig, count_parameters
-from gsticker_plugin.sticker import Sticker, laplace_cdf_gate, render_weights
+from gsticker_plugin.sticker import Sticker, composite, laplace_cdf_gate, message_to_signs, normalize_positions
 
 PACK_VERSION = 1
 CAMERAS = {
@@ -162,8 +162,8 @@ def pack(cfg: Pack) -> Dict[str, Any]:
         msg = torch.randint(0, 2, (wrap.sticker.num_bits,), generator=gen)
         delta, _ = wrap.delta(v.density, v.positions.float(), msg)
         exact = with_density_change(v, delta, bg.color)
-        sticker_gate = (wrap.sticker, wrap.gate.mu, wrap.gate.beta, wrap.gate.scale, wrap.gate_threshold)
-        mine = render_packed(p, wrap.aabb, *sticker_gate, bg.color, msg)
+        gate = (wrap.gate.mu, wrap.gate.beta, wrap.gate.scale, wrap.gate_threshold)
+        mine = render_packed(p, wrap.aabb, wrap.sticker, gate, bg.color, msg)
         errs.append(float((mine - exact).abs().max().detach()))
     sizes = [int(p["density"].shape[0] * p["density"].shape[1]) for vs in packed.values() for p in vs]
     out = {
@@ -196,19 +196,12 @@ def pack(cfg: Pack) -> Dict[str, Any]:
 
 
 def render_packed(
-    p: Dict[str, Tensor],
-    aabb: Tensor,
-    sticker: Sticker,
-    mu,
-    beta,
-    scale,
-    threshold: float,
-    background: Tensor,
-    message: Tensor,
+    p: Dict[str, Tensor], aabb: Tensor, sticker: Sticker, gate: tuple, background: Tensor, message: Tensor
 ) -> Tensor:
-    """A packed view rendered with the sticker of ``message`` (one view; unclamped), for the pack's check."""
+    """A packed view rendered with the sticker of ``message`` (one view; unclamped; ``gate``: mu, beta, scale,
+    threshold), for the pack's check."""
     batch = stack_views([p], aabb, torch.device("cpu"))
-    return render_batch(batch, torch.tensor([0]), sticker, (mu, beta, scale, threshold), background, message[None])[0]
+    return render_batch(batch, torch.tensor([0]), sticker, gate, background, message[None])[0]
 
 
 # ---------------------------------------------------------------------------------------------- batched rendering
@@ -231,17 +224,12 @@ def stack_views(views: List[Dict[str, Tensor]], aabb: Tensor, device: torch.devi
     return {
         "image": torch.stack([v["image"].float().reshape(h * w, 3) for v in views]).to(device),
         "rays": torch.stack([pad(v["rays"].long()) for v in views]).to(device),
-        "positions": normalize(ends[:, :, :1] + frac * (ends[:, :, 1:] - ends[:, :, :1]), aabb.to(device)),
+        "positions": normalize_positions(ends[:, :, :1] + frac * (ends[:, :, 1:] - ends[:, :, :1]), aabb),
         "density": torch.stack([pad(v["density"].float()) for v in views]).to(device),
         "deltas": deltas,
         "rgb": torch.stack([pad(v["rgb"].float() / 255.0) for v in views]).to(device),
         "hw": torch.tensor([h, w]),
     }
-
-
-def normalize(positions: Tensor, aabb: Tensor) -> Tensor:
-    """World positions to the sticker's [0, 1]^3 (as ``DensityWrap.normalize``)."""
-    return ((positions - aabb[0]) / (aabb[1] - aabb[0])).clamp(0.0, 1.0)
 
 
 def render_batch(
@@ -255,30 +243,25 @@ def render_batch(
     psi = laplace_cdf_gate(dens, torch.as_tensor(mu).to(dens), torch.as_tensor(beta).to(dens))
     open_ = (psi > threshold).float()
     feats = sticker.features(pos.reshape(-1, 3)).reshape(v, r * s, -1)  # [V RS K]
-    signs = (messages.float() * 2.0 - 1.0).reshape(v, m, -1)  # [V M K]
+    signs = message_to_signs(messages).reshape(v, m, -1)  # [V M K]
     mix = torch.tanh(torch.einsum("vnk,vmk->vmn", feats, signs) / math.sqrt(feats.shape[-1]))  # [V M RS]
     delta = (psi * open_ * scale).reshape(v, 1, r * s) * mix
     marked = torch.relu(dens.reshape(v, 1, r * s) + delta).reshape(v * m * r, s, 1)
-    dl = batch["deltas"][idx].repeat_interleave(m, 0).reshape(v * m * r, s, 1)
-    rgb = batch["rgb"][idx].repeat_interleave(m, 0).reshape(v * m * r, s, 3)
-    clean = batch["density"][idx].repeat_interleave(m, 0).reshape(v * m * r, s, 1)
-    bg = background.to(dens)
-
-    def comp(density: Tensor) -> Tensor:
-        w = render_weights(density, dl)
-        return (w * rgb).sum(-2) + bg * (1.0 - w.sum(-2))
-
-    change = (comp(marked) - comp(clean)).reshape(v * m, r, 3)
+    dl, rgb = batch["deltas"][idx].reshape(v * r, s, 1), batch["rgb"][idx].reshape(v * r, s, 3)
+    clean, _ = composite(dens.reshape(v * r, s, 1), rgb, dl, background)  # once per view, not per message
+    per_message = lambda t: t.reshape(v, 1, r, s, -1).expand(-1, m, -1, -1, -1).reshape(v * m * r, s, -1)  # noqa: E731
+    marked, _ = composite(marked, per_message(rgb), per_message(dl), background)
+    change = marked.reshape(v, m, r, 3) - clean.reshape(v, 1, r, 3)
     h, w = int(batch["hw"][0]), int(batch["hw"][1])
     image = batch["image"][idx].repeat_interleave(m, 0)
     rays = batch["rays"][idx].repeat_interleave(m, 0)
-    return image.scatter_add(1, rays[..., None].expand(-1, -1, 3), change).reshape(v * m, h, w, 3)
+    return image.scatter_add(1, rays[..., None].expand(-1, -1, 3), change.reshape(v * m, r, 3)).reshape(v * m, h, w, 3)
 
 
 def quantize(img: Tensor) -> Tensor:
     """8-bit rounding as a saved render, straight-through for gradients."""
-    q = torch.round(img.clamp(0.0, 1.0) * 255.0) / 255.0
-    return img.clamp(0.0, 1.0) + (q - img.clamp(0.0, 1.0)).detach()
+    clamped = img.clamp(0.0, 1.0)
+    return clamped + (metrics.as_8_bit(clamped) - clamped).detach()
 
 
 def chw(images: Tensor) -> Tensor:

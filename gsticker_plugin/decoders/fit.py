@@ -101,7 +101,7 @@ def fit_message(
     fits = [(s, cost)]
     tried = set()
     for _ in range(restarts):
-        corner = torch.where(s.abs() > 1e-6, torch.sign(s), torch.zeros_like(s))
+        corner = corner_of(s)
         if tuple(corner.tolist()) in tried:
             break
         tried.add(tuple(corner.tolist()))
@@ -160,6 +160,11 @@ def levenberg_marquardt(
     return s, cost, it
 
 
+def corner_of(s: Float[Tensor, " K"], tol: float = 1e-6) -> Float[Tensor, " K"]:
+    """The box corner nearest ``s``: ``sign(s_i)``, and 0 for bits with ``|s_i| <= tol`` (undetermined)."""
+    return torch.where(s.abs() > tol, torch.sign(s), torch.zeros_like(s))
+
+
 @torch.no_grad()
 def corner_search(
     residual: Callable[[Tensor], Tensor], s: Float[Tensor, " K"], cost: float, rounds: int = 2, tol: float = 1e-6
@@ -168,7 +173,7 @@ def corner_search(
     a corner's exactly, and a fit stuck beside it is pulled there. Bits with ``|s_i| <= tol`` stay 0; the least
     certain bits are tried first; a corner replaces ``s`` only if its squared residual is below ``cost``."""
     determined = s.abs() > tol
-    corner = torch.where(determined, torch.sign(s), torch.zeros_like(s))
+    corner = corner_of(s, tol)
     c = float((residual(corner).double() ** 2).sum())
     order = [int(i) for i in torch.argsort(s.abs()) if bool(determined[i])]
     for _ in range(rounds):

@@ -252,7 +252,7 @@ class Workspace:
         saved image files are). Image ``j`` is read as if taken at test view ``j mod num_views``: for unmarked
         images (false positives) any image of that size is a valid null, the decoder never uses the message."""
 
-        images = as_8_bit(images_nhw3)
+        images = metrics.as_8_bit(images_nhw3)
         digest = hashlib.sha1((images * 255.0).to(torch.uint8).numpy().tobytes()).hexdigest()
         if not hasattr(self, "_image_decoded"):
             self._image_decoded: Dict[str, Dict[str, Any]] = {}
@@ -422,7 +422,3 @@ def describe_spec(spec: str) -> str:
         " (cropout: the rectangle is replaced by the unwatermarked render of the same view)" if "crop" in spec else ""
     )
     return "; ".join(parts) + extra
-
-
-def as_8_bit(images: Tensor) -> Tensor:
-    return torch.round(images.float().clamp(0, 1) * 255.0) / 255.0
