@@ -700,16 +700,20 @@ def test_verify_images_at_known_cameras_with_the_image_decoder(runs, ws, capsys,
     )
     (r,) = report_of(ws / "rep-gt")["keys"]
     assert status == 1 and r["empirical_null"]["n"] == 2 and r["thresholds"]["empirical"] is not None, stdout
-    # without cameras auto falls back to the extractor and says why; bad input: one line, exit 2
-    status, stdout, _ = run_cli(
-        ["--images", str(images), "--key", str(runs["key"]), "--output", str(ws / "rep-ex")], capsys
+    # without cameras the image decoder finds each image's camera against the base: the watermarked renders read,
+    # the stray black image does not; bad input: one line, exit 2
+    status, stdout, err = run_cli(
+        ["--images", str(images), "--key", str(runs["key"]), "--output", str(ws / "rep-unposed")], capsys
     )
-    assert report_of(ws / "rep-ex")["decoder"]["kind"] == "extractor" and "--cameras" in stdout
+    rep = report_of(ws / "rep-unposed")
+    (r,) = rep["keys"]
+    matches = {v["name"]: v["matches"] for v in r["per_view"]}
+    assert rep["decoder"]["kind"] == "image" and rep["decoder"]["cameras"] == "estimated", (stdout, err[-1500:])
+    assert matches["r_0.png"] >= 41 and matches["r_1.png"] >= 41 and matches["stray.png"] < 41, matches
     for argv, msg in (
-        (["--images", str(images), "--decode", "image"], "--cameras"),
         (["--load-config", str(runs["run"]), *cams], "drop --cameras"),
         (["--images", str(images), "--cameras", str(ws / "missing.json")], "does not exist"),
-        (["--images", str(ws / "rep-ex"), *cams], "none of the"),
+        (["--images", str(ws / "rep-unposed"), *cams], "none of the"),
     ):
         status, _, err = run_cli([*argv, "--key", str(runs["key"]), "--output", str(ws / "rep-bad")], capsys)
         assert status == 2 and msg in one_error_line(err), err[-800:]

@@ -133,11 +133,13 @@ def decode_image_view(
     iterations: int = 10,
     luma: bool = False,
     value: bool = False,
+    pose_columns: Optional[Float[Tensor, "M 6"]] = None,
 ) -> Dict[str, Any]:
     """Fit the continuous message to one image's colour change (image minus base render) and decide the bits;
     ``luma``: read the change's luma only (what JPEG keeps at full resolution); ``value``: read the change of
     V = max(R, G, B) only, which an HSV hue shift leaves exactly as it is (its Jacobian: the rows of the channel
-    that holds the maximum)."""
+    that holds the maximum). ``pose_columns``: d base render / d pose at the rays (RGB rows ``r * 3 + c``, or V rows
+    with ``value``): an estimated camera's small error is fitted alongside the message (:func:`without_columns`)."""
     if value:
         signal = "value"
         target = image_rgb.float().amax(dim=-1) - ref.base_rgb.amax(dim=-1)
@@ -164,10 +166,30 @@ def decode_image_view(
             j = image_change_jacobian(ref, sticker, x)
             return None if j is None else observe(j, luma)
 
+    if pose_columns is not None:  # the fit sees only what a small pose change of the base render cannot explain
+        target, predict, jac = without_columns(
+            observe(pose_columns, luma) if not value else pose_columns, target, predict, jac
+        )
     fit, bits, undetermined = fit_and_decide(
         predict, jac, target, sticker.num_bits, ref.view.rays.numel() > 0, generator, iterations
     )
     return {"bits": bits, **fit_summary(fit, undetermined, int(ref.view.rays.numel())), "signals": [signal]}
+
+
+def without_columns(columns: Float[Tensor, "M P"], target: Tensor, predict, jac):
+    """``target``, ``predict`` and ``jac`` projected onto the complement of ``columns``' span: a least-squares fit of
+    the message then equals the joint fit of the message and free coefficients of ``columns``."""
+    q = torch.linalg.qr(columns.double())[0]
+
+    def project(x: Tensor) -> Tensor:
+        x64 = x.double()
+        return (x64 - q @ (q.T @ x64)).to(x.dtype)
+
+    def jac_projected(x: Tensor) -> Optional[Tensor]:
+        j = jac(x)
+        return None if j is None else project(j)
+
+    return project(target), (lambda x: project(predict(x))), jac_projected
 
 
 VALUE_MARGIN = 0.25

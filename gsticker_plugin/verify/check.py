@@ -23,6 +23,7 @@ from gsticker_plugin.decoders.reference import (
     missing_geometry_message,
     recorded_base_config,
 )
+from gsticker_plugin.decoders.unposed import decode_unposed_images
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import KEY_SUFFIX, OwnerKey, commitment
 from gsticker_plugin.runs import load_run, pick_device
@@ -105,10 +106,10 @@ def choose_decoder(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]]) -> T
                 "--decode geometry reads a model's geometry, not images: pass --load-config "
                 "SUSPECT/config.yml, or use --decode image --cameras CAMERAS.json with --images"
             )
-        if config.decode == "image" and (config.images is None or config.cameras is None):
+        if config.decode == "image" and config.images is None:
             raise GStickerError(
-                "--decode image reads images at known cameras: pass --images DIR and --cameras "
-                "transforms.json (for a model use --decode geometry)"
+                "--decode image reads images: pass --images DIR (with --cameras transforms.json when their cameras "
+                "are known; for a model use --decode geometry)"
             )
         for path, key in keys:
             if not key.geometry:
@@ -116,11 +117,6 @@ def choose_decoder(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]]) -> T
         return config.decode, []
     if config.decode == "extractor":
         return "extractor", []
-    if config.load_config is None and config.cameras is None:
-        return "extractor", [
-            "auto: images without cameras can only be decoded by the extractor (pass --cameras "
-            "transforms.json for the informed image decoder)"
-        ]
     kind, what = ("geometry", "geometric") if config.load_config is not None else ("image", "image")
     for path, key in keys:
         if not key.geometry:
@@ -197,16 +193,30 @@ def _verify_images_informed(
     """The informed image decoder on the images that have a camera in --cameras, for every key (each against its own
     base run)."""
 
-    frames = read_cameras_file(config.cameras)
+    frames = read_cameras_file(config.cameras) if config.cameras is not None else None
     results, used, bases, notes = [], None, [], []
     for path, key in keys:
         ref = load_base_reference(key, path, config.base_config, config.base_data or config.data, device)
-        posed, dec = decode_images_at_cameras(key, ref, views, frames, config.seed, config.progress)
-        posed.details["cameras_of"] = str(config.cameras)
+        if frames is not None:
+            posed, dec = decode_images_at_cameras(key, ref, views, frames, config.seed, config.progress)
+            posed.details["cameras_of"] = str(config.cameras)
+        else:
+            with contextlib.redirect_stdout(sys.stderr):
+                dec = decode_unposed_images(
+                    key,
+                    ref,
+                    [v.image.permute(1, 2, 0) for v in views.views],
+                    config.seed,
+                    progress=config.progress,
+                    names=[v.name for v in views.views],
+                )
+            posed = views
+            posed.details["cameras_of"] = "found by a camera search against the owner's base"
         results.append(_informed_result(key, path, dec, posed, config, "image", ref, notes, bases))
         used = used or posed
         del ref
-    return results, used, {"bases": bases, "cameras": str(config.cameras), "notes": notes}
+    cameras = str(config.cameras) if config.cameras is not None else "estimated"
+    return results, used, {"bases": bases, "cameras": cameras, "notes": notes}
 
 
 def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
@@ -259,7 +269,13 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
             "informed": True,
             **info,
             "description": "informed: fits the key's sticker to each image's colour change from the "
-            "owner's unwatermarked base rendered at the image's camera (--cameras)",
+            "owner's unwatermarked base rendered at the image's camera ("
+            + (
+                "--cameras"
+                if config.cameras is not None
+                else "found against the base; its error fitted beside the message"
+            )
+            + ")",
         }
     else:
         if config.load_config is not None:

@@ -36,14 +36,15 @@ class VerifyConfig:
     the owner's base run under --decode geometry when its recorded dataset does not exist and --base-data is unset)."""
     decode: Literal["auto", "geometry", "image", "extractor"] = "auto"
     """geometry: informed decoding from the suspect model's accumulation/depth, given the owner's unwatermarked base
-    run (needs a version-2 key and --load-config; model-level only); image: informed decoding of --images taken at
-    the known cameras of --cameras, given the owner's base run (the same fit on colour); extractor: the key's CNN
-    reads the message from RGB renders or images (blind); auto: geometry for a model and image for images with
-    --cameras when the keys' base runs are reachable, else extractor."""
+    run (needs a version-2 key and --load-config; model-level only); image: informed decoding of --images, given the
+    owner's base run (the same fit on colour), at the cameras of --cameras or, without it, at cameras found by a
+    search against the base (about a minute per image on a CPU); extractor: the key's CNN reads the message from RGB
+    renders or images (blind); auto: geometry for a model and image for images when the keys' base runs are
+    reachable, else extractor."""
     cameras: Optional[Path] = None
     """--images only: a transforms JSON (Blender format, e.g. the base dataset's transforms_test.json) giving each
-    image's camera, matched by file name without extension (r_0.png <-> ./test/r_0); enables --decode image.
-    Images without a camera are skipped and listed."""
+    image's camera, matched by file name without extension (r_0.png <-> ./test/r_0); without it the image decoder
+    finds each image's camera itself. Images without a camera in the file are skipped and listed."""
     base_config: Optional[Path] = None
     """The owner's base run (config.yml) for --decode geometry, when the path recorded in the key moved."""
     base_data: Optional[Path] = None

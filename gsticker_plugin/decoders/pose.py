@@ -1,0 +1,423 @@
+"""The camera of a suspect image, found against the owner's base: candidate poses, then Gauss-Newton on the pixels.
+
+The informed image decoder needs each image's camera to a few hundredths of a pixel (docs/verify.md). Without a
+cameras file, :func:`estimate_camera` scores the base's renders at candidate poses (its training cameras and novel
+ones drawn like the pool's) against the image at a few pixels' size, then refines the best ones by Levenberg-Marquardt
+on the photometric residual (6 pose parameters, finite-difference Jacobian of the base render) from coarse to full
+resolution. It uses the image and the owner's base only, never the owner's message.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Float, Int
+from nerfstudio.cameras.cameras import Cameras
+from torch import Tensor
+
+from gsticker_plugin.attacks.geometric import rotate
+from gsticker_plugin.decoders.geometric import render_rays
+from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.fastpath import axis_angle_matrix, novel_cameras
+
+
+def moved_camera(camera: Cameras, delta: Float[Tensor, " 6"], distance: float = 1.0) -> Cameras:
+    """``camera`` turned by the axis-angle ``delta[:3]`` (radians, camera frame) and moved by ``delta[3:] *
+    distance`` (camera frame); one camera."""
+    c2w = camera.camera_to_worlds[:1].detach().clone().float().cpu()
+    r = c2w[0, :, :3]
+    w = delta[:3].double()
+    angle = float(w.norm())
+    turn = axis_angle_matrix((w / angle).float(), angle) if angle > 0 else torch.eye(3)
+    c2w[0, :, 3] = c2w[0, :, 3] + r @ (delta[3:].float() * distance)
+    c2w[0, :, :3] = r @ turn
+    return Cameras(
+        camera_to_worlds=c2w,
+        fx=camera.fx[:1].cpu(),
+        fy=camera.fy[:1].cpu(),
+        cx=camera.cx[:1].cpu(),
+        cy=camera.cy[:1].cpu(),
+        width=camera.width[:1].cpu(),
+        height=camera.height[:1].cpu(),
+        camera_type=camera.camera_type[:1].cpu(),
+    )
+
+
+def scaled_camera(camera: Cameras, height: int, width: int) -> Cameras:
+    """``camera`` (one) with its intrinsics scaled to an image of ``height x width`` px."""
+    sx = width / float(camera.width[0])
+    sy = height / float(camera.height[0])
+    return Cameras(
+        camera_to_worlds=camera.camera_to_worlds[:1].detach().float().cpu(),
+        fx=camera.fx[:1].cpu() * sx,
+        fy=camera.fy[:1].cpu() * sy,
+        cx=camera.cx[:1].cpu() * sx,
+        cy=camera.cy[:1].cpu() * sy,
+        width=width,
+        height=height,
+        camera_type=camera.camera_type[:1].cpu(),
+    )
+
+
+def camera_distance(camera: Cameras) -> float:
+    """How far the camera is from the world origin (the scale of its translation steps); 1 at the origin."""
+    d = float(camera.camera_to_worlds[0, :, 3].norm())
+    return d if d > 1e-6 else 1.0
+
+
+def channel_of(rgb: Float[Tensor, "... 3"], value: bool) -> Float[Tensor, "..."]:
+    """What the pose fit compares: RGB as it is, or V = max(R, G, B) (unchanged by a hue shift)."""
+    return rgb.amax(dim=-1, keepdim=True) if value else rgb
+
+
+def area_resize(image: Float[Tensor, "H W 3"], height: int, width: int) -> Float[Tensor, "h w 3"]:
+    """``image`` averaged down to ``height x width`` (area interpolation)."""
+    x = image.float().permute(2, 0, 1)[None]
+    return F.interpolate(x, size=(height, width), mode="area")[0].permute(1, 2, 0)
+
+
+Window = Tuple[int, int, int, int]
+"""Rows ``[r0, r1)`` and columns ``[c0, c1)`` of an image."""
+
+
+def pixel_grid(height: int, width: int, window: Optional[Window] = None) -> Float[Tensor, "P 2"]:
+    """Pixel-centre coordinates (row, column) of an image or of its ``window``, row-major, as nerfstudio's cameras
+    take them."""
+    r0, r1, c0, c1 = window if window is not None else (0, height, 0, width)
+    ii, jj = torch.meshgrid(torch.arange(r0, r1), torch.arange(c0, c1), indexing="ij")
+    return torch.stack([ii, jj], dim=-1).reshape(-1, 2).float() + 0.5
+
+
+@torch.no_grad()
+def render_cameras(
+    model, cameras: Cameras, keys: Sequence[str] = ("rgb",), window: Optional[Window] = None
+) -> Dict[str, Tensor]:
+    """The model's outputs ``keys`` for every camera of ``cameras`` (all the same size), or for their ``window``, in
+    one batched pass: ``{key: [N H W C]}`` on the CPU."""
+    n = cameras.shape[0]
+    r0, r1, c0, c1 = window if window is not None else (0, int(cameras.height[0]), 0, int(cameras.width[0]))
+    h, w = r1 - r0, c1 - c0
+    coords = pixel_grid(h, w, None).repeat(n, 1) + torch.tensor([float(r0), float(c0)])
+    index = torch.arange(n).repeat_interleave(h * w)[:, None]
+    bundle = cameras.to(model.device).generate_rays(
+        camera_indices=index.to(model.device), coords=coords.to(model.device)
+    )
+    out = model.get_outputs_for_camera_ray_bundle(bundle.reshape((-1, 1)))
+    return {k: out[k].reshape(n, h, w, -1).float().cpu() for k in keys}
+
+
+def ncc(a: Float[Tensor, "N M"], b: Float[Tensor, " M"]) -> Float[Tensor, " N"]:
+    """Normalised cross-correlation of each row of ``a`` with ``b``."""
+    a = a - a.mean(dim=-1, keepdim=True)
+    b = b - b.mean()
+    return (a @ b) / (a.norm(dim=-1) * b.norm()).clamp_min(1e-12)
+
+
+@dataclass
+class PoseFit:
+    """A camera found for an image and how well the base render at it explains the image."""
+
+    camera: Cameras
+    rms: float  # RMS of image minus base render at full size, on the fitted channel
+    score: float  # NCC of the best candidate at the search size
+    iterations: int
+    history: List[Dict[str, Any]] = field(default_factory=list)
+
+
+def projection(camera: Cameras, points: Float[Tensor, "P 3"]):
+    """A function of the pose change ``delta`` (6, as :func:`moved_camera`) giving the pixel (row, column) of each
+    world point in ``camera`` moved by it (nerfstudio's OpenGL convention: the camera looks down -z, y up)."""
+    c2w = camera.camera_to_worlds[0].double().cpu()
+    r, t = c2w[:, :3], c2w[:, 3]
+    xc = (points.double() - t) @ r  # camera-frame points
+    fx, fy = float(camera.fx[0]), float(camera.fy[0])
+    cx, cy = float(camera.cx[0]), float(camera.cy[0])
+    dist = camera_distance(camera)
+
+    def pixels(delta: Tensor) -> Tensor:
+        w, v = delta[:3], delta[3:] * dist
+        theta = torch.sqrt((w**2).sum() + 1e-30)
+        k = w / theta
+        # Rodrigues on every point: exp(-[w]x) (x - v), the point in the moved camera's frame
+        x = xc - v
+        cos, sin = torch.cos(theta), torch.sin(theta)
+        kx = torch.linalg.cross(k.expand_as(x), x, dim=-1)
+        rotated = x * cos - kx * sin + k * (x @ k)[:, None] * (1 - cos)
+        z = (-rotated[:, 2]).clamp_min(1e-6)
+        return torch.stack([cy - fy * rotated[:, 1] / z, cx + fx * rotated[:, 0] / z], dim=-1)
+
+    return pixels
+
+
+def gaussian_blur(img: Float[Tensor, "H W C"], sigma: float) -> Float[Tensor, "H W C"]:
+    """``img`` blurred by a separable Gaussian of ``sigma`` px (edges replicated); as it is for ``sigma <= 0``."""
+    if sigma <= 0:
+        return img
+    r = int(3 * sigma + 0.5)
+    t = torch.arange(-r, r + 1, dtype=torch.float64)
+    k = torch.exp(-(t**2) / (2 * sigma**2))
+    k = (k / k.sum()).to(img.dtype)
+    x = img.permute(2, 0, 1)[:, None]
+    x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
+    x = F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
+    return x[:, 0].permute(1, 2, 0)
+
+
+def image_gradient(img: Float[Tensor, "H W C"]) -> Tuple[Tensor, Tensor]:
+    """Central differences of ``img`` along rows and columns (one-sided at the border)."""
+    x = img.permute(2, 0, 1)[None].double()
+    pad = F.pad(x, (1, 1, 1, 1), mode="replicate")
+    d_row = (pad[..., 2:, 1:-1] - pad[..., :-2, 1:-1]) / 2
+    d_col = (pad[..., 1:-1, 2:] - pad[..., 1:-1, :-2]) / 2
+    return d_row[0].permute(1, 2, 0), d_col[0].permute(1, 2, 0)
+
+
+def surface_points(
+    camera: Cameras, depth: Float[Tensor, "H W 1"], acc: Float[Tensor, "H W 1"], window: Optional[Window] = None
+) -> Float[Tensor, "P 3"]:
+    """The 3D point each pixel (of ``window``) sees (ray distance ``depth``); background pixels take the nearest
+    surface depth within two pixels (an object's edge moves with the object)."""
+    h, w = depth.shape[:2]
+    d = depth[..., 0].double().clone()
+    solid = acc[..., 0] > 0.5
+    big = torch.where(solid, d, torch.full_like(d, 1e9))
+    near = -F.max_pool2d(-big[None, None], 5, stride=1, padding=2)[0, 0]
+    d = torch.where(solid, d, torch.where(near < 1e8, near, d))
+    coords = pixel_grid(h, w) + (torch.tensor([float(window[0]), float(window[2])]) if window is not None else 0.0)
+    bundle = camera.generate_rays(camera_indices=torch.zeros(h * w, 1, dtype=torch.long), coords=coords)
+    return bundle.origins.double() + bundle.directions.double() * d.reshape(-1, 1)
+
+
+def content_window(acc: Float[Tensor, "H W 1"], margin: int) -> Window:
+    """The rows and columns where the render has content (accumulation above 0.01), widened by ``margin`` px; the
+    whole image when it has none."""
+    h, w = acc.shape[:2]
+    mask = acc[..., 0] > 0.01
+    if not bool(mask.any()):
+        return (0, h, 0, w)
+    rows = mask.any(dim=1).nonzero().squeeze(-1)
+    cols = mask.any(dim=0).nonzero().squeeze(-1)
+    return (
+        max(0, int(rows[0]) - margin),
+        min(h, int(rows[-1]) + 1 + margin),
+        max(0, int(cols[0]) - margin),
+        min(w, int(cols[-1]) + 1 + margin),
+    )
+
+
+def lk_refine(
+    model,
+    camera: Cameras,
+    target: Float[Tensor, "H W C"],
+    value: bool,
+    iterations: int,
+    sigma: float = 0.0,
+    robust: bool = True,
+) -> Tuple[Cameras, float, int]:
+    """Gauss-Newton (Lucas-Kanade with the base's depth) over the 6 pose parameters of ``camera`` (sized like
+    ``target``): the pixel motion of each surface point under a pose change times the base render's image gradient
+    is the Jacobian; one render per step, damped and accepted only when the (Cauchy-weighted when ``robust``)
+    residual drops. Render and target are blurred by ``sigma`` px (a wider basin; and the render's gradient only
+    follows its true derivative once blurred). Returns the camera, the final RMS and the iterations taken."""
+    dist = camera_distance(camera)
+    lam = 1e-4
+    keys = ("rgb", "expected_depth", "accumulation")
+    h, w = target.shape[:2]
+    full = render_cameras(model, camera, keys)
+    window = content_window(full["accumulation"][0], int(3 * sigma) + 6)
+    r0_, r1_, c0_, c1_ = window
+    # blur before cropping, so the window's border sees the image around it as the renders see themselves
+    y = gaussian_blur(target.double(), sigma)[r0_:r1_, c0_:c1_]
+
+    def look(cam: Cameras):
+        out = render_cameras(model, cam, keys, window)
+        img = gaussian_blur(channel_of(out["rgb"][0], value).double(), sigma)
+        return out, img, y - img
+
+    cur = camera
+    out, img, r0 = look(cur)
+
+    def weights(r: Tensor) -> Tensor:
+        if not robust:
+            return torch.ones_like(r)
+        scale = 1.4826 * float(r.abs().median()) + 1e-3
+        return 1.0 / (1.0 + (r / (3.0 * scale)) ** 2)
+
+    it = 0
+    for it in range(1, iterations + 1):
+        pts = surface_points(cur, out["expected_depth"][0], out["accumulation"][0], window)
+        dp = torch.func.jacfwd(projection(cur, pts))(torch.zeros(6, dtype=torch.float64))  # [P 2 6]
+        g_row, g_col = image_gradient(img)
+        c = img.shape[-1]
+        j = -(g_row.reshape(-1, c, 1) * dp[:, None, 0, :] + g_col.reshape(-1, c, 1) * dp[:, None, 1, :])
+        j = j.reshape(-1, 6)
+        wr = weights(r0).reshape(-1)
+        rr = r0.reshape(-1)
+        a = (j * wr[:, None]).T @ j
+        g = (j * wr[:, None]).T @ rr
+        c0 = float((wr * rr**2).mean())
+        accepted = False
+        for _ in range(5):
+            step = torch.linalg.solve(a + lam * torch.diag(torch.diag(a).clamp_min(1e-12)), g)
+            cand = moved_camera(cur, step.float(), dist)
+            out1, img1, r1 = look(cand)
+            if float((wr * r1.reshape(-1) ** 2).mean()) < c0:
+                cur, out, img, r0 = cand, out1, img1, r1
+                lam = max(lam / 4.0, 1e-7)
+                accepted = True
+                break
+            lam *= 8.0
+        if not accepted or float(step.abs().max()) < 1e-6:
+            break
+    return cur, float((r0**2).mean().sqrt()), it
+
+
+def candidate_cameras(reference, count: int, seed: int) -> Cameras:
+    """Candidate poses for the search: the base's training cameras and ``count`` novel ones drawn like the pool's
+    (:func:`gsticker_plugin.fastpath.novel_cameras`)."""
+    train = reference.pipeline.datamanager.train_dataset.cameras
+    gen = torch.Generator().manual_seed(seed)
+    c2w = [train.camera_to_worlds.float()]
+    if count > 0:
+        c2w.append(novel_cameras(train, count, gen).camera_to_worlds.float())
+    c2w_all = torch.cat(c2w)
+    n = c2w_all.shape[0]
+
+    def first(x: Tensor) -> Tensor:
+        return x[:1].expand(n, *x.shape[1:]).clone()
+
+    return Cameras(
+        camera_to_worlds=c2w_all,
+        fx=first(train.fx),
+        fy=first(train.fy),
+        cx=first(train.cx),
+        cy=first(train.cy),
+        width=first(train.width),
+        height=first(train.height),
+        camera_type=first(train.camera_type),
+    )
+
+
+@dataclass
+class PoseSearch:
+    """Settings of :func:`estimate_camera`."""
+
+    candidates: int = 700
+    """Novel candidate poses besides the base's training cameras."""
+    search_side: int = 16
+    """Side (px) at which candidates are scored."""
+    keep: int = 3
+    """Best candidates refined."""
+    rolls: Sequence[float] = (0.0,)
+    """Turns of the image about its centre (degrees) tried with every candidate: a camera rolled about its axis, or
+    an image rotated after rendering (e.g. ``(-30, -20, -10, 0, 10, 20, 30)``)."""
+    blurs: Sequence[float] = (6.0, 3.0, 1.5, 0.75)
+    """Gaussian blur (px of the image) of the refinement stages, coarse to fine."""
+    iterations: Sequence[int] = (6, 6, 6, 6)
+    """Gauss-Newton iterations per stage (the best candidate)."""
+    first_iterations: int = 3
+    """Iterations of the first stage for every kept candidate, before the best one goes on."""
+    half_size_blur: float = 1.5
+    """Stages blurred by at least twice this many px run at half the image's size."""
+    seed: int = 0
+
+
+def estimate_camera(
+    reference,
+    image: Float[Tensor, "H W 3"],
+    value: bool,
+    search: PoseSearch = PoseSearch(),
+    renders: Optional[Tuple[Cameras, Tensor]] = None,
+) -> PoseFit:
+    """The camera of ``image`` (a picture of the owner's scene at an unknown pose, the base's intrinsics scaled to
+    its size) found against the owner's base ``reference`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`).
+    ``value``: compare V = max(R, G, B) (a hue-shifted image). ``renders``: the candidates and their renders at the
+    search size, from :func:`search_renders` (computed once for many images)."""
+    model = reference.model
+    h, w = int(image.shape[0]), int(image.shape[1])
+    train = reference.pipeline.datamanager.train_dataset.cameras
+    w0, h0 = float(train.width[0]), float(train.height[0])
+    if abs(w0 / h0 - w / h) > 0.01 * (w0 / h0):
+        raise GStickerError(
+            f"a {w}x{h} image for a base whose cameras are {int(w0)}x{int(h0)} px (another aspect ratio): "
+            "crop or pad it back to the base's frame, or pass --cameras"
+        )
+    sh = search.search_side
+    sw = max(1, round(sh * w / h))
+    cands, rows = renders if renders is not None else search_renders(reference, search, (h, w), value)
+    # the image turned back by each roll: a rolled camera's picture is the candidate's turned about the centre
+    turned = [
+        image.float() if roll == 0 else rotate(image.float().permute(2, 0, 1)[None], -roll)[0].permute(1, 2, 0)
+        for roll in search.rolls
+    ]
+    scores = torch.stack([ncc(rows, channel_of(area_resize(t, sh, sw), value).reshape(-1)) for t in turned], dim=1)
+    flat = torch.argsort(scores.reshape(-1), descending=True)[: search.keep]
+    best = [(int(i) // len(search.rolls), float(search.rolls[int(i) % len(search.rolls)])) for i in flat]
+    history: List[Dict[str, Any]] = []
+
+    def stage(cam: Cameras, sigma: float, its: int, b: int) -> Tuple[Cameras, float, int]:
+        # blurred stages run at half size (the blur has removed what the finer pixels would add)
+        f = 2 if sigma >= 2 * search.half_size_blur else 1
+        lh, lw = max(1, h // f), max(1, w // f)
+        target = channel_of(image.float() if f == 1 else area_resize(image, lh, lw), value)
+        cam, rms, n_it = lk_refine(model, scaled_camera(cam, lh, lw), target, value, its, sigma / f)
+        history.append({"candidate": b, "blur": sigma, "size": [lh, lw], "rms": rms, "iterations": n_it})
+        return scaled_camera(cam, h, w), rms, n_it
+
+    def start(b: int, roll: float) -> Cameras:
+        cam = scaled_camera(cands[b : b + 1], h, w)
+        if roll == 0:
+            return cam
+        return moved_camera(cam, torch.tensor([0.0, 0.0, -math.radians(roll), 0.0, 0.0, 0.0]))
+
+    first = [(b, *stage(start(b, roll), search.blurs[0], search.first_iterations, b)) for b, roll in best]
+    b, cam, rms, total = min(first, key=lambda f: f[2])
+    for sigma, its in zip(search.blurs, search.iterations):
+        cam, rms, n_it = stage(cam, sigma, its, b)
+        total += n_it
+    return PoseFit(camera=cam, rms=rms, score=float(scores[b].max()), iterations=total, history=history)
+
+
+def search_renders(reference, search: PoseSearch, hw: Tuple[int, int], value: bool) -> Tuple[Cameras, Tensor]:
+    """Candidates and their base renders at the search size for images of ``hw``."""
+    h, w = hw
+    cands = candidate_cameras(reference, search.candidates, search.seed)
+    sh = search.search_side
+    small = Cameras(
+        camera_to_worlds=cands.camera_to_worlds,
+        fx=cands.fx * sh / h,
+        fy=cands.fy * sh / h,
+        cx=cands.cx * sh / h,
+        cy=cands.cy * sh / h,
+        width=torch.full_like(cands.width, max(1, round(sh * w / h))),
+        height=torch.full_like(cands.height, sh),
+        camera_type=cands.camera_type,
+    )
+    rgb = render_cameras(reference.model, small)["rgb"]
+    return cands, channel_of(rgb, value).reshape(rgb.shape[0], -1)
+
+
+def render_at(model, camera: Cameras, rays: Int[Tensor, " R"]) -> Float[Tensor, "R 3"]:
+    """The model's colour at the flat pixel indices ``rays`` of one camera, on the CPU."""
+    out = render_rays(model, camera, rays)["rgb"].reshape(-1, 3)[rays.to(model.device)]
+    return out.float().cpu()
+
+
+def pose_columns(
+    model, camera: Cameras, rays: Int[Tensor, " R"], value: bool, eps: float = 3.5e-4
+) -> Float[Tensor, "M 6"]:
+    """d (base render at ``rays``) / d pose by central differences (rows ``r * 3 + c``, or one V row per ray with
+    ``value``): what the image decoder fits beside the message for a camera this module estimated."""
+    dist = camera_distance(camera)
+    cols = []
+    for k in range(6):
+        e = torch.zeros(6)
+        e[k] = eps
+        plus = channel_of(render_at(model, moved_camera(camera, e, dist), rays), value)
+        minus = channel_of(render_at(model, moved_camera(camera, -e, dist), rays), value)
+        cols.append(((plus - minus) / (2 * eps)).reshape(-1))
+    return torch.stack(cols, dim=1)
