@@ -15,8 +15,6 @@ Each stage is skipped when its output already exists, so an interrupted demo res
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +25,7 @@ import tyro
 from gsticker_plugin import metrics
 from gsticker_plugin.evaluate import decode_images, load_pipeline, psnr_nhw3, render_split
 from gsticker_plugin.key import OwnerKey
-from gsticker_plugin.machine import console_script, sticker_train_argv
+from gsticker_plugin.machine import config_under, console_script, recolor_into, run_logged, sticker_train_argv
 from gsticker_plugin.runs import latest_checkpoint
 
 HEADS_OFF = ("--pipeline.msg-weight", "0", "--pipeline.negative-weight", "0", "--pipeline.cls-weight", "0")
@@ -65,24 +63,7 @@ class DemoConfig:
 
 
 def _run(cmd: List[str], log: Path, ok: tuple = (0,)) -> int:
-    print("  $ " + " ".join(f"'{c}'" if " " in c else c for c in cmd), flush=True)
-    t0 = time.time()
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
-    with open(log, "w") as f:
-        proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env=env)
-    if proc.returncode not in ok:
-        tail = log.read_text().splitlines()[-15:]
-        print("\n".join(tail))
-        raise SystemExit(f"demo step failed (exit {proc.returncode}); full log: {log}")
-    print(f"    done in {time.time() - t0:.0f} s (log: {log})", flush=True)
-    return proc.returncode
-
-
-def _config_under(folder: Path) -> Path:
-    found = sorted(folder.glob("**/config.yml"))
-    if not found:
-        raise SystemExit(f"demo: no config.yml under {folder}")
-    return found[0]
+    return int(run_logged(cmd, log, ok, what="demo step")["exit"])
 
 
 def main(cfg: DemoConfig) -> None:
@@ -201,22 +182,8 @@ def main(cfg: DemoConfig) -> None:
         ("hue", ["hue", "--shift", "0.3"]),
     ):
         dest = out / f"recolor-{name}"
-        if not list(dest.glob("**/config.yml")):
-            _run(
-                [
-                    console_script("ns-recolor"),
-                    *args,
-                    "--load-config",
-                    str(wm_run / "config.yml"),
-                    "--output-dir",
-                    str(dest),
-                    "--overwrite",
-                ],
-                logs / f"recolor-{name}.log",
-            )
-        else:
-            print(f"    ({dest} exists)")
-        recolored[name] = _config_under(dest)
+        recolor_into(args, wm_run / "config.yml", dest, logs / f"recolor-{name}.log", what="demo step")
+        recolored[name] = config_under(dest)
 
     print("[6/6] ns-verify-owner: verdicts", flush=True)
     null_done = out / "verify" / "calibrated"

@@ -7,7 +7,9 @@ import importlib.metadata
 import os
 import platform
 import shutil
+import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
@@ -92,3 +94,36 @@ def machine_info() -> Dict[str, Any]:
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "load_average_at_start": load_average(),
     }
+
+
+def run_logged(cmd: List[str], log: Path, ok: tuple = (0,), what: str = "step") -> Dict[str, Any]:
+    """Run a command with its output in ``log`` (warnings off, no downloads); on an exit status outside ``ok``,
+    print the log's tail and stop with a one-line message. Returns the command, its exit status and wall seconds."""
+    print("  $ " + " ".join(f"'{c}'" if " " in c else c for c in cmd), flush=True)
+    t0 = time.time()
+    env = dict(os.environ, PYTHONWARNINGS="ignore", GSTICKER_NO_DOWNLOAD="1")
+    with open(log, "w") as f:
+        proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env=env)
+    wall = time.time() - t0
+    if proc.returncode not in ok:
+        print("\n".join(log.read_text().splitlines()[-15:]))
+        raise SystemExit(f"{what} failed (exit {proc.returncode}); full log: {log}")
+    print(f"    exit {proc.returncode}, {wall:.0f} s (log: {log})", flush=True)
+    return {"command": cmd, "exit": proc.returncode, "wall_s": wall}
+
+
+def config_under(folder: Path) -> Path:
+    """The first config.yml below ``folder`` (a run written by ns-train or ns-recolor there)."""
+    found = sorted(folder.glob("**/config.yml"))
+    if not found:
+        raise SystemExit(f"no config.yml under {folder}")
+    return found[0]
+
+
+def recolor_into(args: List[str], config: Path, dest: Path, log: Path, what: str = "step") -> Optional[Dict[str, Any]]:
+    """``ns-recolor ARGS --load-config CONFIG`` into ``dest`` unless a run is there already (then None)."""
+    if list(dest.glob("**/config.yml")):
+        print(f"    ({dest} exists)")
+        return None
+    argv = [console_script("ns-recolor"), *args, "--load-config", str(config), "--output-dir", str(dest), "--overwrite"]
+    return run_logged(argv, log, what=what)

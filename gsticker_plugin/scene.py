@@ -6,6 +6,9 @@ plus RGBA PNGs (alpha: the object's coverage) and a float32 OpenEXR z-depth map 
 ``--layout capture``: a forward-facing handheld-style capture of the same scene in front of a wall and on a floor
 (every pixel sees something; RGB PNGs), cameras on a small arc, in the ``nerfstudio-data`` layout: one
 ``transforms.json`` with OpenCV-style intrinsics and ``train/val/test_filenames``.
+
+Over 600 lines on purpose: both layouts share the scene's meshes, textures, ray tracer and writers; split, each half
+would import the other.
 """
 
 from __future__ import annotations

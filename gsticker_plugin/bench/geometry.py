@@ -20,9 +20,6 @@ Writes ``results.json`` and ``results.md`` (a table: matches per view, verdict, 
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
@@ -30,7 +27,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import tyro
 
 from gsticker_plugin.evaluate import load_pipeline, psnr_nhw3, render_split
-from gsticker_plugin.machine import console_script, sticker_train_argv
+from gsticker_plugin.machine import config_under, console_script, recolor_into, run_logged, sticker_train_argv
 
 
 @dataclass
@@ -82,17 +79,7 @@ class BenchGeometryConfig(StickerRunConfig):
 
 
 def _run(cmd: List[str], log: Path, ok=(0,)) -> Dict[str, Any]:
-    print("  $ " + " ".join(f"'{c}'" if " " in c else c for c in cmd), flush=True)
-    t0 = time.time()
-    env = dict(os.environ, PYTHONWARNINGS="ignore", GSTICKER_NO_DOWNLOAD="1")
-    with open(log, "w") as f:
-        proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env=env)
-    wall = time.time() - t0
-    if proc.returncode not in ok:
-        print("\n".join(log.read_text().splitlines()[-15:]))
-        raise SystemExit(f"bench step failed (exit {proc.returncode}); log: {log}")
-    print(f"    exit {proc.returncode}, {wall:.0f} s", flush=True)
-    return {"command": cmd, "exit": proc.returncode, "wall_s": wall}
+    return run_logged(cmd, log, ok, what="bench step")
 
 
 def train_sticker(
@@ -130,13 +117,6 @@ def train_sticker(
         ),
         logs / "train.log",
     )
-
-
-def _config_under(folder: Path) -> Path:
-    found = sorted(folder.glob("**/config.yml"))
-    if not found:
-        raise SystemExit(f"no config.yml under {folder}")
-    return found[0]
 
 
 def psnr_watermarked_vs_clean(config: Path, views: int) -> Dict[str, float]:
@@ -181,22 +161,10 @@ def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
     suspects = {"watermarked": wm / "config.yml"}
     for name, args in recolors.items():
         dest = out / f"recolor-{name}"
-        if not list(dest.glob("**/config.yml")):
-            results["stages"][f"recolor-{name}"] = _run(
-                [
-                    console_script("ns-recolor"),
-                    *args,
-                    "--load-config",
-                    str(wm / "config.yml"),
-                    "--output-dir",
-                    str(dest),
-                    "--overwrite",
-                ],
-                logs / f"recolor-{name}.log",
-            )
-        else:
-            print(f"    ({dest} exists)")
-        suspects[f"{name}-recolored"] = _config_under(dest)
+        run = recolor_into(args, wm / "config.yml", dest, logs / f"recolor-{name}.log", what="bench step")
+        if run is not None:
+            results["stages"][f"recolor-{name}"] = run
+        suspects[f"{name}-recolored"] = config_under(dest)
     suspects["unwatermarked base"] = base_config
     results["psnr_recolored_watermarked_vs_clean_db"] = {}
     for name in recolors:

@@ -166,14 +166,21 @@ def decode_image_view(
             j = image_change_jacobian(ref, sticker, x)
             return None if j is None else observe(j, luma)
 
+    plain = (target, predict)
+    cols = None
     if pose_columns is not None:  # the fit sees only what a small pose change of the base render cannot explain
-        target, predict, jac = without_columns(
-            observe(pose_columns, luma) if not value else pose_columns, target, predict, jac
-        )
+        cols = observe(pose_columns, luma) if not value else pose_columns
+        target, predict, jac = without_columns(cols, target, predict, jac)
     fit, bits, undetermined = fit_and_decide(
         predict, jac, target, sticker.num_bits, ref.view.rays.numel() > 0, generator, iterations
     )
-    return {"bits": bits, **fit_summary(fit, undetermined, int(ref.view.rays.numel())), "signals": [signal]}
+    out = {"bits": bits, **fit_summary(fit, undetermined, int(ref.view.rays.numel())), "signals": [signal]}
+    if cols is not None:  # the pose change fitted beside the message (a step for the camera)
+        with torch.no_grad():
+            rest = plain[0] - (plain[1](fit.signs) - plain[1](torch.zeros_like(fit.signs)))
+        step = torch.linalg.lstsq(cols.double(), rest.double()[:, None]).solution[:, 0] if cols.numel() else None
+        out["pose_step"] = [0.0] * 6 if step is None else [float(v) for v in step]
+    return out
 
 
 def without_columns(columns: Float[Tensor, "M P"], target: Tensor, predict, jac):

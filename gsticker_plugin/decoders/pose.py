@@ -316,7 +316,7 @@ class PoseSearch:
     """Turns of the image about its centre (degrees) tried with every candidate: a camera rolled about its axis, or
     an image rotated after rendering (e.g. ``(-30, -20, -10, 0, 10, 20, 30)``)."""
     blurs: Sequence[float] = (6.0, 3.0, 1.5, 0.75)
-    """Gaussian blur (px of the image) of the refinement stages, coarse to fine."""
+    """Gaussian blur of the refinement stages, coarse to fine, in px per 100 px of the image's larger side."""
     iterations: Sequence[int] = (6, 6, 6, 6)
     """Gauss-Newton iterations per stage (the best candidate)."""
     first_iterations: int = 3
@@ -359,13 +359,14 @@ def estimate_camera(
     best = [(int(i) // len(search.rolls), float(search.rolls[int(i) % len(search.rolls)])) for i in flat]
     history: List[Dict[str, Any]] = []
 
-    def stage(cam: Cameras, sigma: float, its: int, b: int) -> Tuple[Cameras, float, int]:
+    def stage(cam: Cameras, blur: float, its: int, b: int) -> Tuple[Cameras, float, int]:
+        sigma = blur * max(h, w) / 100.0
         # blurred stages run at half size (the blur has removed what the finer pixels would add)
         f = 2 if sigma >= 2 * search.half_size_blur else 1
         lh, lw = max(1, h // f), max(1, w // f)
         target = channel_of(image.float() if f == 1 else area_resize(image, lh, lw), value)
         cam, rms, n_it = lk_refine(model, scaled_camera(cam, lh, lw), target, value, its, sigma / f)
-        history.append({"candidate": b, "blur": sigma, "size": [lh, lw], "rms": rms, "iterations": n_it})
+        history.append({"candidate": b, "blur_px": sigma, "size": [lh, lw], "rms": rms, "iterations": n_it})
         return scaled_camera(cam, h, w), rms, n_it
 
     def start(b: int, roll: float) -> Cameras:
