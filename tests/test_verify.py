@@ -690,7 +690,17 @@ def test_real_run_calibrate_missing_checkpoint_and_other_scene(real_runs, ws, ti
     assert len(null["matches"]) == 4 + 4 + 8 and null["sources"][0]["kind"] == "model"
     assert null["sources"][0]["details"]["method"] == "gsticker-nerfacto-small"  # the key's recorded base
     status, _, _ = run_cli(
-        ["--images", str(tiny_scene / "train"), "--key", str(key), "--output", str(ws / "rep-real-other")], capsys
+        [
+            "--images",
+            str(tiny_scene / "train"),
+            "--key",
+            str(key),
+            "--decode",
+            "extractor",  # the decoder calibrate measured (auto would search the images' cameras for the image decoder)
+            "--output",
+            str(ws / "rep-real-other"),
+        ],
+        capsys,
     )
     assert status == 1
     t = report_of(ws / "rep-real-other")["keys"][0]["thresholds"]
