@@ -148,7 +148,7 @@ def test_windows_and_blur():
     acc[3:5, 4:9] = 1
     assert P.content_window(acc, 2) == (1, 7, 2, 11) and P.content_window(torch.zeros(4, 4, 1), 1) == (0, 4, 0, 4)
     flat = torch.full((9, 9, 3), 0.3, dtype=torch.float64)
-    assert torch.allclose(P.gaussian_blur(flat, 2.0), flat)
+    assert torch.allclose(P.smoothed(flat, 2.0), flat)
     x = torch.randn(5, 16)
     assert torch.allclose(P.ncc(x, x[2]), P.ncc(x, 3 * x[2] + 1)) and abs(float(P.ncc(x, x[2])[2]) - 1) < 1e-6
 

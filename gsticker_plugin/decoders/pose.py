@@ -153,8 +153,9 @@ def projection(camera: Cameras, points: Float[Tensor, "P 3"]):
     return pixels
 
 
-def gaussian_blur(img: Float[Tensor, "H W C"], sigma: float) -> Float[Tensor, "H W C"]:
-    """``img`` blurred by a separable Gaussian of ``sigma`` px (edges replicated); as it is for ``sigma <= 0``."""
+def smoothed(img: Float[Tensor, "H W C"], sigma: float) -> Float[Tensor, "H W C"]:
+    """``img`` blurred by a separable Gaussian of ``sigma`` px (edges replicated); as it is for ``sigma <= 0``. Any
+    number of channels and float64, unlike the blur attack (``attacks.gaussian_blur``: RGB batches)."""
     if sigma <= 0:
         return img
     r = int(3 * sigma + 0.5)
@@ -231,11 +232,11 @@ def lk_refine(
     window = content_window(full["accumulation"][0], int(3 * sigma) + 6)
     r0_, r1_, c0_, c1_ = window
     # blur before cropping, so the window's border sees the image around it as the renders see themselves
-    y = gaussian_blur(target.double(), sigma)[r0_:r1_, c0_:c1_]
+    y = smoothed(target.double(), sigma)[r0_:r1_, c0_:c1_]
 
     def look(cam: Cameras):
         out = render_cameras(model, cam, keys, window)
-        img = gaussian_blur(channel_of(out["rgb"][0], value).double(), sigma)
+        img = smoothed(channel_of(out["rgb"][0], value).double(), sigma)
         return out, img, y - img
 
     cur = camera
