@@ -713,6 +713,7 @@ def test_verify_images_at_known_cameras_with_the_image_decoder(runs, ws, capsys,
             rgb = pipe.model.get_outputs_for_camera(train_cams[i : i + 1])["rgb"].clamp(0, 1)
         imageio.imwrite(unposed / f"train_{i}.png", (rgb * 255).round().to(torch.uint8).numpy())
     imageio.imwrite(unposed / "black.png", torch.zeros(32, 32, 3, dtype=torch.uint8).numpy())
+    imageio.imwrite(unposed / "wide.png", torch.zeros(32, 48, 3, dtype=torch.uint8).numpy())  # another aspect ratio
     status, stdout, err = run_cli(
         ["--images", str(unposed), "--key", str(runs["key"]), "--output", str(ws / "rep-unposed")], capsys
     )
@@ -722,6 +723,8 @@ def test_verify_images_at_known_cameras_with_the_image_decoder(runs, ws, capsys,
     assert rep["decoder"]["kind"] == "image" and rep["decoder"]["cameras"] == "estimated", (stdout, err[-1500:])
     assert status == 1 and max(v["matches"] for v in views.values()) < 41, views
     assert all(views[f"train_{i}.png"]["image_fit"]["pose_rms"] < 0.02 for i in range(2)), views
+    skipped = {x["name"]: x["reason"] for x in rep["input"]["skipped"]}
+    assert "wide.png" not in views and "aspect ratio" in skipped["wide.png"], skipped
     for argv, msg in (
         (["--load-config", str(runs["run"]), *cams], "drop --cameras"),
         (["--images", str(images), "--cameras", str(ws / "missing.json")], "does not exist"),

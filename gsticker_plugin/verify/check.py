@@ -190,8 +190,8 @@ def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], de
 def _verify_images_informed(
     config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], views: Views, device: torch.device
 ):
-    """The informed image decoder on the images that have a camera in --cameras, for every key (each against its own
-    base run)."""
+    """The informed image decoder for every key (each against its own base run): on the images that have a camera in
+    --cameras, or, without it, on every image of the base's aspect ratio at a camera found against the base."""
 
     frames = read_cameras_file(config.cameras) if config.cameras is not None else None
     results, used, bases, notes = [], None, [], []
@@ -201,22 +201,47 @@ def _verify_images_informed(
             posed, dec = decode_images_at_cameras(key, ref, views, frames, config.seed, config.progress)
             posed.details["cameras_of"] = str(config.cameras)
         else:
+            posed = same_aspect_views(views, ref.pipeline.datamanager.train_dataset.cameras)
             with contextlib.redirect_stdout(sys.stderr):
                 dec = decode_unposed_images(
                     key,
                     ref,
-                    [v.image.permute(1, 2, 0) for v in views.views],
+                    [v.image.permute(1, 2, 0) for v in posed.views],
                     config.seed,
                     progress=config.progress,
-                    names=[v.name for v in views.views],
+                    names=[v.name for v in posed.views],
                 )
-            posed = views
             posed.details["cameras_of"] = "found by a camera search against the owner's base"
         results.append(_informed_result(key, path, dec, posed, config, "image", ref, notes, bases))
         used = used or posed
         del ref
     cameras = str(config.cameras) if config.cameras is not None else "estimated"
     return results, used, {"bases": bases, "cameras": cameras, "notes": notes}
+
+
+def same_aspect_views(views: Views, cameras) -> Views:
+    """The images with the aspect ratio of the base's cameras (the camera search scales their intrinsics); the others
+    are added to ``skipped`` with the fix."""
+    w0, h0 = float(cameras.width[0]), float(cameras.height[0])
+    out = Views(kind=views.kind, source=views.source, skipped=list(views.skipped), details=dict(views.details))
+    for v in views.views:
+        h, w = v.image.shape[-2:]
+        if abs(w0 / h0 - w / h) > 0.01 * (w0 / h0):
+            out.skipped.append(
+                {
+                    "name": v.name,
+                    "reason": f"{w}x{h} px, not the aspect ratio of the base's {int(w0)}x{int(h0)} cameras: crop or "
+                    "pad it back to the base's frame, or pass --cameras",
+                }
+            )
+        else:
+            out.views.append(v)
+    if not out.views:
+        raise GStickerError(
+            f"none of the {len(views.views)} images has the aspect ratio of the base's {int(w0)}x{int(h0)} cameras; "
+            "crop or pad them back to the base's frame, or pass --cameras"
+        )
+    return out
 
 
 def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
