@@ -240,7 +240,9 @@ def lk_refine(
         return out, img, y - img
 
     cur = camera
-    out, img, r0 = look(cur)
+    out = {k: v[:, r0_:r1_, c0_:c1_] for k, v in full.items()}  # the window of the render already made
+    img = smoothed(channel_of(out["rgb"][0], value).double(), sigma)
+    r0 = y - img
 
     def weights(r: Tensor) -> Tensor:
         if not robust:
