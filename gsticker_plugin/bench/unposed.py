@@ -130,10 +130,13 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
             jobs.append((row, i, img))
     for v in random_views(cfg.random_images, int(marked.shape[1]), cfg.seed + 7).views:
         jobs.append(("random:", int(v.name.split("-")[-1]), as_8_bit(v.image.permute(1, 2, 0))))
+    search_cache: Dict[Tuple[int, int], Any] = {}  # the candidates' renders, made once for all images
     for row, i, img in jobs:
         if (row, i) in done:
             continue
-        dec = decode_unposed_images(key, ref, [img], cfg.seed, search=PoseSearch(rolls=cfg.rolls), names=[f"{row}{i}"])
+        dec = decode_unposed_images(
+            key, ref, [img], cfg.seed, search=PoseSearch(rolls=cfg.rolls), names=[f"{row}{i}"], renders=search_cache
+        )
         d = dec["image"][0]
         r = {
             "row": row,

@@ -41,18 +41,20 @@ def decode_unposed_images(
     iterations: int = 10,
     names: Optional[Sequence[str]] = None,
     rounds: int = 3,
+    renders: Optional[Dict[Tuple[int, int], Any]] = None,
 ) -> Dict[str, Any]:
     """Decode ``images`` (``[H W 3]`` each, cameras unknown) of the owner's scene against the owner's base
     ``reference`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`): camera search, then the image fit
     with the pose Jacobian. ``value_mode``: read an image whose V matches the base render far better than its RGB
     by V alone (:func:`gsticker_plugin.decoders.image.reads_value`). ``rounds``: fits at most, each from the camera the
-    previous one's pose step moved. Returns the decoders' shared result, with
+    previous one's pose step moved. ``renders``: the search's candidate renders per image size, kept by a caller that
+    decodes images one call at a time (filled here). Returns the decoders' shared result, with
     per image the found camera (``c2w``), the pose fit's RMS and seconds in ``image``."""
     search = search or PoseSearch()
     st = cpu_sticker(reference.model)
     background = reference.model.background_color()
     gen = tie_generator(seed)
-    renders: Dict[Tuple[int, int], Any] = {}
+    renders = renders if renders is not None else {}
     bits: List[Tensor] = []
     details: List[Dict[str, Any]] = []
     names = list(names) if names is not None else [f"image/{i:04d}" for i in range(len(images))]
