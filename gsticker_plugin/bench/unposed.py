@@ -55,11 +55,12 @@ class BenchUnposedConfig:
     camera_seed: int = 12345
     """Seed of the held-out cameras (the sticker's pool draws its novel views with its own seed)."""
     rows: Tuple[str, ...] = ("marked:", "clean:", "marked:hue=0.5", "marked:jpeg=50@8", "marked:blur=1@8")
-    """``IMAGES:ATTACK[@N]`` rows: ``marked`` or ``clean`` renders, an attack spec (``noise=0.1,jpeg=50``; empty:
-    none), the first ``N`` views only."""
+    """``IMAGES:ATTACK[@N]`` rows: ``marked`` or ``clean`` renders, or renders of the watermarked run recoloured
+    (``palette=blue``: palette entry 0 set to blue; ``modelhue=0.5``: a model-level hue turn), an attack spec (``noise=0.1,jpeg=50``; empty:
+    none; ``hue=~0.5``: a strength drawn per view from [-0.5, 0.5]), the first ``N`` views only."""
     rolls: Tuple[float, ...] = (0.0,)
-    """Turns (degrees) the camera search tries with every candidate (:class:`gsticker_plugin.decoders.pose.PoseSearch`);
-    recorded per image."""
+    """Turns (degrees) the camera search tries with every candidate (:class:`gsticker_plugin.decoders.pose.PoseSearch`)
+    on rows whose attack rotates; other rows search without turns. Recorded per image."""
     random_images: int = 8
     """Random images decoded as a null (:func:`gsticker_plugin.views.random_views`)."""
     seed: int = 0
@@ -74,6 +75,51 @@ def rotation_error_deg(a: torch.Tensor, b: torch.Tensor) -> float:
     skew = torch.stack([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0], rel[1, 0] - rel[0, 1]]) / 2
     cos = (torch.trace(rel) - 1) / 2
     return math.degrees(math.atan2(float(skew.norm()), float(cos)))
+
+
+def drawn_spec(spec: str, generator: torch.Generator) -> str:
+    """``spec`` with every ``name=~v`` replaced by a strength drawn uniformly from [-v, v] (a jitter: ``hue=~0.5``,
+    ``rotate=~30``)."""
+    items = []
+    for item in spec.split(","):
+        name, eq, value = item.partition("=")
+        if eq and value.strip().startswith("~"):
+            v = float(value.strip()[1:])
+            value = f"{(2 * float(torch.rand((), generator=generator)) - 1) * v:.6g}"
+        items.append(f"{name}{eq}{value}")
+    return ",".join(items)
+
+
+def recolored_renders(cfg: "BenchUnposedConfig", edit: str, cameras) -> torch.Tensor:
+    """8-bit renders at ``cameras`` of the watermarked run recoloured in memory as ``ns-recolor`` would:
+    ``palette=COLOR`` (palette entry 0 set to COLOR) or ``modelhue=TURNS`` (a model-level hue turn)."""
+    from gsticker_plugin.recolor.configs import HUE_METHOD, PALETTE_METHOD, PaletteEdit
+    from gsticker_plugin.recolor.edits import _edited, extract_palette_of, set_model_palette
+    from gsticker_plugin.recolor.palette import to_hex
+    from gsticker_plugin.recolor.runs import build_recolor_run
+
+    kind, _, value = edit.partition("=")
+    with contextlib.redirect_stdout(sys.stderr):
+        _, pipe, _, _, _ = build_recolor_run(
+            cfg.load_config, cfg.data, PALETTE_METHOD if kind == "palette" else HUE_METHOD
+        )
+    model = pipe.model
+    if kind == "palette":
+        args = PaletteEdit(set_=(f"0={value}",))
+        pal = extract_palette_of(args, model, pipe.datamanager.train_dataset, 0)
+        model.config.palette_source = [to_hex(c) for c in pal.rgb.tolist()]
+        model.config.palette_target = [to_hex(c) for c in _edited(args, pal)]
+        model.config.softness = float(args.softness)
+    elif kind == "modelhue":
+        model.config.hue_shift = float(value)
+    else:
+        raise ValueError(f"unknown images {edit!r}: use marked, clean, palette=COLOR or modelhue=TURNS")
+    set_model_palette(model)
+    imgs = []
+    with torch.no_grad():
+        for i in range(cameras.shape[0]):
+            imgs.append(final_rgb(model.get_outputs_for_camera(cameras[i : i + 1])).clamp(0, 1).cpu())
+    return as_8_bit(torch.stack(imgs))
 
 
 def held_out_renders(pipe, cameras) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -113,29 +159,35 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
         for line in rows_path.read_text().splitlines():
             r = json.loads(line)
             done[(r["row"], r["view"])] = r
-    jobs: List[Tuple[str, int, torch.Tensor]] = []
+    jobs: List[Tuple[str, int, torch.Tensor, str]] = []
     for row in cfg.rows:
         which, _, spec = row.partition(":")
         spec, _, count = spec.partition("@")
-        parse_attack_spec(spec)
+        parse_attack_spec(drawn_spec(spec, torch.Generator().manual_seed(0)))
         n = min(int(count), cfg.num_views) if count else cfg.num_views
-        src = marked if which == "marked" else clean
+        if which in ("marked", "clean"):
+            src = marked if which == "marked" else clean
+        else:
+            src = recolored_renders(cfg, which, cams[:n])
         for i in range(n):
             img = src[i].float()
+            drawn = ""
             if spec:
                 g = torch.Generator().manual_seed(cfg.seed * 1000 + i)
+                drawn = drawn_spec(spec, g)
                 img = as_8_bit(
-                    apply_attacks(img.permute(2, 0, 1)[None], spec, generator=g)[0].clamp(0, 1).permute(1, 2, 0)
+                    apply_attacks(img.permute(2, 0, 1)[None], drawn, generator=g)[0].clamp(0, 1).permute(1, 2, 0)
                 )
-            jobs.append((row, i, img))
+            jobs.append((row, i, img, drawn))
     for v in random_views(cfg.random_images, int(marked.shape[1]), cfg.seed + 7).views:
-        jobs.append(("random:", int(v.name.split("-")[-1]), as_8_bit(v.image.permute(1, 2, 0))))
+        jobs.append(("random:", int(v.name.split("-")[-1]), as_8_bit(v.image.permute(1, 2, 0)), ""))
     search_cache: Dict[Tuple[int, int], Any] = {}  # the candidates' renders, made once for all images
-    for row, i, img in jobs:
+    for row, i, img, drawn in jobs:
         if (row, i) in done:
             continue
+        rolls = cfg.rolls if "rotate" in row else (0.0,)
         dec = decode_unposed_images(
-            key, ref, [img], cfg.seed, search=PoseSearch(rolls=cfg.rolls), names=[f"{row}{i}"], renders=search_cache
+            key, ref, [img], cfg.seed, search=PoseSearch(rolls=rolls), names=[f"{row}{i}"], renders=search_cache
         )
         d = dec["image"][0]
         r = {
@@ -146,7 +198,9 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
             "explained": d["explained"],
             "pose_rms": d["pose_rms"],
             "seconds": d["seconds"],
-            "rolls": list(cfg.rolls),
+            "rolls": list(rolls),
+            "color_map": bool(d.get("color_map", False)),
+            "attack": drawn,
         }
         if not row.startswith("random"):
             c2w = torch.tensor(d["c2w"])
@@ -170,6 +224,7 @@ def summarize(rows: List[Dict[str, Any]], threshold: int, num_bits: int) -> Dict
         "matches_max": int(m.max()),
         "passing": int((m >= threshold).sum()),
         "read_by_value": sum(r["signals"] == ["value"] for r in rows),
+        "read_through_map": sum(bool(r.get("color_map")) for r in rows),
         "seconds_per_image": float(sum(r["seconds"] for r in rows) / len(rows)),
     }
     rot = [r["rotation_error_deg"] for r in rows if "rotation_error_deg" in r]
@@ -214,7 +269,7 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
         "base, Gauss-Newton on the pixels, then the image fit with the pose Jacobian beside the message "
         f"([verify.md](verify.md)). A view passes at >= {threshold}/48 (per-view false-positive rate 1e-6).",
         "",
-        "| images | attack | decoded | bit accuracy | matches mean (min-max) | passing | read by V | camera error median / max (deg) | s per image |",
+        "| images | attack | decoded | bit accuracy | matches mean (min-max) | passing | read by V / colour map | camera error median / max (deg) | s per image |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for row, t in table.items():
@@ -227,7 +282,8 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
         )
         lines.append(
             f"| {which} | {spec or 'none'} | {t['images']} | {100 * t['bit_acc']:.2f} % | {t['matches_mean']:.1f} "
-            f"({t['matches_min']}-{t['matches_max']}) | {t['passing']}/{t['images']} | {t['read_by_value']} | {cam} | "
+            f"({t['matches_min']}-{t['matches_max']}) | {t['passing']}/{t['images']} | {t['read_by_value']} / "
+            f"{t['read_through_map']} | {cam} | "
             f"{t['seconds_per_image']:.0f} |"
         )
     lines += [

@@ -20,6 +20,7 @@ from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from gsticker_plugin.attacks.geometric import rotate
+from gsticker_plugin.decoders.colormap import apply_color_map
 from gsticker_plugin.decoders.geometric import render_rays
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import axis_angle_matrix, novel_cameras
@@ -218,11 +219,14 @@ def lk_refine(
     iterations: int,
     sigma: float = 0.0,
     robust: bool = True,
+    extend: int = 1,
 ) -> Tuple[Cameras, float, int]:
     """Gauss-Newton (Lucas-Kanade with the base's depth) over the 6 pose parameters of ``camera`` (sized like
     ``target``): the pixel motion of each surface point under a pose change times the base render's image gradient
     is the Jacobian; one render per step, damped and accepted only when the (Cauchy-weighted when ``robust``)
-    residual drops. Render and target are blurred by ``sigma`` px (a wider basin; and the render's gradient only
+    residual drops; an accepted step is tried at 2, 4, ... up to ``extend`` times its length while the residual keeps
+    dropping.
+    Render and target are blurred by ``sigma`` px (a wider basin; and the render's gradient only
     follows its true derivative once blurred). Returns the camera, the final RMS and the iterations taken."""
     dist = camera_distance(camera)
     lam = 1e-4
@@ -268,15 +272,61 @@ def lk_refine(
             step = torch.linalg.solve(a + lam * torch.diag(torch.diag(a).clamp_min(1e-12)), g)
             cand = moved_camera(cur, step.float(), dist)
             out1, img1, r1 = look(cand)
-            if float((wr * r1.reshape(-1) ** 2).mean()) < c0:
+            c1 = float((wr * r1.reshape(-1) ** 2).mean())
+            if c1 < c0:
+                base = cur
                 cur, out, img, r0 = cand, out1, img1, r1
                 lam = max(lam / 4.0, 1e-7)
                 accepted = True
+                scale = 2
+                while scale <= extend:  # along a valley the step falls short: double it while that pays
+                    cand = moved_camera(base, step.float() * scale, dist)
+                    out2, img2, r2 = look(cand)
+                    c2 = float((wr * r2.reshape(-1) ** 2).mean())
+                    if c2 >= c1:
+                        break
+                    cur, out, img, r0, c1 = cand, out2, img2, r2, c2
+                    scale *= 2
                 break
             lam *= 8.0
         if not accepted or float(step.abs().max()) < 1e-6:
             break
     return cur, float((r0**2).mean().sqrt()), it
+
+
+def line_search(
+    model,
+    camera: Cameras,
+    step: Float[Tensor, " 6"],
+    target: Float[Tensor, "H W C"],
+    value: bool,
+    sigma: float,
+    max_scale: int = 8,
+    table: Optional[Tensor] = None,
+) -> Tuple[Cameras, int]:
+    """``camera`` moved by ``step`` times the scale in 0, 1, 2, 4, ... ``max_scale`` (tried upward until the residual
+    rises) whose base render (blurred by ``sigma`` px, on the content window; through the colour map ``table`` when
+    given) is nearest ``target`` (sized like the camera)."""
+    dist = camera_distance(camera)
+    full = render_cameras(model, camera, ("rgb", "accumulation"))
+    window = content_window(full["accumulation"][0], int(3 * sigma) + 6)
+    r0, r1, c0, c1 = window
+    y = smoothed(target.double(), sigma)[r0:r1, c0:c1]
+
+    def cost(out: Tensor) -> float:
+        out = out if table is None else apply_color_map(table, out.double())
+        return float(((y - smoothed(channel_of(out, value).double(), sigma)) ** 2).mean())
+
+    best, best_cost, best_scale = camera, cost(full["rgb"][0][r0:r1, c0:c1]), 0
+    scale = 1
+    while scale <= max_scale:
+        cand = moved_camera(camera, step * scale, dist)
+        c = cost(render_cameras(model, cand, ("rgb",), window)["rgb"][0])
+        if c >= best_cost:
+            break
+        best, best_cost, best_scale = cand, c, scale
+        scale *= 2
+    return best, best_scale
 
 
 def candidate_cameras(reference, count: int, seed: int) -> Cameras:
@@ -326,6 +376,8 @@ class PoseSearch:
     """Iterations of the first stage for every kept candidate, before the best one goes on."""
     half_size_blur: float = 1.5
     """Stages blurred by at least twice this many px run at half the image's size."""
+    extend: int = 8
+    """An accepted Gauss-Newton step is tried at up to this many times its length (:func:`lk_refine`)."""
     seed: int = 0
 
 
@@ -368,8 +420,19 @@ def estimate_camera(
         f = 2 if sigma >= 2 * search.half_size_blur else 1
         lh, lw = max(1, h // f), max(1, w // f)
         target = channel_of(image.float() if f == 1 else area_resize(image, lh, lw), value)
-        cam, rms, n_it = lk_refine(model, scaled_camera(cam, lh, lw), target, value, its, sigma / f)
-        history.append({"candidate": b, "blur_px": sigma, "size": [lh, lw], "rms": rms, "iterations": n_it})
+        cam, rms, n_it = lk_refine(
+            model, scaled_camera(cam, lh, lw), target, value, its, sigma / f, extend=search.extend
+        )
+        history.append(
+            {
+                "candidate": b,
+                "blur_px": sigma,
+                "size": [lh, lw],
+                "rms": rms,
+                "iterations": n_it,
+                "c2w": cam.camera_to_worlds[0].tolist(),
+            }
+        )
         return scaled_camera(cam, h, w), rms, n_it
 
     def start(b: int, roll: float) -> Cameras:
@@ -412,16 +475,26 @@ def render_at(model, camera: Cameras, rays: Int[Tensor, " R"]) -> Float[Tensor, 
 
 
 def pose_columns(
-    model, camera: Cameras, rays: Int[Tensor, " R"], value: bool, eps: float = 3.5e-4
+    model,
+    camera: Cameras,
+    rays: Int[Tensor, " R"],
+    value: bool,
+    eps: float = 3.5e-4,
+    table: Optional[Tensor] = None,
 ) -> Float[Tensor, "M 6"]:
-    """d (base render at ``rays``) / d pose by central differences (rows ``r * 3 + c``, or one V row per ray with
-    ``value``): what the image decoder fits beside the message for a camera this module estimated."""
+    """d (base render at ``rays``, through the colour map ``table`` when given) / d pose by central differences (rows
+    ``r * 3 + c``, or one V row per ray with ``value``): what the image decoder fits beside the message for a camera
+    this module estimated."""
     dist = camera_distance(camera)
+
+    def seen(rgb: Tensor) -> Tensor:
+        return channel_of(rgb if table is None else apply_color_map(table, rgb.double()).float(), value)
+
     cols = []
     for k in range(6):
         e = torch.zeros(6)
         e[k] = eps
-        plus = channel_of(render_at(model, moved_camera(camera, e, dist), rays), value)
-        minus = channel_of(render_at(model, moved_camera(camera, -e, dist), rays), value)
+        plus = seen(render_at(model, moved_camera(camera, e, dist), rays))
+        minus = seen(render_at(model, moved_camera(camera, -e, dist), rays))
         cols.append(((plus - minus) / (2 * eps)).reshape(-1))
     return torch.stack(cols, dim=1)

@@ -8,6 +8,7 @@ the null is the informed decoders' (docs/verify.md).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
@@ -15,12 +16,22 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from gsticker_plugin.decoders.colormap import apply_color_map, fit_color_map
 from gsticker_plugin.decoders.fit import tie_generator
-from gsticker_plugin.decoders.image import decode_image_view, image_at_rays, image_reference, reads_value
+from gsticker_plugin.decoders.image import (
+    ImageReferenceView,
+    decode_image_view,
+    image_at_rays,
+    image_reference,
+    reads_value,
+    rgb_of_sticker,
+)
 from gsticker_plugin.decoders.pose import (
     PoseSearch,
     camera_distance,
+    channel_of,
     estimate_camera,
+    line_search,
     moved_camera,
     pose_columns,
     search_renders,
@@ -28,6 +39,35 @@ from gsticker_plugin.decoders.pose import (
 from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker
 from gsticker_plugin.decoders.result import decoded
 from gsticker_plugin.views import progress_bar
+
+COLOR_MAP_MARGIN = 0.25
+"""An image is read through a colour map when the map leaves at most this share of the squared difference between
+the image and the base render (a recolouring moves whole materials; the mark and a small pose error it cannot map)."""
+
+
+def recolouring(
+    image: Float[Tensor, "H W 3"], base: Float[Tensor, "3 H W"], margin: float = COLOR_MAP_MARGIN
+) -> Optional[Tensor]:
+    """The colour map (:func:`gsticker_plugin.decoders.colormap.fit_color_map`) from the base render to ``image``
+    when it explains all but ``margin`` of their squared difference; None otherwise."""
+    x = image.float().reshape(-1, 3)
+    b = base.permute(1, 2, 0).reshape(-1, 3).float()
+    before = float(((x - b) ** 2).mean())
+    if before <= 0:
+        return None
+    table = fit_color_map(b, x)
+    after = float(((x - apply_color_map(table, b).float()) ** 2).mean())
+    return table if after < margin * before else None
+
+
+def mapped_reference(ref: ImageReferenceView, table: Tensor) -> ImageReferenceView:
+    """``ref`` with every sample's colour taken through the colour map ``table`` (the base render at the rays
+    recomposited from them)."""
+    view = dataclasses.replace(ref.view, rgb=apply_color_map(table, ref.view.rgb.double()).to(ref.view.rgb.dtype))
+    mapped = ImageReferenceView(view=view, background=ref.background, base_rgb=ref.base_rgb)
+    zero = torch.zeros(view.open_index.numel(), 1, dtype=view.density.dtype)
+    mapped.base_rgb = rgb_of_sticker(mapped, zero).detach().float()
+    return mapped
 
 
 def decode_unposed_images(
@@ -40,15 +80,20 @@ def decode_unposed_images(
     value_mode: bool = True,
     iterations: int = 10,
     names: Optional[Sequence[str]] = None,
-    rounds: int = 3,
+    rounds: int = 4,
     renders: Optional[Dict[Tuple[int, int], Any]] = None,
+    line_scale: int = 8,
+    color_map: bool = True,
 ) -> Dict[str, Any]:
     """Decode ``images`` (``[H W 3]`` each, cameras unknown) of the owner's scene against the owner's base
     ``reference`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`): camera search, then the image fit
     with the pose Jacobian. ``value_mode``: read an image whose V matches the base render far better than its RGB
     by V alone (:func:`gsticker_plugin.decoders.image.reads_value`). ``rounds``: fits at most, each from the camera the
     previous one's pose step moved. ``renders``: the search's candidate renders per image size, kept by a caller that
-    decodes images one call at a time (filled here). Returns the decoders' shared result, with
+    decodes images one call at a time (filled here). ``line_scale``: each pose step is taken at the multiple up to this
+    whose base render is nearest the image (:func:`gsticker_plugin.decoders.pose.line_search`; 0: as fitted).
+    ``color_map``: read an image whose colours a smooth map of the base render's explains far better than the render
+    itself (a recoloured copy, :func:`recolouring`) with the base's sample colours taken through that map. Returns the decoders' shared result, with
     per image the found camera (``c2w``), the pose fit's RMS and seconds in ``image``."""
     search = search or PoseSearch()
     st = cpu_sticker(reference.model)
@@ -70,16 +115,26 @@ def decode_unposed_images(
             ref_view = any_reference_view(reference, f"unposed/{name}/{k}", camera, None)
             ref = image_reference(ref_view, background)
             value = value_mode and reads_value(image, ref_view.image)
-            cols = pose_columns(reference.model, camera, ref_view.rays, value)
+            table = None if value or not color_map else recolouring(image, ref_view.image)
+            if table is not None:
+                ref = mapped_reference(ref, table)
+            cols = pose_columns(reference.model, camera, ref_view.rays, value, table=table)
             y = image_at_rays(image, ref_view.rays, ref_view.hw)
             d = decode_image_view(ref, st, y, gen, iterations, value=value, pose_columns=cols)
             step = torch.tensor(d.pop("pose_step"))
             left = d["residual_rms"] * max(0.0, 1.0 - d["explained"]) ** 0.5  # what the joint fit leaves
+            d["color_map"] = table is not None
             if best is None or left < best[0]:
                 best = (left, d, camera, k + 1)
             if float(step.abs().max()) <= 1e-6:
                 break
-            camera = moved_camera(camera, step, camera_distance(camera))
+            if line_scale > 0:  # the fit's step falls short on a sharp render: the base render decides how far
+                sigma = search.blurs[-1] * max(hw) / 100.0
+                camera, _ = line_search(
+                    reference.model, camera, step, channel_of(image.float(), value), value, sigma, line_scale, table
+                )
+            else:
+                camera = moved_camera(camera, step, camera_distance(camera))
         assert best is not None
         _, d, camera, used = best
         d.update(
