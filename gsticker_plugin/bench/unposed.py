@@ -55,9 +55,14 @@ class BenchUnposedConfig:
     camera_seed: int = 12345
     """Seed of the held-out cameras (the sticker's pool draws its novel views with its own seed)."""
     rows: Tuple[str, ...] = ("marked:", "clean:", "marked:hue=0.5", "marked:jpeg=50@8", "marked:blur=1@8")
-    """``IMAGES:ATTACK[@N]`` rows: ``marked`` or ``clean`` renders, or renders of the watermarked run recoloured
+    """``IMAGES:ATTACK[@N]`` rows: ``marked`` or ``clean`` renders, ``foreign`` (``--foreign-config``'s), or renders
+    of the watermarked run recoloured
     (``palette=blue``: palette entry 0 set to blue; ``modelhue=0.5``: a model-level hue turn), an attack spec (``noise=0.1,jpeg=50``; empty:
     none; ``hue=~0.5``: a strength drawn per view from [-0.5, 0.5]), the first ``N`` views only."""
+    other_keys: int = 64
+    """Other owners' random messages every marked image's bits are also checked against (a null)."""
+    foreign_config: Optional[Path] = None
+    """Another model of the scene (config.yml) rendered for ``foreign:`` rows, e.g. a TensoRF base: a null."""
     rolls: Tuple[float, ...] = (0.0,)
     """Turns (degrees) the camera search tries with every candidate (:class:`gsticker_plugin.decoders.pose.PoseSearch`)
     on rows whose attack rotates; other rows search without turns. Recorded per image."""
@@ -122,6 +127,19 @@ def recolored_renders(cfg: "BenchUnposedConfig", edit: str, cameras) -> torch.Te
     return as_8_bit(torch.stack(imgs))
 
 
+def foreign_renders(cfg: "BenchUnposedConfig", cameras) -> torch.Tensor:
+    """8-bit renders at ``cameras`` of ``--foreign-config`` (another model of the scene: a null)."""
+    if cfg.foreign_config is None:
+        raise ValueError("a foreign: row needs --foreign-config RUN/config.yml (e.g. a TensoRF base of the scene)")
+    with contextlib.redirect_stdout(sys.stderr):
+        _, pipe, _ = load_run(cfg.foreign_config, data=cfg.data, device=torch.device("cpu"))
+    imgs = []
+    with torch.no_grad():
+        for i in range(cameras.shape[0]):
+            imgs.append(final_rgb(pipe.model.get_outputs_for_camera(cameras[i : i + 1])).clamp(0, 1).cpu())
+    return as_8_bit(torch.stack(imgs))
+
+
 def held_out_renders(pipe, cameras) -> Tuple[torch.Tensor, torch.Tensor]:
     """8-bit renders of the watermarked run with its sticker on and off at ``cameras``: ``[N H W 3]`` each."""
     model = pipe.model
@@ -167,6 +185,8 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
         n = min(int(count), cfg.num_views) if count else cfg.num_views
         if which in ("marked", "clean"):
             src = marked if which == "marked" else clean
+        elif which == "foreign":
+            src = foreign_renders(cfg, cams[:n])
         else:
             src = recolored_renders(cfg, which, cams[:n])
         for i in range(n):
@@ -194,6 +214,7 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
             "row": row,
             "view": i,
             "matches": int(dec["matches"][0]),
+            "bits": "".join(str(int(b)) if int(b) in (0, 1) else "?" for b in dec["bits"][0].tolist()),
             "signals": d["signals"],
             "explained": d["explained"],
             "pose_rms": d["pose_rms"],
@@ -234,6 +255,26 @@ def summarize(rows: List[Dict[str, Any]], threshold: int, num_bits: int) -> Dict
     return out
 
 
+def other_keys(rows: List[Dict[str, Any]], count: int, threshold: int) -> Optional[Dict[str, Any]]:
+    """The marked images' decoded bits checked against ``count`` other owners' keys (messages drawn uniformly at
+    random, seed 99): the same model under a second key, a null. None without rows or keys."""
+    rows = [r for r in rows if "bits" in r]
+    if not rows or count <= 0:
+        return None
+    n = len(rows[0]["bits"])
+    msgs = torch.randint(0, 2, (count, n), generator=torch.Generator().manual_seed(99))
+    bits = torch.tensor([[int(c) if c in "01" else -1 for c in r["bits"]] for r in rows])
+    m = (bits[:, None, :] == msgs[None]).sum(-1).double()  # [images, keys]
+    return {
+        "keys": count,
+        "images": len(rows),
+        "checks": int(m.numel()),
+        "matches_mean": float(m.mean()),
+        "matches_max": int(m.max()),
+        "passing": int((m >= threshold).sum()),
+    }
+
+
 def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], threshold: int, psnr) -> Dict[str, Any]:
     order = list(cfg.rows) + ["random:"]
     table = {
@@ -241,7 +282,9 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
         for row in order
         if any(rw == row for rw, _ in done)
     }
+    others = other_keys([r for (rw, _), r in done.items() if rw.startswith("marked:")], cfg.other_keys, threshold)
     res = {
+        "other_keys": others,
         "command": "python -m gsticker_plugin.bench.unposed " + " ".join(sys.argv[1:]),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": machine_info(),
@@ -286,10 +329,17 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
             f"{t['read_through_map']} | {cam} | "
             f"{t['seconds_per_image']:.0f} |"
         )
+    if others is not None:
+        lines.append(
+            f"| marked, checked with {others['keys']} other keys | none | {others['checks']} checks | - | "
+            f"{others['matches_mean']:.1f} (max {others['matches_max']}) | {others['passing']}/{others['checks']} | - | - "
+            "| - |"
+        )
     lines += [
         "",
-        "*clean* and *random* rows are the null: images that do not carry the message, decoded the same way; their "
-        "matches follow Binomial(48, 1/2) when the decoder is honest (mean 24).",
+        "*clean*, *foreign* and *random* images do not carry the owner's message, and the other keys' messages were "
+        "never in the model: the null. Decoded the same way, their matches follow Binomial(48, 1/2) when the decoder "
+        "is honest (mean 24).",
     ]
     cfg.output.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
