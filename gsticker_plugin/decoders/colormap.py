@@ -1,98 +1,97 @@
-"""A smooth colour map (a trilinear lookup table over the RGB cube) fitted from a base render to a recoloured image.
+"""A colour map per material (an affine change of RGB for each of a few colour clusters, softly assigned), fitted
+from the owner's base to an image of a recoloured copy, on the base's own samples.
 
-A palette edit, a hue turn or a colour fine-tune changes the colour every sample of the model renders, close to a
-smooth function of that colour. The informed image decoder takes its sample colours from the owner's base; for an
-image of a recoloured copy it can take them through this map instead (docs/verify.md). The map is fitted from the
-image and the base render only, never from the owner's message.
+A palette edit, a hue turn or a colour fine-tune changes the colour every *sample* of the model renders; a pixel is a
+composite of many samples, so a map of pixel colours cannot undo it near surfaces, where the mark is. This map acts on
+the sample colours: ``g(c) = c + sum_k a_k(c) (A_k c + b_k)``, ``a`` the soft assignment of ``c`` to the clusters of
+the base render's colours (CIELab, as ``ns-recolor palette``'s), and the image minus the base render is linear in the
+``A_k, b_k``: a ridge least-squares fit. The fit sees the image and the base only, never the owner's message.
 """
 
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from dataclasses import dataclass
 
 import torch
 from jaxtyping import Float
 from torch import Tensor
 
-
-def corner_weights(rgb: Float[Tensor, "N 3"], nodes: int) -> Tuple[Tensor, Tensor]:
-    """The 8 lattice nodes around each colour (flat indices ``[N 8]``) and their trilinear weights ``[N 8]``."""
-    p = rgb.double().clamp(0.0, 1.0) * (nodes - 1)
-    i0 = p.floor().clamp(0, nodes - 2)
-    f = p - i0
-    i0 = i0.long()
-    idx, wts = [], []
-    for dr in (0, 1):
-        for dg in (0, 1):
-            for db in (0, 1):
-                d = torch.tensor([dr, dg, db])
-                corner = i0 + d
-                idx.append((corner[:, 0] * nodes + corner[:, 1]) * nodes + corner[:, 2])
-                w = torch.where(d.bool(), f, 1.0 - f).prod(dim=-1)
-                wts.append(w)
-    return torch.stack(idx, dim=1), torch.stack(wts, dim=1)
+from gsticker_plugin.recolor.palette import extract_palette, palette_weights, rgb_to_lab
 
 
-def identity_table(nodes: int) -> Float[Tensor, "G G G 3"]:
-    """The table that maps every colour to itself."""
-    t = torch.linspace(0.0, 1.0, nodes, dtype=torch.float64)
-    return torch.stack(torch.meshgrid(t, t, t, indexing="ij"), dim=-1)
+@dataclass
+class ColorMap:
+    """Per-cluster affine changes of sample colours (``centres_lab [K 3]``, ``theta [K 4 3]``: ``A_k^T`` over
+    ``b_k``)."""
+
+    centres_lab: Float[Tensor, "K 3"]
+    softness: float
+    theta: Float[Tensor, "K 4 3"]
+
+    def __call__(self, rgb: Float[Tensor, "... 3"]) -> Float[Tensor, "... 3"]:
+        """``rgb`` (any leading shape) through the map, clamped to [0, 1]."""
+        return (rgb + material_change(self, rgb)).clamp(0.0, 1.0)
 
 
-def apply_color_map(table: Float[Tensor, "G G G 3"], rgb: Float[Tensor, "... 3"]) -> Float[Tensor, "... 3"]:
-    """``rgb`` through ``table`` (trilinear), clamped to [0, 1]; differentiable in ``rgb``."""
-    g = table.shape[0]
-    flat = rgb.reshape(-1, 3)
-    p = flat.clamp(0.0, 1.0) * (g - 1)
-    i0 = p.detach().floor().clamp(0, g - 2)
-    f = p - i0
-    i0 = i0.long()
-    t = table.reshape(-1, 3).to(flat.dtype)
-    out = torch.zeros_like(flat)
-    for dr in (0, 1):
-        for dg in (0, 1):
-            for db in (0, 1):
-                d = torch.tensor([dr, dg, db], device=flat.device)
-                corner = i0 + d
-                w = torch.where(d.bool(), f, 1.0 - f).prod(dim=-1, keepdim=True)
-                out = out + w * t[(corner[:, 0] * g + corner[:, 1]) * g + corner[:, 2]]
-    return out.clamp(0.0, 1.0).reshape(rgb.shape)
+def material_features(
+    centres_lab: Float[Tensor, "K 3"], softness: float, rgb: Float[Tensor, "... 3"]
+) -> Float[Tensor, "... K 4"]:
+    """Each colour's soft assignment to the clusters times ``[r, g, b, 1]``: what the map's change is linear in."""
+    a = palette_weights(rgb_to_lab(rgb.float().clamp(0.0, 1.0)), centres_lab, softness).to(rgb.dtype)
+    ones = torch.ones_like(rgb[..., :1])
+    return a[..., :, None] * torch.cat([rgb, ones], dim=-1)[..., None, :]
+
+
+def material_change(cmap: ColorMap, rgb: Float[Tensor, "... 3"]) -> Float[Tensor, "... 3"]:
+    """``g(c) - c`` before clamping."""
+    f = material_features(cmap.centres_lab, cmap.softness, rgb)
+    return torch.einsum("...kj,kjc->...c", f, cmap.theta.to(rgb.dtype))
+
+
+def identity_map(centres_lab: Float[Tensor, "K 3"], softness: float = 5.0) -> ColorMap:
+    """The map that changes nothing."""
+    return ColorMap(centres_lab, softness, torch.zeros(centres_lab.shape[0], 4, 3, dtype=torch.float64))
+
+
+def scene_clusters(pixels_rgb: Float[Tensor, "N 3"], k: int = 8, seed: int = 0) -> Float[Tensor, "K 3"]:
+    """Cluster centres (CIELab) of a render's colours, as ``ns-recolor palette`` extracts its palette."""
+    return extract_palette(pixels_rgb.float(), k=k, seed=seed).lab
+
+
+def composited_features(
+    sample_rgb: Float[Tensor, "R S 3"], sample_weights: Float[Tensor, "R S 1"], cmap: ColorMap
+) -> Float[Tensor, "R F"]:
+    """The map's features of every sample composited along each ray with the render weights (``F = 4K``): the
+    change of the render at a ray is these times ``theta``, per output channel."""
+    f = material_features(cmap.centres_lab, cmap.softness, sample_rgb.double())  # [R S K 4]
+    return (sample_weights.double()[..., None] * f).sum(dim=1).reshape(sample_rgb.shape[0], -1)
+
+
+def map_columns(
+    sample_rgb: Float[Tensor, "R S 3"], sample_weights: Float[Tensor, "R S 1"], cmap: ColorMap
+) -> Float[Tensor, "M P"]:
+    """d (render at the rays) / d ``theta``, rows ``r * 3 + c`` (``M = 3R``, ``P = 12K``): a change of the map the
+    image decoder fits beside the message."""
+    x = composited_features(sample_rgb, sample_weights, cmap)  # [R F]
+    r, f = x.shape
+    cols = torch.zeros(r, 3, f, 3, dtype=x.dtype)
+    for c in range(3):
+        cols[:, c, :, c] = x
+    return cols.reshape(r * 3, f * 3)
 
 
 def fit_color_map(
-    source: Float[Tensor, "N 3"],
-    target: Float[Tensor, "N 3"],
-    weights: Optional[Float[Tensor, " N"]] = None,
-    nodes: int = 6,
-    smooth: float = 1e-3,
-    prior: float = 1e-4,
-) -> Float[Tensor, "G G G 3"]:
-    """The table whose map takes ``source`` colours nearest ``target`` (weighted least squares), with a discrete
-    Laplacian penalty ``smooth`` between neighbouring nodes and a pull ``prior`` toward the identity (nodes no colour
-    reaches stay where they were); both relative to the mean data weight."""
-    g = nodes
-    n = g**3
-    idx, wts = corner_weights(source, g)
-    w = torch.ones(source.shape[0], dtype=torch.float64) if weights is None else weights.double()
-    a = torch.zeros(n, n, dtype=torch.float64)
-    rows = (wts * w[:, None].sqrt()).reshape(-1)
-    cols = idx.reshape(-1)
-    obs = torch.arange(source.shape[0]).repeat_interleave(8)
-    design = torch.zeros(source.shape[0], n, dtype=torch.float64)
-    design.index_put_((obs, cols), rows, accumulate=True)
-    a += design.T @ design
-    b = design.T @ (target.double() * w[:, None].sqrt())
-    scale = float(w.sum()) / n
-    lap = torch.zeros(n, n, dtype=torch.float64)
-    grid = torch.arange(n).reshape(g, g, g)
-    for axis in range(3):
-        lo = grid.narrow(axis, 0, g - 1).reshape(-1)
-        hi = grid.narrow(axis, 1, g - 1).reshape(-1)
-        d = torch.zeros(lo.numel(), n, dtype=torch.float64)
-        d[torch.arange(lo.numel()), lo] = -1.0
-        d[torch.arange(lo.numel()), hi] = 1.0
-        lap += d.T @ d
-    ident = identity_table(g).reshape(n, 3)
-    a += scale * (smooth * lap + prior * torch.eye(n, dtype=torch.float64))
-    b += scale * (smooth * lap @ ident + prior * ident)
-    return torch.linalg.solve(a, b).reshape(g, g, g, 3)
+    sample_rgb: Float[Tensor, "R S 3"],
+    sample_weights: Float[Tensor, "R S 1"],
+    change: Float[Tensor, "R 3"],
+    centres_lab: Float[Tensor, "K 3"],
+    softness: float = 5.0,
+    ridge: float = 1e-3,
+) -> ColorMap:
+    """The map whose change of the samples' colours, composited with their render weights, is nearest ``change``
+    (image minus base render at the rays): ridge least squares (``ridge`` relative to the mean feature energy)."""
+    x = composited_features(sample_rgb, sample_weights, identity_map(centres_lab, softness))  # [R 4K]
+    a = x.T @ x
+    lam = ridge * float(torch.diagonal(a).mean()) + 1e-12
+    theta = torch.linalg.solve(a + lam * torch.eye(a.shape[0], dtype=a.dtype), x.T @ change.double())
+    return ColorMap(centres_lab, softness, theta.reshape(centres_lab.shape[0], 4, 3))

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -20,7 +20,6 @@ from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from gsticker_plugin.attacks.geometric import rotate
-from gsticker_plugin.decoders.colormap import apply_color_map
 from gsticker_plugin.decoders.geometric import render_rays
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import axis_angle_matrix, novel_cameras
@@ -302,11 +301,10 @@ def line_search(
     value: bool,
     sigma: float,
     max_scale: int = 8,
-    table: Optional[Tensor] = None,
+    color_map: Optional[Callable[[Tensor], Tensor]] = None,
 ) -> Tuple[Cameras, int]:
     """``camera`` moved by ``step`` times the scale in 0, 1, 2, 4, ... ``max_scale`` (tried upward until the residual
-    rises) whose base render (blurred by ``sigma`` px, on the content window; through the colour map ``table`` when
-    given) is nearest ``target`` (sized like the camera)."""
+    rises) whose base render (blurred by ``sigma`` px, on the content window; through ``color_map`` when given) is nearest ``target`` (sized like the camera)."""
     dist = camera_distance(camera)
     full = render_cameras(model, camera, ("rgb", "accumulation"))
     window = content_window(full["accumulation"][0], int(3 * sigma) + 6)
@@ -314,7 +312,7 @@ def line_search(
     y = smoothed(target.double(), sigma)[r0:r1, c0:c1]
 
     def cost(out: Tensor) -> float:
-        out = out if table is None else apply_color_map(table, out.double())
+        out = out if color_map is None else color_map(out.double())
         return float(((y - smoothed(channel_of(out, value).double(), sigma)) ** 2).mean())
 
     best, best_cost, best_scale = camera, cost(full["rgb"][0][r0:r1, c0:c1]), 0
@@ -480,15 +478,15 @@ def pose_columns(
     rays: Int[Tensor, " R"],
     value: bool,
     eps: float = 3.5e-4,
-    table: Optional[Tensor] = None,
+    color_map: Optional[Callable[[Tensor], Tensor]] = None,
 ) -> Float[Tensor, "M 6"]:
-    """d (base render at ``rays``, through the colour map ``table`` when given) / d pose by central differences (rows
+    """d (base render at ``rays``, through ``color_map`` when given) / d pose by central differences (rows
     ``r * 3 + c``, or one V row per ray with ``value``): what the image decoder fits beside the message for a camera
     this module estimated."""
     dist = camera_distance(camera)
 
     def seen(rgb: Tensor) -> Tensor:
-        return channel_of(rgb if table is None else apply_color_map(table, rgb.double()).float(), value)
+        return channel_of(rgb if color_map is None else color_map(rgb.double()).float(), value)
 
     cols = []
     for k in range(6):

@@ -16,7 +16,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from gsticker_plugin.decoders.colormap import apply_color_map, fit_color_map
+from gsticker_plugin.decoders.colormap import ColorMap, fit_color_map, map_columns, scene_clusters
 from gsticker_plugin.decoders.fit import tie_generator
 from gsticker_plugin.decoders.image import (
     ImageReferenceView,
@@ -38,32 +38,39 @@ from gsticker_plugin.decoders.pose import (
 )
 from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker
 from gsticker_plugin.decoders.result import decoded
+from gsticker_plugin.sticker import render_weights
 from gsticker_plugin.views import progress_bar
 
 COLOR_MAP_MARGIN = 0.25
 """An image is read through a colour map when the map leaves at most this share of the squared difference between
-the image and the base render (a recolouring moves whole materials; the mark and a small pose error it cannot map)."""
+the image and the base render at the rays (a recolouring moves whole materials; the mark and a small pose error it
+cannot map)."""
 
 
 def recolouring(
-    image: Float[Tensor, "H W 3"], base: Float[Tensor, "3 H W"], margin: float = COLOR_MAP_MARGIN
-) -> Optional[Tensor]:
-    """The colour map (:func:`gsticker_plugin.decoders.colormap.fit_color_map`) from the base render to ``image``
-    when it explains all but ``margin`` of their squared difference; None otherwise."""
-    x = image.float().reshape(-1, 3)
-    b = base.permute(1, 2, 0).reshape(-1, 3).float()
-    before = float(((x - b) ** 2).mean())
+    image: Float[Tensor, "H W 3"], ref: ImageReferenceView, margin: float = COLOR_MAP_MARGIN
+) -> Optional[ColorMap]:
+    """The colour map of the base's samples (:func:`gsticker_plugin.decoders.colormap.fit_color_map`) that explains
+    all but ``margin`` of the difference between ``image`` and the base render at ``ref``'s rays; None otherwise."""
+    v = ref.view
+    if v.rays.numel() == 0:
+        return None
+    change = image_at_rays(image, v.rays, v.hw).double() - ref.base_rgb.double()
+    before = float((change**2).mean())
     if before <= 0:
         return None
-    table = fit_color_map(b, x)
-    after = float(((x - apply_color_map(table, b).float()) ** 2).mean())
-    return table if after < margin * before else None
+    centres = scene_clusters(v.image.permute(1, 2, 0).reshape(-1, 3))
+    weights = render_weights(v.density, v.deltas)
+    cmap = fit_color_map(v.rgb, weights, change, centres)
+    fitted = (weights.double() * (cmap(v.rgb.double()) - v.rgb.double())).sum(dim=1)
+    after = float(((change - fitted) ** 2).mean())
+    return cmap if after < margin * before else None
 
 
-def mapped_reference(ref: ImageReferenceView, table: Tensor) -> ImageReferenceView:
-    """``ref`` with every sample's colour taken through the colour map ``table`` (the base render at the rays
-    recomposited from them)."""
-    view = dataclasses.replace(ref.view, rgb=apply_color_map(table, ref.view.rgb.double()).to(ref.view.rgb.dtype))
+def mapped_reference(ref: ImageReferenceView, cmap: ColorMap) -> ImageReferenceView:
+    """``ref`` with every sample's colour taken through ``cmap`` (the base render at the rays recomposited from
+    them)."""
+    view = dataclasses.replace(ref.view, rgb=cmap(ref.view.rgb.double()).to(ref.view.rgb.dtype))
     mapped = ImageReferenceView(view=view, background=ref.background, base_rgb=ref.base_rgb)
     zero = torch.zeros(view.open_index.numel(), 1, dtype=view.density.dtype)
     mapped.base_rgb = rgb_of_sticker(mapped, zero).detach().float()
@@ -115,15 +122,18 @@ def decode_unposed_images(
             ref_view = any_reference_view(reference, f"unposed/{name}/{k}", camera, None)
             ref = image_reference(ref_view, background)
             value = value_mode and reads_value(image, ref_view.image)
-            table = None if value or not color_map else recolouring(image, ref_view.image)
-            if table is not None:
-                ref = mapped_reference(ref, table)
-            cols = pose_columns(reference.model, camera, ref_view.rays, value, table=table)
+            cmap = None if value or not color_map else recolouring(image, ref)
+            if cmap is not None:
+                ref = mapped_reference(ref, cmap)
+            cols = pose_columns(reference.model, camera, ref_view.rays, value, color_map=cmap)
+            if cmap is not None:  # what remains of the map's error is fitted beside the message too
+                weights = render_weights(ref.view.density, ref.view.deltas)
+                cols = torch.cat([cols, map_columns(ref_view.rgb, weights, cmap).to(cols.dtype)], dim=1)
             y = image_at_rays(image, ref_view.rays, ref_view.hw)
             d = decode_image_view(ref, st, y, gen, iterations, value=value, pose_columns=cols)
-            step = torch.tensor(d.pop("pose_step"))
+            step = torch.tensor(d.pop("pose_step"))[:6]
             left = d["residual_rms"] * max(0.0, 1.0 - d["explained"]) ** 0.5  # what the joint fit leaves
-            d["color_map"] = table is not None
+            d["color_map"] = cmap is not None
             if best is None or left < best[0]:
                 best = (left, d, camera, k + 1)
             if float(step.abs().max()) <= 1e-6:
@@ -131,7 +141,7 @@ def decode_unposed_images(
             if line_scale > 0:  # the fit's step falls short on a sharp render: the base render decides how far
                 sigma = search.blurs[-1] * max(hw) / 100.0
                 camera, _ = line_search(
-                    reference.model, camera, step, channel_of(image.float(), value), value, sigma, line_scale, table
+                    reference.model, camera, step, channel_of(image.float(), value), value, sigma, line_scale, cmap
                 )
             else:
                 camera = moved_camera(camera, step, camera_distance(camera))
