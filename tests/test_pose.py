@@ -167,3 +167,17 @@ def test_camera_search_turns_a_rotated_image_back():
     quarter = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]], dtype=torch.float64)
     assert float((a[:, 3] - b[:, 3]).norm()) < 5e-3 and fit.rms < 0.02
     assert min(float((rel - quarter).abs().max()), float((rel - quarter.T).abs().max())) < 2e-3, rel
+
+
+def test_line_search_takes_the_multiple_of_a_short_step_that_lands_on_the_image():
+    """A step a quarter of the way to the image's camera is taken four times; a step away from it not at all."""
+    cam = orbit(8)[1:2]
+    image = P.render_cameras(TexturedSquare(), cam)["rgb"][0]
+    delta = torch.tensor([0.004, -0.003, 0.002, 0.004, 0.003, -0.002])
+    start = P.moved_camera(cam, -delta, P.camera_distance(cam))
+    found, scale = P.line_search(TexturedSquare(), start, delta / 4, image, False, 0.5)
+    assert scale == 4
+    off = float((start.camera_to_worlds - cam.camera_to_worlds).abs().max())
+    assert float((found.camera_to_worlds - cam.camera_to_worlds).abs().max()) < 0.02 * off
+    same, none = P.line_search(TexturedSquare(), start, -delta / 4, image, False, 0.5)
+    assert none == 0 and torch.equal(same.camera_to_worlds, start.camera_to_worlds)

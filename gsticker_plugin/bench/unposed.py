@@ -69,6 +69,9 @@ class BenchUnposedConfig:
     random_images: int = 8
     """Random images decoded as a null (:func:`gsticker_plugin.views.random_views`)."""
     seed: int = 0
+    page_only: bool = False
+    """Write the page from the images already decoded in ``--work-dir`` (rows not reached are left out), decode
+    nothing."""
     work_dir: Path = Path("outputs/bench-unposed")
     output: Path = Path("docs/bench-unposed.md")
     """The page; its JSON goes beside it."""
@@ -163,12 +166,6 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
         ref = load_base_reference(key, cfg.key, cfg.base_config, cfg.data, device)
     train = pipe.datamanager.train_dataset.cameras
     cams = novel_cameras(train, cfg.num_views, torch.Generator().manual_seed(cfg.camera_seed))
-    t0 = time.time()
-    marked, clean = held_out_renders(pipe, cams)
-    psnr = metrics.psnr(marked.permute(0, 3, 1, 2), clean.permute(0, 3, 1, 2))
-    print(
-        f"rendered {cfg.num_views} held-out views in {time.time() - t0:.0f} s; PSNR marked vs clean {float(psnr.mean()):.2f} dB"
-    )
     threshold = metrics.min_matches_for_fpr(key.num_bits, 1e-6)
     cfg.work_dir.mkdir(parents=True, exist_ok=True)
     rows_path = cfg.work_dir / "rows.jsonl"
@@ -177,6 +174,18 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
         for line in rows_path.read_text().splitlines():
             r = json.loads(line)
             done[(r["row"], r["view"])] = r
+    psnr_path = cfg.work_dir / "psnr.json"
+    if cfg.page_only and psnr_path.exists():
+        return write_page(cfg, key, done, threshold, torch.tensor(json.loads(psnr_path.read_text())["per_view_db"]))
+    t0 = time.time()
+    marked, clean = held_out_renders(pipe, cams)
+    psnr = metrics.psnr(marked.permute(0, 3, 1, 2), clean.permute(0, 3, 1, 2))
+    psnr_path.write_text(json.dumps({"per_view_db": [float(v) for v in psnr]}))
+    print(
+        f"rendered {cfg.num_views} held-out views in {time.time() - t0:.0f} s; PSNR marked vs clean {float(psnr.mean()):.2f} dB"
+    )
+    if cfg.page_only:
+        return write_page(cfg, key, done, threshold, psnr)
     jobs: List[Tuple[str, int, torch.Tensor, str]] = []
     for row in cfg.rows:
         which, _, spec = row.partition(":")
@@ -275,6 +284,18 @@ def other_keys(rows: List[Dict[str, Any]], count: int, threshold: int) -> Option
     }
 
 
+def not_reached(cfg: BenchUnposedConfig, done: Dict[Any, Dict[str, Any]]) -> Dict[str, int]:
+    """Images each row asks for that have not been decoded (``--page-only`` pages)."""
+    out = {}
+    for row in list(cfg.rows) + ["random:"]:
+        count = row.partition(":")[2].partition("@")[2]
+        want = cfg.random_images if row == "random:" else (min(int(count), cfg.num_views) if count else cfg.num_views)
+        have = sum(1 for rw, _ in done if rw == row)
+        if have < want:
+            out[row] = want - have
+    return out
+
+
 def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], threshold: int, psnr) -> Dict[str, Any]:
     order = list(cfg.rows) + ["random:"]
     table = {
@@ -285,7 +306,8 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
     others = other_keys([r for (rw, _), r in done.items() if rw.startswith("marked:")], cfg.other_keys, threshold)
     res = {
         "other_keys": others,
-        "command": "python -m gsticker_plugin.bench.unposed " + " ".join(sys.argv[1:]),
+        "command": "python -m gsticker_plugin.bench.unposed " + " ".join(a for a in sys.argv[1:] if a != "--page-only"),
+        "not_reached": not_reached(cfg, done),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": machine_info(),
         "threshold": threshold,
@@ -312,7 +334,7 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
         "base, Gauss-Newton on the pixels, then the image fit with the pose Jacobian beside the message "
         f"([verify.md](verify.md)). A view passes at >= {threshold}/48 (per-view false-positive rate 1e-6).",
         "",
-        "| images | attack | decoded | bit accuracy | matches mean (min-max) | passing | read by V / colour map | camera error median / max (deg) | s per image |",
+        "| images | attack | decoded | bit accuracy | matches mean (min-max) | passing | read by V / colour map | camera error median / max (deg) | s per image (wall) |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for row, t in table.items():
@@ -335,6 +357,14 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
             f"{others['matches_mean']:.1f} (max {others['matches_max']}) | {others['passing']}/{others['checks']} | - | - "
             "| - |"
         )
+    if res["not_reached"]:
+        lines += [
+            "",
+            "Not decoded in this run (the page was written from the images done, `--page-only`): "
+            + ", ".join(f"`{row}` {n} images" for row, n in res["not_reached"].items())
+            + ".",
+            "",
+        ]
     lines += [
         "",
         "*clean*, *foreign* and *random* images do not carry the owner's message, and the other keys' messages were "
