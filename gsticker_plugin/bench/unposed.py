@@ -102,7 +102,7 @@ def recolored_renders(cfg: "BenchUnposedConfig", edit: str, cameras) -> torch.Te
     """8-bit renders at ``cameras`` of the watermarked run recoloured in memory as ``ns-recolor`` would:
     ``palette=COLOR`` (palette entry 0 set to COLOR) or ``modelhue=TURNS`` (a model-level hue turn)."""
     from gsticker_plugin.recolor.configs import HUE_METHOD, PALETTE_METHOD, PaletteEdit
-    from gsticker_plugin.recolor.edits import _edited, extract_palette_of, set_model_palette
+    from gsticker_plugin.recolor.edits import edited_palette, extract_palette_of, set_model_palette
     from gsticker_plugin.recolor.palette import to_hex
     from gsticker_plugin.recolor.runs import build_recolor_run
 
@@ -116,7 +116,7 @@ def recolored_renders(cfg: "BenchUnposedConfig", edit: str, cameras) -> torch.Te
         args = PaletteEdit(set_=(f"0={value}",))
         pal = extract_palette_of(args, model, pipe.datamanager.train_dataset, 0)
         model.config.palette_source = [to_hex(c) for c in pal.rgb.tolist()]
-        model.config.palette_target = [to_hex(c) for c in _edited(args, pal)]
+        model.config.palette_target = [to_hex(c) for c in edited_palette(args, pal)]
         model.config.softness = float(args.softness)
     elif kind == "modelhue":
         model.config.hue_shift = float(value)

@@ -50,7 +50,8 @@ def torch_cat(items):
     return torch.cat(items)
 
 
-def _edited(args: PaletteEdit, pal) -> List[Tuple[float, float, float]]:
+def edited_palette(args: PaletteEdit, pal) -> List[Tuple[float, float, float]]:
+    """The palette ``pal`` with ``args``' edits (``--set`` / ``--palette``) applied, as RGB triples."""
     edits = P.parse_edits(args.set_, args.palette, pal.k)
     src = [tuple(c) for c in pal.rgb.tolist()]
     return [edits.get(i, src[i]) for i in range(pal.k)]
@@ -87,7 +88,7 @@ def cmd_palette(args: PaletteArgs) -> int:
         P.write_png(swatch, P.swatch_image([pal.rgb.tolist()]))
         say(f"swatch: {swatch}")
         return 0
-    target = _edited(args, pal)
+    target = edited_palette(args, pal)
     model.config.palette_source = [P.to_hex(c) for c in pal.rgb.tolist()]
     model.config.palette_target = [P.to_hex(c) for c in target]
     model.config.softness = float(args.softness)
@@ -267,7 +268,7 @@ def cmd_finetune(args: FinetuneArgs) -> int:
     else:
         if has_palette:
             pal = extract_palette_of(args, model, dataset, args.seed)
-            target = _edited(args, pal)
+            target = edited_palette(args, pal)
             src = P.rgb_to_lab(pal.rgb)
             tgt = P.rgb_to_lab(torch.tensor(target, dtype=torch.float32))
             soft = float(args.softness)
