@@ -55,10 +55,12 @@ class BenchUnposedConfig:
     camera_seed: int = 12345
     """Seed of the held-out cameras (the sticker's pool draws its novel views with its own seed)."""
     rows: Tuple[str, ...] = ("marked:", "clean:", "marked:hue=0.5", "marked:jpeg=50@8", "marked:blur=1@8")
-    """``IMAGES:ATTACK[@N]`` rows: ``marked`` or ``clean`` renders, ``foreign`` (``--foreign-config``'s), or renders
+    """``IMAGES:ATTACK[@N]`` rows: ``marked`` or ``clean`` renders, ``foreign`` (``--foreign-config``'s), ``random``
+    images, or renders
     of the watermarked run recoloured
     (``palette=blue``: palette entry 0 set to blue; ``modelhue=0.5``: a model-level hue turn), an attack spec (``noise=0.1,jpeg=50``; empty:
-    none; ``hue=~0.5``: a strength drawn per view from [-0.5, 0.5]), the first ``N`` views only."""
+    none; ``hue=~0.5``: a strength drawn per view from [-0.5, 0.5]), the first ``N`` views only (rows that differ only
+    in ``N`` share their images: ``marked:@12`` early, ``marked:@24`` later)."""
     other_keys: int = 64
     """Other owners' random messages every marked image's bits are also checked against (a null)."""
     foreign_config: Optional[Path] = None
@@ -173,7 +175,7 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
     if rows_path.exists():
         for line in rows_path.read_text().splitlines():
             r = json.loads(line)
-            done[(r["row"], r["view"])] = r
+            done[(row_key(r["row"]), r["view"])] = r
     psnr_path = cfg.work_dir / "psnr.json"
     if cfg.page_only and psnr_path.exists():
         return write_page(cfg, key, done, threshold, torch.tensor(json.loads(psnr_path.read_text())["per_view_db"]))
@@ -194,6 +196,8 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
         n = min(int(count), cfg.num_views) if count else cfg.num_views
         if which in ("marked", "clean"):
             src = marked if which == "marked" else clean
+        elif which == "random":
+            src = torch.stack([v.image.permute(1, 2, 0) for v in random_noise(n, int(marked.shape[1]), cfg.seed)])
         elif which == "foreign":
             src = foreign_renders(cfg, cams[:n])
         else:
@@ -208,11 +212,11 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
                     apply_attacks(img.permute(2, 0, 1)[None], drawn, generator=g)[0].clamp(0, 1).permute(1, 2, 0)
                 )
             jobs.append((row, i, img, drawn))
-    for v in random_views(cfg.random_images, int(marked.shape[1]), cfg.seed + 7).views:
-        jobs.append(("random:", int(v.name.split("-")[-1]), as_8_bit(v.image.permute(1, 2, 0)), ""))
+    for i, v in enumerate(random_noise(cfg.random_images, int(marked.shape[1]), cfg.seed)):
+        jobs.append(("random:", i, as_8_bit(v.image.permute(1, 2, 0)), ""))
     search_cache: Dict[Tuple[int, int], Any] = {}  # the candidates' renders, made once for all images
     for row, i, img, drawn in jobs:
-        if (row, i) in done:
+        if (row_key(row), i) in done:
             continue
         rolls = cfg.rolls if "rotate" in row else (0.0,)
         dec = decode_unposed_images(
@@ -237,7 +241,7 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
             true = cams.camera_to_worlds[i].float()
             r["rotation_error_deg"] = rotation_error_deg(true[:, :3], c2w[:, :3])
             r["translation_error"] = float((true[:, 3] - c2w[:, 3]).norm())
-        done[(row, i)] = r
+        done[(row_key(row), i)] = r
         with rows_path.open("a") as f:
             f.write(json.dumps(r) + "\n")
         print(r, flush=True)
@@ -284,26 +288,45 @@ def other_keys(rows: List[Dict[str, Any]], count: int, threshold: int) -> Option
     }
 
 
+def row_key(row: str) -> str:
+    """A row's images and attack (``IMAGES:ATTACK``): rows that differ in their ``@N`` share decoded images."""
+    return row.partition("@")[0]
+
+
+def random_noise(count: int, size: int, seed: int):
+    """The random images of the null (:func:`gsticker_plugin.views.random_views`), the same for every row."""
+    return random_views(count, size, seed + 7).views if count > 0 else []
+
+
+def wanted(cfg: BenchUnposedConfig) -> Dict[str, int]:
+    """Images per row key, in the order of ``--rows`` (the largest ``@N`` of rows sharing a key), random images last."""
+    out: Dict[str, int] = {}
+    for row in cfg.rows:
+        count = row.partition("@")[2]
+        n = min(int(count), cfg.num_views) if count else cfg.num_views
+        out[row_key(row)] = max(out.get(row_key(row), 0), n)
+    if cfg.random_images > 0:
+        out["random:"] = max(out.get("random:", 0), cfg.random_images)
+    return out
+
+
 def not_reached(cfg: BenchUnposedConfig, done: Dict[Any, Dict[str, Any]]) -> Dict[str, int]:
     """Images each row asks for that have not been decoded (``--page-only`` pages)."""
     out = {}
-    for row in list(cfg.rows) + ["random:"]:
-        count = row.partition(":")[2].partition("@")[2]
-        want = cfg.random_images if row == "random:" else (min(int(count), cfg.num_views) if count else cfg.num_views)
-        have = sum(1 for rw, _ in done if rw == row)
+    for key, want in wanted(cfg).items():
+        have = sum(1 for k, v in done if k == key and v < want)
         if have < want:
-            out[row] = want - have
+            out[key] = want - have
     return out
 
 
 def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], threshold: int, psnr) -> Dict[str, Any]:
-    order = list(cfg.rows) + ["random:"]
     table = {
-        row: summarize([r for (rw, _), r in done.items() if rw == row], threshold, key.num_bits)
-        for row in order
-        if any(rw == row for rw, _ in done)
+        row: summarize([r for (k, v), r in done.items() if k == row and v < n], threshold, key.num_bits)
+        for row, n in wanted(cfg).items()
+        if any(k == row and v < n for k, v in done)
     }
-    others = other_keys([r for (rw, _), r in done.items() if rw.startswith("marked:")], cfg.other_keys, threshold)
+    others = other_keys([r for (k, _), r in done.items() if k.startswith("marked:")], cfg.other_keys, threshold)
     res = {
         "other_keys": others,
         "command": "python -m gsticker_plugin.bench.unposed " + " ".join(a for a in sys.argv[1:] if a != "--page-only"),

@@ -1,0 +1,35 @@
+"""The bookkeeping of the images-without-cameras bench (gsticker_plugin.bench.unposed): rows, resume, jitter."""
+
+from pathlib import Path
+
+import torch
+
+from gsticker_plugin.bench.unposed import BenchUnposedConfig, drawn_spec, not_reached, other_keys, row_key, wanted
+
+
+def config(rows, random_images=0):
+    return BenchUnposedConfig(load_config=Path("c.yml"), key=Path("k.gskey"), rows=rows, random_images=random_images)
+
+
+def test_rows_that_differ_in_count_share_their_images():
+    cfg = config(("marked:@12", "clean:@4", "marked:@24", "marked:jpeg=50@2"), random_images=3)
+    assert row_key("marked:@12") == row_key("marked:@24") == "marked:"
+    assert wanted(cfg) == {"marked:": 24, "clean:": 4, "marked:jpeg=50": 2, "random:": 3}
+    done = {("marked:", v): {} for v in range(12)} | {("clean:", v): {} for v in range(4)}
+    assert not_reached(cfg, done) == {"marked:": 12, "marked:jpeg=50": 2, "random:": 3}
+
+
+def test_jittered_strengths_are_drawn_per_view_within_range_and_reproducibly():
+    draws = [drawn_spec("hue=~0.5,jpeg=50", torch.Generator().manual_seed(s)) for s in range(20)]
+    values = [float(d.split(",")[0].split("=")[1]) for d in draws]
+    assert all(d.endswith(",jpeg=50") for d in draws)
+    assert all(-0.5 <= v <= 0.5 for v in values) and min(values) < 0 < max(values)
+    assert drawn_spec("hue=~0.5", torch.Generator().manual_seed(3)) == draws[3].split(",")[0]
+    assert drawn_spec("noise=0.1", torch.Generator().manual_seed(0)) == "noise=0.1"
+
+
+def test_other_keys_match_the_decoded_bits_like_coin_flips():
+    rows = [{"bits": "01" * 24} for _ in range(10)]
+    out = other_keys(rows, 64, 41)
+    assert out["checks"] == 640 and 21 < out["matches_mean"] < 27 and out["passing"] == 0
+    assert other_keys([], 64, 41) is None
