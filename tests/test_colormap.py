@@ -85,7 +85,7 @@ def test_map_columns_are_the_renders_derivative_in_the_map():
     assert cols.shape == (30 * 3, 4 * 4 * 3)
     # the columns are laid out [feature, channel]: theta flattened the same way gives the change
     assert torch.allclose(cols @ theta.reshape(-1), render_change.reshape(-1), atol=1e-6)
-    x = composited_features(view.rgb, w, cmap)
+    x = composited_features(view.rgb, w, cmap.centres_lab, cmap.softness)
     assert torch.allclose(x @ theta.reshape(-1, 3), render_change, atol=1e-6)
 
 

@@ -59,11 +59,14 @@ def scene_clusters(pixels_rgb: Float[Tensor, "N 3"], k: int = 8, seed: int = 0) 
 
 
 def composited_features(
-    sample_rgb: Float[Tensor, "R S 3"], sample_weights: Float[Tensor, "R S 1"], cmap: ColorMap
+    sample_rgb: Float[Tensor, "R S 3"],
+    sample_weights: Float[Tensor, "R S 1"],
+    centres_lab: Float[Tensor, "K 3"],
+    softness: float,
 ) -> Float[Tensor, "R F"]:
     """The map's features of every sample composited along each ray with the render weights (``F = 4K``): the
     change of the render at a ray is these times ``theta``, per output channel."""
-    f = material_features(cmap.centres_lab, cmap.softness, sample_rgb.double())  # [R S K 4]
+    f = material_features(centres_lab, softness, sample_rgb.double())  # [R S K 4]
     return (sample_weights.double()[..., None] * f).sum(dim=1).reshape(sample_rgb.shape[0], -1)
 
 
@@ -72,7 +75,7 @@ def map_columns(
 ) -> Float[Tensor, "M P"]:
     """d (render at the rays) / d ``theta``, rows ``r * 3 + c`` (``M = 3R``, ``P = 12K``): a change of the map the
     image decoder fits beside the message."""
-    x = composited_features(sample_rgb, sample_weights, cmap)  # [R F]
+    x = composited_features(sample_rgb, sample_weights, cmap.centres_lab, cmap.softness)  # [R F]
     r, f = x.shape
     cols = torch.zeros(r, 3, f, 3, dtype=x.dtype)
     for c in range(3):
@@ -90,7 +93,7 @@ def fit_color_map(
 ) -> ColorMap:
     """The map whose change of the samples' colours, composited with their render weights, is nearest ``change``
     (image minus base render at the rays): ridge least squares (``ridge`` relative to the mean feature energy)."""
-    x = composited_features(sample_rgb, sample_weights, identity_map(centres_lab, softness))  # [R 4K]
+    x = composited_features(sample_rgb, sample_weights, centres_lab, softness)  # [R 4K]
     a = x.T @ x
     lam = ridge * float(torch.diagonal(a).mean()) + 1e-12
     theta = torch.linalg.solve(a + lam * torch.eye(a.shape[0], dtype=a.dtype), x.T @ change.double())

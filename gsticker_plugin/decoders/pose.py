@@ -224,9 +224,8 @@ def lk_refine(
     ``target``): the pixel motion of each surface point under a pose change times the base render's image gradient
     is the Jacobian; one render per step, damped and accepted only when the (Cauchy-weighted when ``robust``)
     residual drops; an accepted step is tried at 2, 4, ... up to ``extend`` times its length while the residual keeps
-    dropping.
-    Render and target are blurred by ``sigma`` px (a wider basin; and the render's gradient only
-    follows its true derivative once blurred). Returns the camera, the final RMS and the iterations taken."""
+    dropping. Render and target are blurred by ``sigma`` px (a wider basin; and the render's gradient only follows
+    its true derivative once blurred). Returns the camera, the final RMS and the iterations taken."""
     dist = camera_distance(camera)
     lam = 1e-4
     keys = ("rgb", "expected_depth", "accumulation")
@@ -304,7 +303,8 @@ def line_search(
     color_map: Optional[Callable[[Tensor], Tensor]] = None,
 ) -> Tuple[Cameras, int]:
     """``camera`` moved by ``step`` times the scale in 0, 1, 2, 4, ... ``max_scale`` (tried upward until the residual
-    rises) whose base render (blurred by ``sigma`` px, on the content window; through ``color_map`` when given) is nearest ``target`` (sized like the camera)."""
+    rises) whose base render (blurred by ``sigma`` px, on the content window; through ``color_map`` when given) is
+    nearest ``target`` (sized like the camera)."""
     dist = camera_distance(camera)
     full = render_cameras(model, camera, ("rgb", "accumulation"))
     window = content_window(full["accumulation"][0], int(3 * sigma) + 6)
