@@ -125,11 +125,7 @@ def recolored_renders(cfg: "BenchUnposedConfig", edit: str, cameras) -> torch.Te
     else:
         raise ValueError(f"unknown images {edit!r}: use marked, clean, palette=COLOR or modelhue=TURNS")
     set_model_palette(model)
-    imgs = []
-    with torch.no_grad():
-        for i in range(cameras.shape[0]):
-            imgs.append(final_rgb(model.get_outputs_for_camera(cameras[i : i + 1])).clamp(0, 1).cpu())
-    return as_8_bit(torch.stack(imgs))
+    return renders_8_bit(model, cameras)
 
 
 def foreign_renders(cfg: "BenchUnposedConfig", cameras) -> torch.Tensor:
@@ -138,24 +134,25 @@ def foreign_renders(cfg: "BenchUnposedConfig", cameras) -> torch.Tensor:
         raise ValueError("a foreign: row needs --foreign-config RUN/config.yml (e.g. a TensoRF base of the scene)")
     with contextlib.redirect_stdout(sys.stderr):
         _, pipe, _ = load_run(cfg.foreign_config, data=cfg.data, device=torch.device("cpu"))
-    imgs = []
-    with torch.no_grad():
-        for i in range(cameras.shape[0]):
-            imgs.append(final_rgb(pipe.model.get_outputs_for_camera(cameras[i : i + 1])).clamp(0, 1).cpu())
-    return as_8_bit(torch.stack(imgs))
+    return renders_8_bit(pipe.model, cameras)
 
 
 def held_out_renders(pipe, cameras) -> Tuple[torch.Tensor, torch.Tensor]:
     """8-bit renders of the watermarked run with its sticker on and off at ``cameras``: ``[N H W 3]`` each."""
-    model = pipe.model
     out = {}
     for on in (True, False):
-        imgs = []
-        with model.sticker_enabled(on), torch.no_grad():
-            for i in range(cameras.shape[0]):
-                imgs.append(final_rgb(model.get_outputs_for_camera(cameras[i : i + 1])).clamp(0, 1).cpu())
-        out[on] = as_8_bit(torch.stack(imgs))
+        with pipe.model.sticker_enabled(on):
+            out[on] = renders_8_bit(pipe.model, cameras)
     return out[True], out[False]
+
+
+@torch.no_grad()
+def renders_8_bit(model, cameras) -> torch.Tensor:
+    """``model``'s final colour at every camera of ``cameras``, rounded to 8 bits: ``[N H W 3]``."""
+    imgs = [
+        final_rgb(model.get_outputs_for_camera(cameras[i : i + 1])).clamp(0, 1).cpu() for i in range(cameras.shape[0])
+    ]
+    return as_8_bit(torch.stack(imgs))
 
 
 def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
