@@ -15,7 +15,7 @@ from gsticker_plugin.decoders.colormap import (
 )
 from gsticker_plugin.decoders.image import ImageReferenceView
 from gsticker_plugin.decoders.reference import ReferenceView
-from gsticker_plugin.decoders.unposed import mapped_reference, recolouring
+from gsticker_plugin.decoders.unposed import mapped_reference, reading, recolouring
 from gsticker_plugin.recolor.palette import recolor, rgb_to_lab
 from gsticker_plugin.sticker import render_weights
 
@@ -107,3 +107,25 @@ def test_recoloured_images_are_read_through_a_map_and_marked_ones_are_not():
     before = float(((recoloured - image) ** 2).mean())
     after = float(((recoloured - mapped.base_rgb) ** 2).mean())
     assert after < 0.1 * before  # the mapped reference renders the recoloured image
+
+
+def test_a_palette_edit_that_keeps_v_is_read_through_the_map_and_a_hue_turn_by_v():
+    """Yellow to blue keeps each sample's V, so the image's V barely moves, yet V's Jacobian (the dominant channel)
+    is wrong for it: the map wins; an image-level hue turn leaves V exactly: V wins."""
+    import kornia
+
+    view, image = scene(rays=400)
+    ref = ImageReferenceView(view=view, background=Background.of(torch.ones(3)), base_rgb=image.float())
+    h, w_ = view.hw
+    as_image = lambda x: x.reshape(h, w_, 3)  # noqa: E731
+    src = rgb_to_lab(MATERIALS)
+    tgt = src.clone()
+    tgt[0] = rgb_to_lab(torch.tensor([[0.1, 0.2, 0.9]]))[0]
+    wts = render_weights(view.density, view.deltas)
+    palette = ((wts * recolor(view.rgb, src, tgt, 5.0)).sum(1) + (1 - wts.sum(1))).clamp(0, 1)
+    value, cmap = reading(as_image(palette), ref, True, True)
+    assert not value and cmap is not None
+    turned = kornia.enhance.adjust_hue(as_image(image).permute(2, 0, 1), 1.5).permute(1, 2, 0)
+    value, cmap = reading(turned, ref, True, True)
+    assert value and cmap is None
+    assert reading(as_image(palette), ref, True, False) == (True, None)  # no map asked for: as told

@@ -139,7 +139,9 @@ def decode_image_view(
     ``luma``: read the change's luma only (what JPEG keeps at full resolution); ``value``: read the change of
     V = max(R, G, B) only, which an HSV hue shift leaves exactly as it is (its Jacobian: the rows of the channel
     that holds the maximum). ``pose_columns``: d base render / d pose at the rays (RGB rows ``r * 3 + c``, or V rows
-    with ``value``): an estimated camera's small error is fitted alongside the message (:func:`without_columns`)."""
+    with ``value``): an estimated camera's small error is fitted alongside the message (:func:`without_columns`);
+    the result then holds the fitted ``pose_step`` and the fitted message's change at the rays (``mark_change``, rows
+    as the pose columns')."""
     if value:
         signal = "value"
         target = image_rgb.float().amax(dim=-1) - ref.base_rgb.amax(dim=-1)
@@ -177,7 +179,9 @@ def decode_image_view(
     out = {"bits": bits, **fit_summary(fit, undetermined, int(ref.view.rays.numel())), "signals": [signal]}
     if cols is not None:  # the pose change fitted beside the message (a step for the camera)
         with torch.no_grad():
-            rest = plain[0] - (plain[1](fit.signs) - plain[1](torch.zeros_like(fit.signs)))
+            mark = plain[1](fit.signs) - plain[1](torch.zeros_like(fit.signs))
+            rest = plain[0] - mark
+        out["mark_change"] = mark.detach()
         step = torch.linalg.lstsq(cols.double(), rest.double()[:, None]).solution[:, 0] if cols.numel() else None
         out["pose_step"] = [0.0] * 6 if step is None else [float(v) for v in step]
     return out

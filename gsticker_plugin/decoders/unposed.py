@@ -47,24 +47,50 @@ the image and the base render at the rays (a recolouring moves whole materials; 
 cannot map)."""
 
 
-def recolouring(
-    image: Float[Tensor, "H W 3"], ref: ImageReferenceView, margin: float = COLOR_MAP_MARGIN
-) -> Optional[ColorMap]:
-    """The colour map of the base's samples (:func:`gsticker_plugin.decoders.colormap.fit_color_map`) that explains
-    all but ``margin`` of the difference between ``image`` and the base render at ``ref``'s rays; None otherwise."""
+def map_fit(image: Float[Tensor, "H W 3"], ref: ImageReferenceView) -> Tuple[Optional[ColorMap], float, float]:
+    """The colour map of the base's samples (:func:`gsticker_plugin.decoders.colormap.fit_color_map`) fitted to the
+    difference between ``image`` and the base render at ``ref``'s rays, with the mean squared difference before and
+    after it (per channel)."""
     v = ref.view
     if v.rays.numel() == 0:
-        return None
+        return None, 0.0, 0.0
     change = image_at_rays(image, v.rays, v.hw).double() - ref.base_rgb.double()
     before = float((change**2).mean())
     if before <= 0:
-        return None
+        return None, 0.0, 0.0
     centres = scene_clusters(v.image.permute(1, 2, 0).reshape(-1, 3))
     weights = render_weights(v.density, v.deltas)
     cmap = fit_color_map(v.rgb, weights, change, centres)
     fitted = (weights.double() * (cmap(v.rgb.double()) - v.rgb.double())).sum(dim=1)
-    after = float(((change - fitted) ** 2).mean())
-    return cmap if after < margin * before else None
+    return cmap, before, float(((change - fitted) ** 2).mean())
+
+
+def recolouring(
+    image: Float[Tensor, "H W 3"], ref: ImageReferenceView, margin: float = COLOR_MAP_MARGIN
+) -> Optional[ColorMap]:
+    """The colour map of :func:`map_fit` when it explains all but ``margin`` of the difference between ``image`` and
+    the base render at ``ref``'s rays; None otherwise."""
+    cmap, before, after = map_fit(image, ref)
+    return cmap if cmap is not None and after < margin * before else None
+
+
+def reading(
+    image: Float[Tensor, "H W 3"], ref: ImageReferenceView, value: bool, color_map: bool
+) -> Tuple[bool, Optional[ColorMap]]:
+    """How ``image`` is read at ``ref``: (by V alone, through a colour map). When both V (``value``: a hue-shifted
+    look, :func:`gsticker_plugin.decoders.image.reads_value`) and a colour map (:func:`recolouring`) qualify, the one
+    that leaves less of the image's difference from the base render at the rays is kept (a palette edit can keep V
+    in the image and still move the samples' dominant channel)."""
+    if not color_map:
+        return value, None
+    cmap, before, after = map_fit(image, ref)
+    if cmap is None or after >= COLOR_MAP_MARGIN * before:
+        return value, None
+    if not value:
+        return False, cmap
+    y = image_at_rays(image, ref.view.rays, ref.view.hw).double()
+    value_left = float(((y.amax(dim=-1) - ref.base_rgb.double().amax(dim=-1)) ** 2).mean())
+    return (True, None) if value_left <= after else (False, cmap)
 
 
 def mapped_reference(ref: ImageReferenceView, cmap: ColorMap) -> ImageReferenceView:
@@ -91,6 +117,7 @@ def decode_unposed_images(
     renders: Optional[Dict[Tuple[int, int], Any]] = None,
     line_scale: int = 8,
     color_map: bool = True,
+    pattern: bool = True,
 ) -> Dict[str, Any]:
     """Decode ``images`` (``[H W 3]`` each, cameras unknown) of the owner's scene against the owner's base
     ``reference`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`): camera search, then the image fit
@@ -118,11 +145,11 @@ def decode_unposed_images(
         pose = estimate_camera(reference, image, True, search, renders[hw])
         camera = pose.camera
         best: Optional[Tuple[float, Dict[str, Any], Any, int]] = None
+        previous: Optional[Tensor] = None
         for k in range(rounds):  # Gauss-Newton on camera and message together: the fit's pose step moves the camera
             ref_view = any_reference_view(reference, f"unposed/{name}/{k}", camera, None)
             ref = image_reference(ref_view, background)
-            value = value_mode and reads_value(image, ref_view.image)
-            cmap = None if value or not color_map else recolouring(image, ref)
+            value, cmap = reading(image, ref, value_mode and reads_value(image, ref_view.image), color_map)
             if cmap is not None:
                 ref = mapped_reference(ref, cmap)
             cols = pose_columns(reference.model, camera, ref_view.rays, value, color_map=cmap)
@@ -132,6 +159,7 @@ def decode_unposed_images(
             y = image_at_rays(image, ref_view.rays, ref_view.hw)
             d = decode_image_view(ref, st, y, gen, iterations, value=value, pose_columns=cols)
             step = torch.tensor(d.pop("pose_step"))[:6]
+            mark = d.pop("mark_change")
             left = d["residual_rms"] * max(0.0, 1.0 - d["explained"]) ** 0.5  # what the joint fit leaves
             d["color_map"] = cmap is not None
             if best is None or left < best[0]:
@@ -140,9 +168,19 @@ def decode_unposed_images(
                 break
             if line_scale > 0:  # the fit's step falls short on a sharp render: the base render decides how far
                 sigma = search.blurs[-1] * max(hw) / 100.0
-                camera, _ = line_search(
-                    reference.model, camera, step, channel_of(image.float(), value), value, sigma, line_scale, cmap
-                )
+                target = channel_of(image.float(), value).clone()  # the image less the fitted mark
+                flat = target.view(-1, target.shape[-1])
+                flat[ref_view.rays] -= mark.reshape(-1, target.shape[-1]).to(flat.dtype)
+                camera, scale = line_search(reference.model, camera, step, target, value, sigma, line_scale, cmap)
+                if scale == 0:  # no multiple of the step brings the base render nearer: the fit has settled
+                    break
+                moved = step * scale
+                if pattern and previous is not None:  # along a narrow valley: the last two moves together, further
+                    camera, more = line_search(
+                        reference.model, camera, previous + moved, target, value, sigma, line_scale, cmap
+                    )
+                    moved = moved + more * (previous + moved)
+                previous = moved
             else:
                 camera = moved_camera(camera, step, camera_distance(camera))
         assert best is not None
