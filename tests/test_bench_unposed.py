@@ -4,7 +4,16 @@ from pathlib import Path
 
 import torch
 
-from gsticker_plugin.bench.unposed import BenchUnposedConfig, drawn_spec, not_reached, other_keys, row_key, wanted
+from gsticker_plugin.bench.unposed import (
+    BenchUnposedConfig,
+    drawn_spec,
+    fpr_upper,
+    not_reached,
+    null_summary,
+    other_keys,
+    row_key,
+    wanted,
+)
 
 
 def config(rows, random_images=0):
@@ -33,3 +42,20 @@ def test_other_keys_match_the_decoded_bits_like_coin_flips():
     out = other_keys(rows, 64, 41)
     assert out["checks"] == 640 and 21 < out["matches_mean"] < 27 and out["passing"] == 0
     assert other_keys([], 64, 41) is None
+
+
+def test_the_fpr_bound_is_clopper_pearson():
+    """0 of n: the rule of three's exact form 1 - 0.05^(1/n); 5 of 100 lies between the observed rate and 0.12."""
+    assert abs(fpr_upper(0, 800) - (1 - 0.05 ** (1 / 800))) < 1e-9
+    assert 0.05 < fpr_upper(5, 100) < 0.12
+    assert fpr_upper(3, 3) == 1.0
+
+
+def test_the_null_pools_unmarked_images_and_other_keys():
+    rows = [{"matches": 20}, {"matches": 28}, {"matches": 42}]
+    others = {"checks": 7, "matches_mean": 24.0, "matches_max": 35, "passing": 0}
+    n = null_summary(rows, others, 41)
+    assert n["checks"] == 10 and n["images"] == 3 and n["passing"] == 1 and n["matches_max"] == 42
+    assert abs(n["matches_mean"] - (20 + 28 + 42 + 7 * 24) / 10) < 1e-12
+    assert n["fpr"] == 0.1 and n["fpr_upper_95"] > 0.1
+    assert null_summary([], None, 41) is None

@@ -285,6 +285,63 @@ def other_keys(rows: List[Dict[str, Any]], count: int, threshold: int) -> Option
     }
 
 
+NULL_IMAGES = ("clean", "foreign", "random")
+"""Rows of images that never held the owner's message."""
+
+
+def fpr_upper(passing: int, checks: int, confidence: float = 0.95) -> float:
+    """Clopper-Pearson upper bound on a false-positive rate seen ``passing`` times in ``checks`` (bisection on the
+    binomial CDF)."""
+    if checks <= 0:
+        return 1.0
+    if passing >= checks:
+        return 1.0
+
+    def cdf(p: float) -> float:  # P(X <= passing | checks, p)
+        logs = [
+            math.lgamma(checks + 1)
+            - math.lgamma(i + 1)
+            - math.lgamma(checks - i + 1)
+            + (i * math.log(p) if i else 0.0)
+            + (checks - i) * math.log1p(-p)
+            for i in range(passing + 1)
+        ]
+        top = max(logs)
+        return math.exp(top) * sum(math.exp(v - top) for v in logs)
+
+    lo, hi = 0.0, 1.0
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if cdf(mid) > 1.0 - confidence else (lo, mid)
+    return hi
+
+
+def null_summary(
+    rows: List[Dict[str, Any]], others: Optional[Dict[str, Any]], threshold: int
+) -> Optional[Dict[str, Any]]:
+    """Every null check together: the unmarked images' matches (``rows`` of :data:`NULL_IMAGES`) and the marked
+    images checked with other keys; the empirical false-positive rate at ``threshold`` with its 95 % upper bound."""
+    m = [float(r["matches"]) for r in rows]
+    checks, total, top = len(m), sum(m), max(m, default=0.0)
+    passing = sum(v >= threshold for v in m)
+    if others is not None:
+        checks += others["checks"]
+        total += others["matches_mean"] * others["checks"]
+        top = max(top, float(others["matches_max"]))
+        passing += others["passing"]
+    if checks == 0:
+        return None
+    return {
+        "checks": checks,
+        "images": len(m),
+        "matches_mean": total / checks,
+        "matches_max": int(top),
+        "passing": int(passing),
+        "fpr": passing / checks,
+        "fpr_upper_95": fpr_upper(int(passing), checks),
+    }
+
+
 def row_key(row: str) -> str:
     """A row's images and attack (``IMAGES:ATTACK``): rows that differ in their ``@N`` share decoded images."""
     return row.partition("@")[0]
@@ -324,8 +381,11 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
         if any(k == row and v < n for k, v in done)
     }
     others = other_keys([r for (k, _), r in done.items() if k.startswith("marked:")], cfg.other_keys, threshold)
+    null_rows = [r for (k, v), r in done.items() if k.partition(":")[0] in NULL_IMAGES and v < wanted(cfg).get(k, 0)]
+    null = null_summary(null_rows, others, threshold)
     res = {
         "other_keys": others,
+        "null": null,
         "command": "python -m gsticker_plugin.bench.unposed " + " ".join(a for a in sys.argv[1:] if a != "--page-only"),
         "not_reached": not_reached(cfg, done),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
@@ -377,6 +437,14 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
             f"{others['matches_mean']:.1f} (max {others['matches_max']}) | {others['passing']}/{others['checks']} | - | - "
             "| - |"
         )
+    if null is not None:
+        lines += [
+            "",
+            f"The null together ({null['images']} unmarked images and the other keys' checks): {null['checks']} checks, "
+            f"matches mean {null['matches_mean']:.1f}, max {null['matches_max']}; {null['passing']} pass at >= "
+            f"{threshold}/48: empirical false-positive rate {null['fpr']:.4f}, 95 % upper bound "
+            f"{null['fpr_upper_95']:.4f} (Clopper-Pearson).",
+        ]
     if res["not_reached"]:
         lines += [
             "",
