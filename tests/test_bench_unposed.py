@@ -4,10 +4,10 @@ from pathlib import Path
 
 import torch
 
+from gsticker_plugin import metrics
 from gsticker_plugin.bench.unposed import (
     BenchUnposedConfig,
     drawn_spec,
-    fpr_upper,
     not_reached,
     null_summary,
     other_keys,
@@ -44,11 +44,11 @@ def test_other_keys_match_the_decoded_bits_like_coin_flips():
     assert other_keys([], 64, 41) is None
 
 
-def test_the_fpr_bound_is_clopper_pearson():
+def test_the_null_bound_is_clopper_pearson():
     """0 of n: the rule of three's exact form 1 - 0.05^(1/n); 5 of 100 lies between the observed rate and 0.12."""
-    assert abs(fpr_upper(0, 800) - (1 - 0.05 ** (1 / 800))) < 1e-9
-    assert 0.05 < fpr_upper(5, 100) < 0.12
-    assert fpr_upper(3, 3) == 1.0
+    assert abs(metrics.clopper_pearson_upper(0, 800) - (1 - 0.05 ** (1 / 800))) < 1e-9
+    assert 0.05 < metrics.clopper_pearson_upper(5, 100) < 0.12
+    assert metrics.clopper_pearson_upper(3, 3) == 1.0
 
 
 def test_the_null_pools_unmarked_images_and_other_keys():

@@ -289,33 +289,6 @@ NULL_IMAGES = ("clean", "foreign", "random")
 """Rows of images that never held the owner's message."""
 
 
-def fpr_upper(passing: int, checks: int, confidence: float = 0.95) -> float:
-    """Clopper-Pearson upper bound on a false-positive rate seen ``passing`` times in ``checks`` (bisection on the
-    binomial CDF)."""
-    if checks <= 0:
-        return 1.0
-    if passing >= checks:
-        return 1.0
-
-    def cdf(p: float) -> float:  # P(X <= passing | checks, p)
-        logs = [
-            math.lgamma(checks + 1)
-            - math.lgamma(i + 1)
-            - math.lgamma(checks - i + 1)
-            + (i * math.log(p) if i else 0.0)
-            + (checks - i) * math.log1p(-p)
-            for i in range(passing + 1)
-        ]
-        top = max(logs)
-        return math.exp(top) * sum(math.exp(v - top) for v in logs)
-
-    lo, hi = 0.0, 1.0
-    for _ in range(80):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if cdf(mid) > 1.0 - confidence else (lo, mid)
-    return hi
-
-
 def null_summary(
     rows: List[Dict[str, Any]], others: Optional[Dict[str, Any]], threshold: int
 ) -> Optional[Dict[str, Any]]:
@@ -338,7 +311,7 @@ def null_summary(
         "matches_max": int(top),
         "passing": int(passing),
         "fpr": passing / checks,
-        "fpr_upper_95": fpr_upper(int(passing), checks),
+        "fpr_upper_95": metrics.clopper_pearson_upper(int(passing), checks),
     }
 
 

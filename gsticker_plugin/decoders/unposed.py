@@ -65,13 +65,10 @@ def map_fit(image: Float[Tensor, "H W 3"], ref: ImageReferenceView) -> Tuple[Opt
     return cmap, before, float(((change - fitted) ** 2).mean())
 
 
-def recolouring(
-    image: Float[Tensor, "H W 3"], ref: ImageReferenceView, margin: float = COLOR_MAP_MARGIN
-) -> Optional[ColorMap]:
-    """The colour map of :func:`map_fit` when it explains all but ``margin`` of the difference between ``image`` and
-    the base render at ``ref``'s rays; None otherwise."""
-    cmap, before, after = map_fit(image, ref)
-    return cmap if cmap is not None and after < margin * before else None
+def recolouring(image: Float[Tensor, "H W 3"], ref: ImageReferenceView) -> Optional[ColorMap]:
+    """The colour map of :func:`map_fit` when it explains all but :data:`COLOR_MAP_MARGIN` of the difference between
+    ``image`` and the base render at ``ref``'s rays; None otherwise."""
+    return reading(image, ref, False, True)[1]
 
 
 def reading(
