@@ -2,6 +2,8 @@
 decoder for images without cameras (gsticker_plugin.decoders.unposed.recolouring)."""
 
 import torch
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from nerfstudio.fields.base_field import Field
 
 from gsticker_plugin.background import Background
 from gsticker_plugin.decoders.colormap import (
@@ -10,6 +12,7 @@ from gsticker_plugin.decoders.colormap import (
     fit_color_map,
     identity_map,
     map_columns,
+    mapped_colors,
     material_change,
     scene_clusters,
 )
@@ -129,3 +132,30 @@ def test_a_palette_edit_that_keeps_v_is_read_through_the_map_and_a_hue_turn_by_v
     value, cmap = reading(turned, ref, True, True)
     assert value and cmap is None
     assert reading(as_image(palette), ref, True, False) == (True, None)  # no map asked for: as told
+
+
+class ColourField(Field):
+    """A field whose per-sample RGB is its input (a stand-in for a model's colour field)."""
+
+    def get_density(self, ray_samples):
+        return torch.ones_like(ray_samples[..., :1]), None
+
+    def get_outputs(self, ray_samples, density_embedding=None):
+        return {FieldHeadNames.RGB: ray_samples}
+
+
+def test_mapped_colors_takes_every_sample_through_the_map_inside_the_block_only():
+    """The camera search renders the base through a fitted map of its sample colours; the model is itself again
+    after the block."""
+    model = torch.nn.Module()
+    model.field = ColourField()
+    g = torch.Generator().manual_seed(3)
+    centres = rgb_to_lab(MATERIALS)
+    cmap = ColorMap(centres, 5.0, 0.2 * torch.randn(4, 4, 3, generator=g, dtype=torch.float64))
+    rgb = torch.rand(7, 5, 3, generator=g)
+    with mapped_colors(model, cmap):
+        inside = model.field.get_outputs(rgb)[FieldHeadNames.RGB]
+    after = model.field.get_outputs(rgb)[FieldHeadNames.RGB]
+    assert torch.allclose(inside, cmap(rgb.double()).float(), atol=1e-6)
+    assert (inside - rgb).abs().max() > 0.05
+    assert torch.equal(after, rgb) and "get_outputs" not in model.field.__dict__

@@ -56,9 +56,9 @@ class BenchUnposedConfig:
     """Seed of the held-out cameras (the sticker's pool draws its novel views with its own seed)."""
     rows: Tuple[str, ...] = ("marked:", "clean:", "marked:hue=0.5", "marked:jpeg=50@8", "marked:blur=1@8")
     """``IMAGES:ATTACK[@N]`` rows: ``marked`` or ``clean`` renders, ``foreign`` (``--foreign-config``'s), ``random``
-    images, or renders
-    of the watermarked run recoloured
-    (``palette=blue``: palette entry 0 set to blue; ``modelhue=0.5``: a model-level hue turn), an attack spec (``noise=0.1,jpeg=50``; empty:
+    images, renders of the watermarked run recoloured (``palette=blue``: palette entry 0 set to blue;
+    ``modelhue=0.5``: a model-level hue turn) or of another run (``run=PATH/config.yml``, e.g. the watermarked run
+    after ``ns-recolor finetune``), an attack spec (``noise=0.1,jpeg=50``; empty:
     none; ``hue=~0.5``: a strength drawn per view from [-0.5, 0.5]), the first ``N`` views only (rows that differ only
     in ``N`` share their images: ``marked:@12`` early, ``marked:@24`` later)."""
     other_keys: int = 64
@@ -128,12 +128,15 @@ def recolored_renders(cfg: "BenchUnposedConfig", edit: str, cameras) -> torch.Te
     return renders_8_bit(model, cameras)
 
 
-def foreign_renders(cfg: "BenchUnposedConfig", cameras) -> torch.Tensor:
-    """8-bit renders at ``cameras`` of ``--foreign-config`` (another model of the scene: a null)."""
-    if cfg.foreign_config is None:
+def run_renders(cfg: "BenchUnposedConfig", config: Optional[Path], cameras) -> torch.Tensor:
+    """8-bit renders at ``cameras`` of the run at ``config`` (``--foreign-config``'s for ``foreign:`` rows, another
+    model of the scene: a null; a ``run=PATH`` row's, e.g. an ``ns-recolor finetune`` output)."""
+    if config is None:
         raise ValueError("a foreign: row needs --foreign-config RUN/config.yml (e.g. a TensoRF base of the scene)")
+    if not config.exists():
+        raise ValueError(f"no run config at {config}: give run=PATH/config.yml of an existing run")
     with contextlib.redirect_stdout(sys.stderr):
-        _, pipe, _ = load_run(cfg.foreign_config, data=cfg.data, device=torch.device("cpu"))
+        _, pipe, _ = load_run(config, data=cfg.data, device=torch.device("cpu"))
     return renders_8_bit(pipe.model, cameras)
 
 
@@ -191,12 +194,16 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
         spec, _, count = spec.partition("@")
         parse_attack_spec(drawn_spec(spec, torch.Generator().manual_seed(0)))
         n = min(int(count), cfg.num_views) if count else cfg.num_views
+        if all((row_key(row), i) in done for i in range(n)):  # decoded already: no renders needed
+            continue
         if which in ("marked", "clean"):
             src = marked if which == "marked" else clean
         elif which == "random":
             src = torch.stack([v.image.permute(1, 2, 0) for v in random_noise(n, int(marked.shape[1]), cfg.seed)])
         elif which == "foreign":
-            src = foreign_renders(cfg, cams[:n])
+            src = run_renders(cfg, cfg.foreign_config, cams[:n])
+        elif which.startswith("run="):
+            src = run_renders(cfg, Path(which[len("run=") :]), cams[:n])
         else:
             src = recolored_renders(cfg, which, cams[:n])
         for i in range(n):

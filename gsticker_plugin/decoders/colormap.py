@@ -10,12 +10,15 @@ the base render's colours (CIELab, as ``ns-recolor palette``'s), and the image m
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
+from typing import Iterator
 
 import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from gsticker_plugin.recolor.model import ColorWrap, color_fields
 from gsticker_plugin.recolor.palette import extract_palette, palette_weights, rgb_to_lab
 
 
@@ -98,3 +101,15 @@ def fit_color_map(
     lam = ridge * float(torch.diagonal(a).mean()) + 1e-12
     theta = torch.linalg.solve(a + lam * torch.eye(a.shape[0], dtype=a.dtype), x.T @ change.double())
     return ColorMap(centres_lab, softness, theta.reshape(centres_lab.shape[0], 4, 3))
+
+
+@contextlib.contextmanager
+def mapped_colors(model, cmap: ColorMap) -> Iterator[None]:
+    """Within the block ``model`` renders every sample's colour through ``cmap`` (before compositing, as ``ns-recolor``
+    edits a run); the model is unchanged after it."""
+    wraps = [ColorWrap(f, lambda c: cmap(c.double()).to(c.dtype)) for _, f in color_fields(model)]
+    try:
+        yield
+    finally:
+        for w in reversed(wraps):
+            w.remove()

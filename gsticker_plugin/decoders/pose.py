@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -300,11 +300,10 @@ def line_search(
     value: bool,
     sigma: float,
     max_scale: int = 8,
-    color_map: Optional[Callable[[Tensor], Tensor]] = None,
 ) -> Tuple[Cameras, int]:
     """``camera`` moved by ``step`` times the scale in 0, 1, 2, 4, ... ``max_scale`` (tried upward until the residual
-    rises) whose base render (blurred by ``sigma`` px, on the content window; through ``color_map`` when given) is
-    nearest ``target`` (sized like the camera)."""
+    rises) whose base render (blurred by ``sigma`` px, on the content window) is nearest ``target`` (sized like the
+    camera)."""
     dist = camera_distance(camera)
     full = render_cameras(model, camera, ("rgb", "accumulation"))
     window = content_window(full["accumulation"][0], int(3 * sigma) + 6)
@@ -312,7 +311,6 @@ def line_search(
     y = smoothed(target.double(), sigma)[r0:r1, c0:c1]
 
     def cost(out: Tensor) -> float:
-        out = out if color_map is None else color_map(out.double())
         return float(((y - smoothed(channel_of(out, value).double(), sigma)) ** 2).mean())
 
     best, best_cost, best_scale = camera, cost(full["rgb"][0][r0:r1, c0:c1]), 0
@@ -412,39 +410,55 @@ def estimate_camera(
     best = [(int(i) // len(search.rolls), float(search.rolls[int(i) % len(search.rolls)])) for i in flat]
     history: List[Dict[str, Any]] = []
 
-    def stage(cam: Cameras, blur: float, its: int, b: int) -> Tuple[Cameras, float, int]:
-        sigma = blur * max(h, w) / 100.0
-        # blurred stages run at half size (the blur has removed what the finer pixels would add)
-        f = 2 if sigma >= 2 * search.half_size_blur else 1
-        lh, lw = max(1, h // f), max(1, w // f)
-        target = channel_of(image.float() if f == 1 else area_resize(image, lh, lw), value)
-        cam, rms, n_it = lk_refine(
-            model, scaled_camera(cam, lh, lw), target, value, its, sigma / f, extend=search.extend
-        )
-        history.append(
-            {
-                "candidate": b,
-                "blur_px": sigma,
-                "size": [lh, lw],
-                "rms": rms,
-                "iterations": n_it,
-                "c2w": cam.camera_to_worlds[0].tolist(),
-            }
-        )
-        return scaled_camera(cam, h, w), rms, n_it
-
     def start(b: int, roll: float) -> Cameras:
         cam = scaled_camera(cands[b : b + 1], h, w)
         if roll == 0:
             return cam
         return moved_camera(cam, torch.tensor([0.0, 0.0, -math.radians(roll), 0.0, 0.0, 0.0]))
 
-    first = [(b, *stage(start(b, roll), search.blurs[0], search.first_iterations, b)) for b, roll in best]
+    first = []
+    for b, roll in best:
+        cam, rms, n_it = refine_stage(
+            model, image, start(b, roll), value, search, search.blurs[0], search.first_iterations
+        )
+        history.append({"candidate": b, **record(cam, rms, n_it, search.blurs[0])})
+        first.append((b, cam, rms, n_it))
     b, cam, rms, total = min(first, key=lambda f: f[2])
-    for sigma, its in zip(search.blurs, search.iterations):
-        cam, rms, n_it = stage(cam, sigma, its, b)
+    for blur, its in zip(search.blurs, search.iterations):
+        cam, rms, n_it = refine_stage(model, image, cam, value, search, blur, its)
+        history.append({"candidate": b, **record(cam, rms, n_it, blur)})
         total += n_it
     return PoseFit(camera=cam, rms=rms, score=float(scores[b].max()), iterations=total, history=history)
+
+
+def record(cam: Cameras, rms: float, iterations: int, blur: float) -> Dict[str, Any]:
+    """A refinement stage's entry of :attr:`PoseFit.history`."""
+    return {"blur": blur, "rms": rms, "iterations": iterations, "c2w": cam.camera_to_worlds[0].tolist()}
+
+
+def refine_stage(
+    model,
+    image: Float[Tensor, "H W 3"],
+    camera: Cameras,
+    value: bool,
+    search: PoseSearch,
+    blur: float,
+    iterations: int,
+) -> Tuple[Cameras, float, int]:
+    """One coarse-to-fine stage of :func:`estimate_camera`: :func:`lk_refine` of ``camera`` against ``image`` (V with
+    ``value``) at ``blur`` px per 100 px of its larger side; stages blurred by at least twice
+    :attr:`PoseSearch.half_size_blur` run at half size. Returns the camera at the image's size, the RMS and the
+    iterations taken."""
+    h, w = int(image.shape[0]), int(image.shape[1])
+    sigma = blur * max(h, w) / 100.0
+    # blurred stages run at half size (the blur has removed what the finer pixels would add)
+    f = 2 if sigma >= 2 * search.half_size_blur else 1
+    lh, lw = max(1, h // f), max(1, w // f)
+    target = channel_of(image.float() if f == 1 else area_resize(image, lh, lw), value)
+    cam, rms, n_it = lk_refine(
+        model, scaled_camera(camera, lh, lw), target, value, iterations, sigma / f, extend=search.extend
+    )
+    return scaled_camera(cam, h, w), rms, n_it
 
 
 def search_renders(reference, search: PoseSearch, hw: Tuple[int, int], value: bool) -> Tuple[Cameras, Tensor]:
@@ -478,15 +492,14 @@ def pose_columns(
     rays: Int[Tensor, " R"],
     value: bool,
     eps: float = 3.5e-4,
-    color_map: Optional[Callable[[Tensor], Tensor]] = None,
 ) -> Float[Tensor, "M 6"]:
-    """d (base render at ``rays``, through ``color_map`` when given) / d pose by central differences (rows
+    """d (base render at ``rays``) / d pose by central differences (rows
     ``r * 3 + c``, or one V row per ray with ``value``): what the image decoder fits beside the message for a camera
     this module estimated."""
     dist = camera_distance(camera)
 
     def seen(rgb: Tensor) -> Tensor:
-        return channel_of(rgb if color_map is None else color_map(rgb.double()).float(), value)
+        return channel_of(rgb, value)
 
     cols = []
     for k in range(6):

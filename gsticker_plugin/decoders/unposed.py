@@ -8,6 +8,7 @@ the null is the informed decoders' (docs/verify.md).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -16,7 +17,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from gsticker_plugin.decoders.colormap import ColorMap, fit_color_map, map_columns, scene_clusters
+from gsticker_plugin.decoders.colormap import ColorMap, fit_color_map, map_columns, mapped_colors, scene_clusters
 from gsticker_plugin.decoders.fit import tie_generator
 from gsticker_plugin.decoders.image import (
     ImageReferenceView,
@@ -34,6 +35,7 @@ from gsticker_plugin.decoders.pose import (
     line_search,
     moved_camera,
     pose_columns,
+    refine_stage,
     search_renders,
 )
 from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker
@@ -90,6 +92,40 @@ def reading(
     return (True, None) if value_left <= after else (False, cmap)
 
 
+MAP_SEARCH_SHARE = 0.15
+"""The camera search goes on through a colour map of the base's samples when that map explains at least this share
+of the image's difference from the base render at the camera found on V (a recolouring moves V too: the search on
+V stops a few tenths of a degree off, where a pose error leaves the map little to explain)."""
+
+
+def recoloured_camera(
+    reference, image: Float[Tensor, "H W 3"], camera, search: PoseSearch, name: str
+) -> Tuple[Any, Optional[float]]:
+    """``camera`` (found on V) refined again through the colour map of the base's samples (:func:`map_fit`, refitted
+    before every stage after the first of ``search``) when the map explains at least :data:`MAP_SEARCH_SHARE` of the
+    image's difference from the base render there: the stages then compare RGB with the base rendered through the
+    map. Returns the camera and the share the map explained at the start (None: no map could be fitted)."""
+    background = reference.model.background_color()
+    share: Optional[float] = None
+    for k, (blur, its) in enumerate(zip(search.blurs[1:], search.iterations[1:])):
+        ref = image_reference(any_reference_view(reference, f"map/{name}/{k}", camera, None), background)
+        cmap, before, after = map_fit(image, ref)
+        if cmap is None or before <= 0:
+            return camera, share
+        if k == 0:
+            share = 1.0 - after / before
+            if share < MAP_SEARCH_SHARE:
+                return camera, share
+        with mapped_colors(reference.model, cmap):
+            camera, _, _ = refine_stage(reference.model, image, camera, False, search, blur, its)
+    return camera, share
+
+
+def tinted(model, cmap: Optional[ColorMap]):
+    """:func:`gsticker_plugin.decoders.colormap.mapped_colors` of ``cmap``, or a block that changes nothing."""
+    return mapped_colors(model, cmap) if cmap is not None else contextlib.nullcontext()
+
+
 def mapped_reference(ref: ImageReferenceView, cmap: ColorMap) -> ImageReferenceView:
     """``ref`` with every sample's colour taken through ``cmap`` (the base render at the rays recomposited from
     them)."""
@@ -140,7 +176,9 @@ def decode_unposed_images(
         if hw not in renders:
             renders[hw] = search_renders(reference, search, hw, value=True)
         pose = estimate_camera(reference, image, True, search, renders[hw])
-        camera = pose.camera
+        camera, share = pose.camera, None
+        if color_map:
+            camera, share = recoloured_camera(reference, image, camera, search, name)
         best: Optional[Tuple[float, Dict[str, Any], Any, int]] = None
         previous: Optional[Tensor] = None
         for k in range(rounds):  # Gauss-Newton on camera and message together: the fit's pose step moves the camera
@@ -149,7 +187,8 @@ def decode_unposed_images(
             value, cmap = reading(image, ref, value_mode and reads_value(image, ref_view.image), color_map)
             if cmap is not None:
                 ref = mapped_reference(ref, cmap)
-            cols = pose_columns(reference.model, camera, ref_view.rays, value, color_map=cmap)
+            with tinted(reference.model, cmap):  # the base rendered with its samples' colours through the map
+                cols = pose_columns(reference.model, camera, ref_view.rays, value)
             if cmap is not None:  # what remains of the map's error is fitted beside the message too
                 weights = render_weights(ref.view.density, ref.view.deltas)
                 cols = torch.cat([cols, map_columns(ref_view.rgb, weights, cmap).to(cols.dtype)], dim=1)
@@ -168,14 +207,16 @@ def decode_unposed_images(
                 target = channel_of(image.float(), value).clone()  # the image less the fitted mark
                 flat = target.view(-1, target.shape[-1])
                 flat[ref_view.rays] -= mark.reshape(-1, target.shape[-1]).to(flat.dtype)
-                camera, scale = line_search(reference.model, camera, step, target, value, sigma, line_scale, cmap)
+                with tinted(reference.model, cmap):
+                    camera, scale = line_search(reference.model, camera, step, target, value, sigma, line_scale)
                 if scale == 0:  # no multiple of the step brings the base render nearer: the fit has settled
                     break
                 moved = step * scale
                 if pattern and previous is not None:  # along a narrow valley: the last two moves together, further
-                    camera, more = line_search(
-                        reference.model, camera, previous + moved, target, value, sigma, line_scale, cmap
-                    )
+                    with tinted(reference.model, cmap):
+                        camera, more = line_search(
+                            reference.model, camera, previous + moved, target, value, sigma, line_scale
+                        )
                     moved = moved + more * (previous + moved)
                 previous = moved
             else:
@@ -190,6 +231,7 @@ def decode_unposed_images(
                 "pose_rms": pose.rms,
                 "pose_score": pose.score,
                 "pose_iterations": pose.iterations,
+                "map_share_at_search": share,
                 "seconds": time.time() - t0,
             }
         )
