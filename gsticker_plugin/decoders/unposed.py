@@ -1,7 +1,8 @@
 """The informed image decoder for images without cameras: each image's camera found against the owner's base first.
 
-:func:`gsticker_plugin.decoders.pose.estimate_camera` finds the camera (V channel, unchanged by a hue shift), then
-the image decoder fits the message with the base render's pose Jacobian beside it, so what remains of the camera's
+:func:`gsticker_plugin.decoders.pose.estimate_camera` finds the camera (V channel, unchanged by a hue shift; a
+recoloured image's again with the base rendered through a colour map of its samples, :func:`recoloured_camera`),
+then the image decoder fits the message with the base render's pose Jacobian beside it, so what remains of the camera's
 error is fitted too (:func:`gsticker_plugin.decoders.image.without_columns`). Neither step sees the owner's message:
 the null is the informed decoders' (docs/verify.md).
 """
