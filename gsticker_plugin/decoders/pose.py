@@ -498,14 +498,11 @@ def pose_columns(
     this module estimated."""
     dist = camera_distance(camera)
 
-    def seen(rgb: Tensor) -> Tensor:
-        return channel_of(rgb, value)
-
     cols = []
     for k in range(6):
         e = torch.zeros(6)
         e[k] = eps
-        plus = seen(render_at(model, moved_camera(camera, e, dist), rays))
-        minus = seen(render_at(model, moved_camera(camera, -e, dist), rays))
+        plus = channel_of(render_at(model, moved_camera(camera, e, dist), rays), value)
+        minus = channel_of(render_at(model, moved_camera(camera, -e, dist), rays), value)
         cols.append(((plus - minus) / (2 * eps)).reshape(-1))
     return torch.stack(cols, dim=1)

@@ -39,7 +39,7 @@ from gsticker_plugin.decoders.pose import (
     refine_stage,
     search_renders,
 )
-from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker
+from gsticker_plugin.decoders.reference import ReferenceView, any_reference_view, cpu_sticker
 from gsticker_plugin.decoders.result import decoded
 from gsticker_plugin.sticker import render_weights
 from gsticker_plugin.views import progress_bar
@@ -101,25 +101,26 @@ V stops a few tenths of a degree off, where a pose error leaves the map little t
 
 def recoloured_camera(
     reference, image: Float[Tensor, "H W 3"], camera, search: PoseSearch, name: str
-) -> Tuple[Any, Optional[float]]:
+) -> Tuple[Any, Optional[float], Optional[ReferenceView]]:
     """``camera`` (found on V) refined again through the colour map of the base's samples (:func:`map_fit`, refitted
     before every stage after the first of ``search``) when the map explains at least :data:`MAP_SEARCH_SHARE` of the
     image's difference from the base render there: the stages then compare RGB with the base rendered through the
-    map. Returns the camera and the share the map explained at the start (None: no map could be fitted)."""
+    map. Returns the camera, the share the map explained at the start (None: no map could be fitted) and, when the
+    camera was left as it came, the reference view built there (the decoder's first round reads it)."""
     background = reference.model.background_color()
     share: Optional[float] = None
     for k, (blur, its) in enumerate(zip(search.blurs[1:], search.iterations[1:])):
-        ref = image_reference(any_reference_view(reference, f"map/{name}/{k}", camera, None), background)
-        cmap, before, after = map_fit(image, ref)
+        view = any_reference_view(reference, f"map/{name}/{k}", camera, None)
+        cmap, before, after = map_fit(image, image_reference(view, background))
         if cmap is None or before <= 0:
-            return camera, share
+            return camera, share, view if k == 0 else None
         if k == 0:
             share = 1.0 - after / before
             if share < MAP_SEARCH_SHARE:
-                return camera, share
+                return camera, share, view
         with mapped_colors(reference.model, cmap):
             camera, _, _ = refine_stage(reference.model, image, camera, False, search, blur, its)
-    return camera, share
+    return camera, share, None
 
 
 def tinted(model, cmap: Optional[ColorMap]):
@@ -177,13 +178,17 @@ def decode_unposed_images(
         if hw not in renders:
             renders[hw] = search_renders(reference, search, hw, value=True)
         pose = estimate_camera(reference, image, True, search, renders[hw])
-        camera, share = pose.camera, None
-        if color_map:
-            camera, share = recoloured_camera(reference, image, camera, search, name)
+        camera, share, view = pose.camera, None, None
+        if color_map:  # the view it builds at the camera found on V is the first round's when the camera stays
+            camera, share, view = recoloured_camera(reference, image, camera, search, name)
         best: Optional[Tuple[float, Dict[str, Any], Any, int]] = None
         previous: Optional[Tensor] = None
         for k in range(rounds):  # Gauss-Newton on camera and message together: the fit's pose step moves the camera
-            ref_view = any_reference_view(reference, f"unposed/{name}/{k}", camera, None)
+            ref_view = (
+                view
+                if k == 0 and view is not None
+                else any_reference_view(reference, f"unposed/{name}/{k}", camera, None)
+            )
             ref = image_reference(ref_view, background)
             value, cmap = reading(image, ref, value_mode and reads_value(image, ref_view.image), color_map)
             if cmap is not None:
