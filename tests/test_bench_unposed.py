@@ -1,17 +1,24 @@
 """The bookkeeping of the images-without-cameras bench (gsticker_plugin.bench.unposed): rows, resume, jitter."""
 
+import json
 from pathlib import Path
 
+import pytest
 import torch
 
 from gsticker_plugin import metrics
 from gsticker_plugin.bench.unposed import (
     BenchUnposedConfig,
     drawn_spec,
+    folder_images,
+    is_null_row,
     not_reached,
     null_summary,
     other_keys,
+    purify_steps,
     row_key,
+    threat_curves,
+    threat_lines,
     wanted,
 )
 
@@ -59,3 +66,63 @@ def test_the_null_pools_unmarked_images_and_other_keys():
     assert abs(n["matches_mean"] - (20 + 28 + 42 + 7 * 24) / 10) < 1e-12
     assert n["fpr"] == 0.1 and n["fpr_upper_95"] > 0.1
     assert null_summary([], None, 41) is None
+
+
+def test_scene_rows_join_the_null_and_leak_or_purify_rows_do_not():
+    assert [is_null_row(r) for r in ("clean:", "random:", "foreign:", "scene=out/x/train:")] == [True] * 4
+    assert [is_null_row(r) for r in ("marked:", "leak=0.5:", "purify=10:", "palette=blue:")] == [False] * 4
+
+
+def test_purification_runs_through_the_rows_step_counts_in_order():
+    assert purify_steps(("purify=30:@2", "marked:@4", "purify=3:@1", "purify=30:jpeg=50@1")) == [3, 30]
+
+
+def test_another_scene_is_read_sorted_by_name_and_must_match_the_renders_size(tmp_path):
+    import imageio.v2 as imageio
+
+    for name, value in (("b.png", 200), ("a.png", 10), ("c.png", 90)):
+        imageio.imwrite(tmp_path / name, torch.full((8, 6, 3), value, dtype=torch.uint8).numpy())
+    imgs = folder_images(tmp_path, 2, (8, 6))
+    assert imgs.shape == (2, 8, 6, 3)
+    assert torch.allclose(imgs[:, 0, 0, 0], torch.tensor([10, 200]) / 255.0)
+    with pytest.raises(ValueError, match="6x9 px"):
+        folder_images(tmp_path, 2, (9, 6))
+    with pytest.raises(ValueError, match="needs 4 images"):
+        folder_images(tmp_path, 4, (8, 6))
+
+
+def test_threat_curve_pairs_each_purified_model_with_its_geometric_reading(tmp_path):
+    cfg = config(("purify=10:@2", "leak=0.5:@2"))
+    cfg.work_dir, cfg.output = tmp_path, tmp_path / "page.md"
+    (tmp_path / "purify.json").write_text(
+        json.dumps(
+            {
+                "10": {
+                    "steps": 10,
+                    "psnr_vs_marked_db": 30.0,
+                    "psnr_vs_clean_db": 31.0,
+                    "geometric_matches": [20, 45],
+                    "geometric_bit_acc": 65 / 96,
+                    "purify_seconds": 2.0,
+                }
+            }
+        )
+    )
+    (tmp_path / "leak.json").write_text(json.dumps({"0.5": {"psnr_vs_marked_db": 51.0, "psnr_vs_clean_db": 51.2}}))
+    table = {
+        "purify=10:": {"bit_acc": 0.5, "passing": 0, "images": 2},
+        "leak=0.5:": {"bit_acc": 0.9, "passing": 1, "images": 2},
+    }
+    purify, leak = threat_curves(cfg, table, 41, 48)
+    assert (purify["attack"], purify["strength"], purify["geometric_passing"]) == ("purify", 10, "1/2")
+    assert purify["images_passing"] == "0/2" and purify["psnr_vs_marked_db"] == 30.0
+    assert (leak["attack"], leak["strength"], leak["geometric_bit_acc"], leak["psnr_vs_marked_db"]) == (
+        "leak",
+        0.5,
+        None,
+        51.0,
+    )
+    assert (tmp_path / "page.png").stat().st_size > 1000
+    assert "| purify | 10 | 30.00 | 31.00 | 50.0 %, 0/2 | 67.7 %, 1/2 | 2.0 |" in threat_lines(
+        [purify, leak], cfg.output
+    )

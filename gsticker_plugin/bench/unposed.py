@@ -58,7 +58,10 @@ class BenchUnposedConfig:
     """``IMAGES:ATTACK[@N]`` rows: ``marked`` or ``clean`` renders, ``foreign`` (``--foreign-config``'s), ``random``
     images, renders of the watermarked run recoloured (``palette=blue``: palette entry 0 set to blue;
     ``modelhue=0.5``: a model-level hue turn) or of another run (``run=PATH/config.yml``, e.g. the watermarked run
-    after ``ns-recolor finetune``), an attack spec (``noise=0.1,jpeg=50``; empty:
+    after ``ns-recolor finetune``), of the watermarked run purified (``purify=STEPS``: every parameter fine-tuned on
+    the clean training images, as the evaluation's purify stage), the marked renders blended toward the clean ones
+    by a share (``leak=0.5``: what a holder of the owner's base can do), images of another scene in a folder
+    (``scene=DIR``, composited on white, sorted by name: a null), an attack spec (``noise=0.1,jpeg=50``; empty:
     none; ``hue=~0.5``: a strength drawn per view from [-0.5, 0.5]), the first ``N`` views only (rows that differ only
     in ``N`` share their images: ``marked:@12`` early, ``marked:@24`` later)."""
     other_keys: int = 64
@@ -70,6 +73,12 @@ class BenchUnposedConfig:
     on rows whose attack rotates; other rows search without turns. Recorded per image."""
     random_images: int = 8
     """Random images decoded as a null (:func:`gsticker_plugin.views.random_views`)."""
+    purify_lr: float = 1e-3
+    """Adam learning rate of ``purify=`` rows (the evaluation's ``geometry.purify_lr``)."""
+    purify_rays_per_step: int = 1024
+    """Rays per step of ``purify=`` rows."""
+    geometric_views: int = 8
+    """Cameras of the base run the informed geometric decoder reads every ``purify=`` model at (beside the images)."""
     seed: int = 0
     page_only: bool = False
     """Write the page from the images already decoded in ``--work-dir`` (rows not reached are left out), decode
@@ -140,6 +149,71 @@ def run_renders(cfg: "BenchUnposedConfig", config: Optional[Path], cameras) -> t
     return renders_8_bit(pipe.model, cameras)
 
 
+def purify_steps(rows: Tuple[str, ...]) -> List[int]:
+    """The step counts of the ``purify=`` rows, increasing (the purification runs through them cumulatively)."""
+    return sorted({int(r.partition(":")[0][len("purify=") :]) for r in rows if r.startswith("purify=")})
+
+
+def purified_renders(cfg: "BenchUnposedConfig", key, ref, steps: int, cameras, marked, clean) -> torch.Tensor:
+    """8-bit renders at ``cameras`` of the watermarked run after ``steps`` steps of purification
+    (:func:`gsticker_plugin.attacks.purify.purify`, cumulative through the rows' step counts with the evaluation's
+    seeds); the informed geometric decoder's reading of that model and the renders' PSNR go to
+    ``--work-dir/purify.json``."""
+    from gsticker_plugin.attacks.purify import clean_targets, purify
+    from gsticker_plugin.decoders.geometric import decode_suspect
+
+    with contextlib.redirect_stdout(sys.stderr):
+        _, pipe, _ = load_run(cfg.load_config, data=cfg.data, device=torch.device("cpu"))
+    model, ds = pipe.model, pipe.datamanager.train_dataset
+    targets = clean_targets(model, ds)
+    done, losses, t0 = 0, [], time.time()
+    for s in [v for v in purify_steps(cfg.rows) if v <= steps] or [steps]:
+        if s > done:
+            losses += purify(
+                model, ds.cameras, targets, s - done, cfg.purify_lr, cfg.purify_rays_per_step, seed=done, progress=True
+            )
+            done = s
+    seconds = time.time() - t0
+    model.eval()
+    src = renders_8_bit(model, cameras)
+    with contextlib.redirect_stdout(sys.stderr):
+        dec, _ = decode_suspect(key, ref, model, cfg.geometric_views, 0.5, cfg.seed, full_renders=False)
+    point = {
+        "steps": steps,
+        "purify_seconds": round(seconds, 1),
+        "loss_last_20": float(sum(losses[-20:]) / len(losses[-20:])) if losses else None,
+        "geometric_matches": [int(m) for m in dec["matches"]],
+        "geometric_bit_acc": float(torch.tensor(dec["matches"], dtype=torch.float64).mean() / key.num_bits),
+    }
+    record_point(cfg.work_dir / "purify.json", str(steps), src, marked, clean, **point)
+    return src
+
+
+def record_point(path: Path, name: str, images, marked, clean, **extra) -> None:
+    """Add ``name``'s mean PSNR vs the marked and the clean renders (and ``extra``) to the JSON at ``path``."""
+    as_chw = lambda x: x.permute(0, 3, 1, 2)  # noqa: E731
+    point = {
+        "psnr_vs_marked_db": float(metrics.psnr(as_chw(images), as_chw(marked)).mean()),
+        "psnr_vs_clean_db": float(metrics.psnr(as_chw(images), as_chw(clean)).mean()),
+        **extra,
+    }
+    points = json.loads(path.read_text()) if path.exists() else {}
+    points[name] = point
+    path.write_text(json.dumps(points, indent=1))
+    print(name, point, flush=True)
+
+
+def folder_images(folder: Path, count: int, hw: Tuple[int, int]) -> torch.Tensor:
+    """The first ``count`` images of ``folder`` (sorted by name, alpha on white) as 8-bit ``[N H W 3]``; every image
+    must be ``hw`` in size."""
+    from gsticker_plugin.views import images_views
+
+    views = images_views(folder, max_side=max(hw), min_side=1, max_pixels=10**8, progress=False).views[:count]
+    if len(views) < count or any(tuple(v.image.shape[1:]) != hw for v in views):
+        raise ValueError(f"scene={folder}: needs {count} images of {hw[1]}x{hw[0]} px (the held-out renders' size)")
+    return as_8_bit(torch.stack([v.image.permute(1, 2, 0) for v in views]))
+
+
 def held_out_renders(pipe, cameras) -> Tuple[torch.Tensor, torch.Tensor]:
     """8-bit renders of the watermarked run with its sticker on and off at ``cameras``: ``[N H W 3]`` each."""
     out = {}
@@ -204,6 +278,14 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
             src = run_renders(cfg, cfg.foreign_config, cams[:n])
         elif which.startswith("run="):
             src = run_renders(cfg, Path(which[len("run=") :]), cams[:n])
+        elif which.startswith("purify="):
+            src = purified_renders(cfg, key, ref, int(which[len("purify=") :]), cams[:n], marked[:n], clean[:n])
+        elif which.startswith("leak="):
+            t = float(which[len("leak=") :])
+            src = as_8_bit(marked[:n] * (1 - t) + clean[:n] * t)
+            record_point(cfg.work_dir / "leak.json", str(t), src, marked[:n], clean[:n])
+        elif which.startswith("scene="):
+            src = folder_images(Path(which[len("scene=") :]), n, tuple(marked.shape[1:3]))
         else:
             src = recolored_renders(cfg, which, cams[:n])
         for i in range(n):
@@ -294,8 +376,13 @@ def other_keys(rows: List[Dict[str, Any]], count: int, threshold: int) -> Option
     }
 
 
-NULL_IMAGES = ("clean", "foreign", "random")
+NULL_IMAGES = ("clean", "foreign", "random", "scene")
 """Rows of images that never held the owner's message."""
+
+
+def is_null_row(row: str) -> bool:
+    """Whether a row's images never held the owner's message (its images are one of :data:`NULL_IMAGES`)."""
+    return row.partition(":")[0].partition("=")[0] in NULL_IMAGES
 
 
 def null_summary(
@@ -363,7 +450,11 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
         if any(k == row and v < n for k, v in done)
     }
     others = other_keys([r for (k, _), r in done.items() if k.startswith("marked:")], cfg.other_keys, threshold)
-    null_rows = [r for (k, v), r in done.items() if k.partition(":")[0] in NULL_IMAGES and v < wanted(cfg).get(k, 0)]
+    null_rows = [
+        r
+        for (k, v), r in done.items()
+        if k.partition(":")[0].partition("=")[0] in NULL_IMAGES and v < wanted(cfg).get(k, 0)
+    ]
     null = null_summary(null_rows, others, threshold)
     res = {
         "other_keys": others,
@@ -437,15 +528,124 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
             + ".",
             "",
         ]
+    threat = threat_curves(cfg, table, threshold, key.num_bits)
+    if threat:
+        res["threat"] = threat
+        js.write_text(json.dumps(res, indent=1))
+        lines += threat_lines(threat, cfg.output)
     lines += [
         "",
-        "*clean*, *foreign* and *random* images do not carry the owner's message, and the other keys' messages were "
+        "*clean*, *foreign*, *scene* (another scene) and *random* images do not carry the owner's message, and the other keys' messages were "
         "never in the model: the null. Decoded the same way, their matches follow Binomial(48, 1/2) when the decoder "
         "is honest (mean 24).",
     ]
     cfg.output.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return res
+
+
+def threat_curves(cfg: BenchUnposedConfig, table, threshold: int, num_bits: int) -> List[Dict[str, Any]]:
+    """Bit accuracy against PSNR (vs the shared marked renders) of the ``purify=`` rows (images alone, and the informed
+    geometric decoder on the same model) and of the ``leak=`` rows; a PNG chart beside the page."""
+    points, leaks = ({}, {})
+    if (cfg.work_dir / "purify.json").exists():
+        points = json.loads((cfg.work_dir / "purify.json").read_text())
+    if (cfg.work_dir / "leak.json").exists():
+        leaks = json.loads((cfg.work_dir / "leak.json").read_text())
+    out = []
+    for row, t in table.items():
+        which = row.partition(":")[0]
+        if which.startswith("purify=") and which[len("purify=") :] in points:
+            p = points[which[len("purify=") :]]
+            geo = torch.tensor(p["geometric_matches"])
+            out.append(
+                {
+                    "attack": "purify",
+                    "strength": p["steps"],
+                    "psnr_vs_marked_db": p["psnr_vs_marked_db"],
+                    "psnr_vs_clean_db": p["psnr_vs_clean_db"],
+                    "images_bit_acc": t["bit_acc"],
+                    "images_passing": f"{t['passing']}/{t['images']}",
+                    "geometric_bit_acc": p["geometric_bit_acc"],
+                    "geometric_passing": f"{int((geo >= threshold).sum())}/{len(geo)}",
+                    "purify_seconds": p["purify_seconds"],
+                }
+            )
+        elif which.startswith("leak=") and str(float(which[len("leak=") :])) in leaks:
+            p = leaks[str(float(which[len("leak=") :]))]
+            out.append(
+                {
+                    "attack": "leak",
+                    "strength": float(which[len("leak=") :]),
+                    "psnr_vs_marked_db": p["psnr_vs_marked_db"],
+                    "psnr_vs_clean_db": p["psnr_vs_clean_db"],
+                    "images_bit_acc": t["bit_acc"],
+                    "images_passing": f"{t['passing']}/{t['images']}",
+                    "geometric_bit_acc": None,
+                    "geometric_passing": None,
+                    "purify_seconds": None,
+                }
+            )
+    if out:
+        threat_chart(out, cfg.output.with_suffix(".png"), num_bits, threshold)
+    return out
+
+
+def threat_chart(points: List[Dict[str, Any]], path: Path, num_bits: int, threshold: int) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    series = [
+        ("purify", "images_bit_acc", "purification: images alone", "o-"),
+        ("purify", "geometric_bit_acc", "purification: informed geometric", "s--"),
+        ("leak", "images_bit_acc", "blend toward the owner's base: images alone", "^-"),
+    ]
+    for attack, field, label, style in series:
+        pts = sorted(
+            (p["psnr_vs_marked_db"], p[field]) for p in points if p["attack"] == attack and p[field] is not None
+        )
+        if pts:
+            ax.plot([x for x, _ in pts], [100 * y for _, y in pts], style, label=label)
+    ax.axhline(100 * threshold / num_bits, color="gray", lw=0.8, ls=":", label=f"pass line ({threshold}/{num_bits})")
+    ax.axhline(50, color="gray", lw=0.8)
+    ax.set_xlabel("PSNR of the attacked renders vs the shared marked renders (dB)")
+    ax.set_ylabel("bit accuracy (%)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def threat_lines(points: List[Dict[str, Any]], output: Path) -> List[str]:
+    lines = [
+        "",
+        "## Threat model: the recipient removes the mark",
+        "",
+        f"![bit accuracy against PSNR]({output.with_suffix('.png').name})",
+        "",
+        "*purify*: every parameter of the shared watermarked run fine-tuned on the clean training images (Adam, the "
+        "evaluation's purify stage), cumulative steps; the same model read by the informed geometric decoder at the "
+        "base run's cameras beside the images-alone decoder at the held-out views. *leak*: the marked renders blended "
+        "toward the owner's base renders by the share (what a holder of the base, i.e. of the owner key, can do; "
+        "without the key the recipient has no unmarked render to blend toward). PSNR is against the shared marked "
+        "renders at the held-out views.",
+        "",
+        "| attack | steps / share | PSNR vs marked (dB) | PSNR vs clean (dB) | images alone: bit acc, passing | informed geometric: bit acc, passing | purify s |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for p in points:
+        geo = (
+            "-" if p["geometric_bit_acc"] is None else f"{100 * p['geometric_bit_acc']:.1f} %, {p['geometric_passing']}"
+        )
+        lines.append(
+            f"| {p['attack']} | {p['strength']} | {p['psnr_vs_marked_db']:.2f} | {p['psnr_vs_clean_db']:.2f} | "
+            f"{100 * p['images_bit_acc']:.1f} %, {p['images_passing']} | {geo} | "
+            f"{'-' if p['purify_seconds'] is None else p['purify_seconds']} |"
+        )
+    return lines
 
 
 if __name__ == "__main__":

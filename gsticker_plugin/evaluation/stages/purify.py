@@ -5,10 +5,8 @@ from __future__ import annotations
 import time
 from typing import Any, Dict
 
-from gsticker_plugin.background import background_of
+from gsticker_plugin.attacks.purify import clean_targets, purify, purify_parameters
 from gsticker_plugin.evaluation.workspace import Workspace
-from gsticker_plugin.recolor.finetune import finetune_color
-from gsticker_plugin.recolor.runs import composite_on, training_images
 
 
 def run(ws: Workspace) -> Dict[str, Any]:
@@ -18,18 +16,13 @@ def run(ws: Workspace) -> Dict[str, Any]:
     pipe = ws.load(ws.wm_dir(ws.primary) / "config.yml")
     model = pipe.model
     ds = pipe.datamanager.train_dataset
-    bg = background_of(model).image_color()
-    targets = [composite_on(t, bg) for t in training_images(ds)]
-    params = {
-        n: p
-        for n, p in model.named_parameters()
-        if p.is_floating_point() and n.rsplit(".", 1)[-1] != "aabb" and not n.startswith(("extractor", "classifier"))
-    }
+    targets = clean_targets(model, ds)
+    params = purify_parameters(model)
     points, done, t_train = [], 0, 0.0
     for steps in g.purify_steps:
         if steps > done:
             t0 = time.time()
-            hist = finetune_color(
+            losses = purify(
                 model,
                 ds.cameras,
                 targets,
@@ -38,11 +31,11 @@ def run(ws: Workspace) -> Dict[str, Any]:
                 rays_per_step=g.purify_rays_per_step,
                 seed=done,
                 progress=ws.progress,
-                color_params=params,
+                params=params,
             )
             t_train += time.time() - t0
             done = steps
-            loss = float(sum(hist["loss"][-20:]) / len(hist["loss"][-20:]))
+            loss = float(sum(losses[-20:]) / len(losses[-20:]))
         else:
             loss = None
         model.eval()
