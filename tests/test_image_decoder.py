@@ -253,3 +253,24 @@ def test_a_hue_shifted_image_is_read_by_its_value_channel():
     clean = hue_shift(base[None], 0.3)[0].permute(1, 2, 0)
     none = I.decode_image_view(ref, st, clean.reshape(-1, 3), torch.Generator().manual_seed(0), value=True)
     assert none["undetermined"] == 48 and int((none["bits"] == msg).sum()) == 0
+
+
+def test_pixels_a_cropout_filled_are_left_out_of_the_fit_and_the_message_still_reads(monkeypatch):
+    torch.manual_seed(0)
+    st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
+    ref = _view(st)
+    msg = parse_message(MESSAGE)
+    with torch.no_grad():
+        marked = torch.round(I.predict_image_change(ref, st, message_to_signs(msg)) * 255) / 255
+    far = (ref.base_rgb - 1.0).abs().amax(dim=-1) > 0.5  # rays a white fill changes by more than half
+    covered = far & (torch.rand(far.shape, generator=torch.Generator().manual_seed(3)) < 0.3)
+    cropped = torch.where(covered[:, None], torch.ones(3), marked)
+    assert float(covered.double().mean()) > 0.05
+    d = I.decode_image_view(ref, st, cropped, torch.Generator().manual_seed(1))
+    assert torch.equal(d["bits"], msg) and abs(d["occluded_share"] - float(covered.double().mean())) < 1e-9
+    # the same fit over every pixel (no occlusion rule) is pulled off by the fill
+    monkeypatch.setattr(I, "OCCLUSION_SHARE", 2.0)
+    d_all = I.decode_image_view(ref, st, cropped, torch.Generator().manual_seed(1))
+    assert d_all["occluded_share"] == 0.0 and int((d_all["bits"] == msg).sum()) < 44
+    # an unoccluded image keeps every row
+    assert I.decode_image_view(ref, st, marked, torch.Generator().manual_seed(1))["occluded_share"] == 0.0
