@@ -181,3 +181,22 @@ def test_line_search_takes_the_multiple_of_a_short_step_that_lands_on_the_image(
     assert float((found.camera_to_worlds - cam.camera_to_worlds).abs().max()) < 0.02 * off
     same, none = P.line_search(TexturedSquare(), start, -delta / 4, image, False, 0.5)
     assert none == 0 and torch.equal(same.camera_to_worlds, start.camera_to_worlds)
+
+
+def test_a_blurred_image_finds_its_camera_when_the_render_is_blurred_alike():
+    """An image blurred after rendering: the refinement with the render blurred by the same amount lands on its
+    camera; comparing it with a sharp render leaves the camera further off."""
+    train = orbit(24)
+    held = train[3:4]
+    image = P.smoothed(P.render_cameras(TexturedSquare(), held)["rgb"][0].double(), 1.5).float()
+    start = P.moved_camera(held, torch.tensor([0.0, 0.0, 0.02, 0.03, -0.02, 0.0]), P.camera_distance(held))
+    search = P.PoseSearch(iterations=(0, 8, 8, 8))
+
+    def error(render_blur: float) -> float:
+        cam = start
+        for blur, its in zip(search.blurs[1:], search.iterations[1:]):
+            cam, _, _ = P.refine_stage(TexturedSquare(), image, cam, False, search, blur, its, render_blur)
+        return float((held.camera_to_worlds[0, :, 3] - cam.camera_to_worlds[0, :, 3]).norm())
+
+    matched, sharp = error(1.5), error(0.0)
+    assert matched < 2e-3 and matched < sharp / 2, (matched, sharp)

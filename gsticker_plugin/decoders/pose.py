@@ -219,31 +219,34 @@ def lk_refine(
     sigma: float = 0.0,
     robust: bool = True,
     extend: int = 1,
+    render_blur: float = 0.0,
 ) -> Tuple[Cameras, float, int]:
     """Gauss-Newton (Lucas-Kanade with the base's depth) over the 6 pose parameters of ``camera`` (sized like
     ``target``): the pixel motion of each surface point under a pose change times the base render's image gradient
     is the Jacobian; one render per step, damped and accepted only when the (Cauchy-weighted when ``robust``)
     residual drops; an accepted step is tried at 2, 4, ... up to ``extend`` times its length while the residual keeps
     dropping. Render and target are blurred by ``sigma`` px (a wider basin; and the render's gradient only follows
-    its true derivative once blurred). Returns the camera, the final RMS and the iterations taken."""
+    its true derivative once blurred); the render by ``render_blur`` px more (an image blurred after rendering, so
+    both sides hold the same blur). Returns the camera, the final RMS and the iterations taken."""
     dist = camera_distance(camera)
     lam = 1e-4
     keys = ("rgb", "expected_depth", "accumulation")
     h, w = target.shape[:2]
     full = render_cameras(model, camera, keys)
-    window = content_window(full["accumulation"][0], int(3 * sigma) + 6)
+    window = content_window(full["accumulation"][0], int(3 * sigma + 3 * render_blur) + 6)
     r0_, r1_, c0_, c1_ = window
     # blur before cropping, so the window's border sees the image around it as the renders see themselves
     y = smoothed(target.double(), sigma)[r0_:r1_, c0_:c1_]
+    rsigma = math.hypot(sigma, render_blur)
 
     def look(cam: Cameras):
         out = render_cameras(model, cam, keys, window)
-        img = smoothed(channel_of(out["rgb"][0], value).double(), sigma)
+        img = smoothed(channel_of(out["rgb"][0], value).double(), rsigma)
         return out, img, y - img
 
     cur = camera
     out = {k: v[:, r0_:r1_, c0_:c1_] for k, v in full.items()}  # the window of the render already made
-    img = smoothed(channel_of(out["rgb"][0], value).double(), sigma)
+    img = smoothed(channel_of(out["rgb"][0], value).double(), rsigma)
     r0 = y - img
 
     def weights(r: Tensor) -> Tensor:
@@ -444,11 +447,12 @@ def refine_stage(
     search: PoseSearch,
     blur: float,
     iterations: int,
+    render_blur: float = 0.0,
 ) -> Tuple[Cameras, float, int]:
     """One coarse-to-fine stage of :func:`estimate_camera`: :func:`lk_refine` of ``camera`` against ``image`` (V with
     ``value``) at ``blur`` px per 100 px of its larger side; stages blurred by at least twice
-    :attr:`PoseSearch.half_size_blur` run at half size. Returns the camera at the image's size, the RMS and the
-    iterations taken."""
+    :attr:`PoseSearch.half_size_blur` run at half size; ``render_blur``: px (at the image's size) the image was
+    blurred after rendering. Returns the camera at the image's size, the RMS and the iterations taken."""
     h, w = int(image.shape[0]), int(image.shape[1])
     sigma = blur * max(h, w) / 100.0
     # blurred stages run at half size (the blur has removed what the finer pixels would add)
@@ -456,7 +460,14 @@ def refine_stage(
     lh, lw = max(1, h // f), max(1, w // f)
     target = channel_of(image.float() if f == 1 else area_resize(image, lh, lw), value)
     cam, rms, n_it = lk_refine(
-        model, scaled_camera(camera, lh, lw), target, value, iterations, sigma / f, extend=search.extend
+        model,
+        scaled_camera(camera, lh, lw),
+        target,
+        value,
+        iterations,
+        sigma / f,
+        extend=search.extend,
+        render_blur=render_blur / f,
     )
     return scaled_camera(cam, h, w), rms, n_it
 

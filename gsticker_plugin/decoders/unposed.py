@@ -21,10 +21,14 @@ from torch import Tensor
 from gsticker_plugin.decoders.colormap import ColorMap, fit_color_map, map_columns, mapped_colors, scene_clusters
 from gsticker_plugin.decoders.fit import tie_generator
 from gsticker_plugin.decoders.image import (
+    DEGRADATION_GRID,
+    Degradation,
     ImageReferenceView,
     decode_image_view,
+    decode_selected,
     image_at_rays,
     image_reference,
+    match_degradation,
     reads_value,
     rgb_of_sticker,
 )
@@ -123,6 +127,30 @@ def recoloured_camera(
     return camera, share, None
 
 
+BLUR_GRID = {"blur": DEGRADATION_GRID["blur"]}
+"""The degradations looked for at the camera found (:func:`blurred_camera`): a blur moves the search's minimum and
+hides the mark from a sharp render's fit; a rotation is a roll of the camera, found by the search itself."""
+
+
+def blurred_camera(
+    reference, image: Float[Tensor, "H W 3"], camera, search: PoseSearch, name: str, view: Optional[ReferenceView]
+) -> Tuple[Any, Degradation, Optional[ReferenceView]]:
+    """The blur of :data:`BLUR_GRID` that turns the base render at ``camera`` into ``image`` best
+    (:func:`gsticker_plugin.decoders.image.match_degradation`, the identity unless clearly closer); when one is
+    found, the search's stages after the first run again with the render blurred by it too, and the blur is matched
+    again at the camera they reach. Returns the camera, the blur (or the identity) and the reference view at the
+    camera (``view``, built at ``camera`` already, when given and the camera stays)."""
+    view = view if view is not None else any_reference_view(reference, f"blur/{name}/0", camera, None)
+    deg, _ = match_degradation(image, view.image, BLUR_GRID)
+    if deg.name == "none":
+        return camera, deg, view
+    for blur, its in zip(search.blurs[1:], search.iterations[1:]):
+        camera, _, _ = refine_stage(reference.model, image, camera, True, search, blur, its, render_blur=deg.strength)
+    view = any_reference_view(reference, f"blur/{name}/1", camera, None)
+    again, _ = match_degradation(image, view.image, BLUR_GRID)
+    return camera, again if again.name != "none" else deg, view
+
+
 def tinted(model, cmap: Optional[ColorMap]):
     """:func:`gsticker_plugin.decoders.colormap.mapped_colors` of ``cmap``, or a block that changes nothing."""
     return mapped_colors(model, cmap) if cmap is not None else contextlib.nullcontext()
@@ -153,6 +181,7 @@ def decode_unposed_images(
     line_scale: int = 8,
     color_map: bool = True,
     pattern: bool = True,
+    blur: bool = True,
 ) -> Dict[str, Any]:
     """Decode ``images`` (``[H W 3]`` each, cameras unknown) of the owner's scene against the owner's base
     ``reference`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`): camera search, then the image fit
@@ -162,8 +191,11 @@ def decode_unposed_images(
     decodes images one call at a time (filled here). ``line_scale``: each pose step is taken at the multiple up to this
     whose base render is nearest the image (:func:`gsticker_plugin.decoders.pose.line_search`; 0: as fitted).
     ``color_map``: read an image whose colours a smooth map of the base render's explains far better than the render
-    itself (a recoloured copy, :func:`recolouring`) with the base's sample colours taken through that map. Returns the decoders' shared result, with
-    per image the found camera (``c2w``), the pose fit's RMS and seconds in ``image``."""
+    itself (a recoloured copy, :func:`recolouring`) with the base's sample colours taken through that map.
+    ``blur``: an image that a blur of the base render at the camera found explains far better than the render
+    (:func:`blurred_camera`) has its camera refined through that blur and is read through it
+    (:func:`gsticker_plugin.decoders.image.decode_selected`). Returns the decoders' shared result, with per image the
+    found camera (``c2w``), the pose fit's RMS, the degradation read through and seconds in ``image``."""
     search = search or PoseSearch()
     st = cpu_sticker(reference.model)
     background = reference.model.background_color()
@@ -181,6 +213,15 @@ def decode_unposed_images(
         camera, share, view = pose.camera, None, None
         if color_map:  # the view it builds at the camera found on V is the first round's when the camera stays
             camera, share, view = recoloured_camera(reference, image, camera, search, name)
+        degradation = Degradation()
+        if blur and (share is None or share < MAP_SEARCH_SHARE):
+            camera, degradation, view = blurred_camera(reference, image, camera, search, name, view)
+        if degradation.name != "none":  # read through the blur at that camera, as the posed decoder reads
+            d = decode_selected(image_reference(view, background), st, image, degradation, gen, iterations)
+            d.update(finding(camera, 0, pose, share, t0))
+            bits.append(d.pop("bits"))
+            details.append(d)
+            continue
         best: Optional[Tuple[float, Dict[str, Any], Any, int]] = None
         previous: Optional[Tensor] = None
         for k in range(rounds):  # Gauss-Newton on camera and message together: the fit's pose step moves the camera
@@ -229,18 +270,23 @@ def decode_unposed_images(
                 camera = moved_camera(camera, step, camera_distance(camera))
         assert best is not None
         _, d, camera, used = best
-        d.update(
-            {
-                "camera": "estimated",
-                "c2w": camera.camera_to_worlds[0].tolist(),
-                "round": used,
-                "pose_rms": pose.rms,
-                "pose_score": pose.score,
-                "pose_iterations": pose.iterations,
-                "map_share_at_search": share,
-                "seconds": time.time() - t0,
-            }
-        )
+        d.update(finding(camera, used, pose, share, t0))
+        d["degradation"] = "none"
         bits.append(d.pop("bits"))
         details.append(d)
     return decoded(key, bits, "image", details)
+
+
+def finding(camera, used: int, pose, share: Optional[float], t0: float) -> Dict[str, Any]:
+    """What a decoded image's result records of its camera: the camera found (``c2w``), the fit round it came from
+    (0: read through a blur at the camera), the search's fit and the seconds since ``t0``."""
+    return {
+        "camera": "estimated",
+        "c2w": camera.camera_to_worlds[0].tolist(),
+        "round": used,
+        "pose_rms": pose.rms,
+        "pose_score": pose.score,
+        "pose_iterations": pose.iterations,
+        "map_share_at_search": share,
+        "seconds": time.time() - t0,
+    }
