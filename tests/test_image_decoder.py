@@ -274,3 +274,18 @@ def test_pixels_a_cropout_filled_are_left_out_of_the_fit_and_the_message_still_r
     assert d_all["occluded_share"] == 0.0 and int((d_all["bits"] == msg).sum()) < 44
     # an unoccluded image keeps every row
     assert I.decode_image_view(ref, st, marked, torch.Generator().manual_seed(1))["occluded_share"] == 0.0
+
+
+def test_a_blur_is_matched_from_the_spectrum_even_when_the_camera_is_a_pixel_off():
+    g = torch.Generator().manual_seed(0)
+    base = torch.ones(3, 48, 48)
+    for _ in range(12):  # coloured rectangles on white: edges at every scale
+        r, c = torch.randint(4, 36, (2,), generator=g).tolist()
+        base[:, r : r + 8, c : c + 10] = torch.rand(3, 1, 1, generator=g)
+    shifted = torch.roll(base, shifts=(1, -1), dims=(1, 2))  # the image's camera a pixel off the base render's
+    for sigma in (0.75, 1.5):
+        blurred = I.Degradation("blur", sigma).apply(shifted[None])[0]
+        assert I.match_blur_spectrum(blurred.permute(1, 2, 0), base) == I.Degradation("blur", sigma)
+    assert I.match_blur_spectrum(shifted.permute(1, 2, 0), base) == I.Degradation()
+    noisy = (shifted + 0.05 * torch.randn(shifted.shape, generator=g)).clamp(0, 1)
+    assert I.match_blur_spectrum(noisy.permute(1, 2, 0), base) == I.Degradation()

@@ -393,6 +393,39 @@ def match_degradation(
     return Degradation(), identity_err
 
 
+def amplitude_spectrum(x: Float[Tensor, "... H W"]) -> Float[Tensor, "... H F"]:
+    """``|FFT(x)|`` of each channel, its mean taken off and a Hann window applied: unchanged by a small shift of the
+    content (a camera a few tenths of a degree off), changed by a blur."""
+    h, w = x.shape[-2:]
+    win = torch.hann_window(h, periodic=False, dtype=x.dtype)[:, None] * torch.hann_window(
+        w, periodic=False, dtype=x.dtype
+    )
+    return torch.fft.rfft2((x - x.mean(dim=(-2, -1), keepdim=True)) * win).abs()
+
+
+def match_blur_spectrum(
+    image: Float[Tensor, "H W 3"],
+    base: Float[Tensor, "3 H W"],
+    sigmas: Optional[Sequence[float]] = None,
+    margin: float = MATCH_MARGIN,
+) -> Degradation:
+    """The Gaussian blur (``sigmas``, default :data:`DEGRADATION_GRID`'s) whose blur of the base render has the
+    amplitude spectrum nearest the image's, or the identity unless it leaves at most ``margin`` of the identity's
+    squared spectral error. :func:`match_degradation` compares pixels and so needs the camera exact; this needs it
+    only roughly."""
+    sigmas = DEGRADATION_GRID["blur"] if sigmas is None else sigmas
+    target = amplitude_spectrum(image.permute(2, 0, 1).double())
+    b = base[None].double()
+    identity_err = float(((target - amplitude_spectrum(b[0])) ** 2).sum())
+    best, best_err = Degradation(), float("inf")
+    for sigma in sigmas:
+        c = Degradation("blur", float(sigma))
+        err = float(((target - amplitude_spectrum(c.apply(b)[0])) ** 2).sum())
+        if err < best_err:
+            best, best_err = c, err
+    return best if best_err < margin * identity_err else Degradation()
+
+
 def decode_degraded_view(
     ref: ImageReferenceView,
     sticker: Sticker,

@@ -21,14 +21,13 @@ from torch import Tensor
 from gsticker_plugin.decoders.colormap import ColorMap, fit_color_map, map_columns, mapped_colors, scene_clusters
 from gsticker_plugin.decoders.fit import tie_generator
 from gsticker_plugin.decoders.image import (
-    DEGRADATION_GRID,
     Degradation,
     ImageReferenceView,
     decode_image_view,
     decode_selected,
     image_at_rays,
     image_reference,
-    match_degradation,
+    match_blur_spectrum,
     reads_value,
     rgb_of_sticker,
 )
@@ -127,27 +126,24 @@ def recoloured_camera(
     return camera, share, None
 
 
-BLUR_GRID = {"blur": DEGRADATION_GRID["blur"]}
-"""The degradations looked for at the camera found (:func:`blurred_camera`): a blur moves the search's minimum and
-hides the mark from a sharp render's fit; a rotation is a roll of the camera, found by the search itself."""
-
-
 def blurred_camera(
     reference, image: Float[Tensor, "H W 3"], camera, search: PoseSearch, name: str, view: Optional[ReferenceView]
 ) -> Tuple[Any, Degradation, Optional[ReferenceView]]:
-    """The blur of :data:`BLUR_GRID` that turns the base render at ``camera`` into ``image`` best
-    (:func:`gsticker_plugin.decoders.image.match_degradation`, the identity unless clearly closer); when one is
-    found, the search's stages after the first run again with the render blurred by it too, and the blur is matched
-    again at the camera they reach. Returns the camera, the blur (or the identity) and the reference view at the
-    camera (``view``, built at ``camera`` already, when given and the camera stays)."""
+    """The Gaussian blur whose blur of the base render at ``camera`` has the amplitude spectrum nearest ``image``'s
+    (:func:`gsticker_plugin.decoders.image.match_blur_spectrum`: the identity unless clearly nearer; a spectrum
+    does not need the camera exact, as a comparison of pixels would); when one is found, the search's stages after
+    the first run again with the render blurred by it too, and the blur is matched again at the camera they reach.
+    A rotation needs none of this: a turned image is a rolled camera, found by the search itself. Returns the
+    camera, the blur (or the identity) and the reference view at the camera (``view``, built at ``camera`` already,
+    when given and the camera stays)."""
     view = view if view is not None else any_reference_view(reference, f"blur/{name}/0", camera, None)
-    deg, _ = match_degradation(image, view.image, BLUR_GRID)
+    deg = match_blur_spectrum(image, view.image)
     if deg.name == "none":
         return camera, deg, view
     for blur, its in zip(search.blurs[1:], search.iterations[1:]):
         camera, _, _ = refine_stage(reference.model, image, camera, True, search, blur, its, render_blur=deg.strength)
     view = any_reference_view(reference, f"blur/{name}/1", camera, None)
-    again, _ = match_degradation(image, view.image, BLUR_GRID)
+    again = match_blur_spectrum(image, view.image)
     return camera, again if again.name != "none" else deg, view
 
 
