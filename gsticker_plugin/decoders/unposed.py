@@ -103,17 +103,24 @@ V stops a few tenths of a degree off, where a pose error leaves the map little t
 
 
 def recoloured_camera(
-    reference, image: Float[Tensor, "H W 3"], camera, search: PoseSearch, name: str
+    reference,
+    image: Float[Tensor, "H W 3"],
+    camera,
+    search: PoseSearch,
+    name: str,
+    view: Optional[ReferenceView] = None,
 ) -> Tuple[Any, Optional[float], Optional[ReferenceView]]:
     """``camera`` (found on V) refined again through the colour map of the base's samples (:func:`map_fit`, refitted
     before every stage after the first of ``search``) when the map explains at least :data:`MAP_SEARCH_SHARE` of the
     image's difference from the base render there: the stages then compare RGB with the base rendered through the
     map. Returns the camera, the share the map explained at the start (None: no map could be fitted) and, when the
-    camera was left as it came, the reference view built there (the decoder's first round reads it)."""
+    camera was left as it came, the reference view built there (the decoder's first round reads it; ``view``: one
+    built at ``camera`` already)."""
     background = reference.model.background_color()
     share: Optional[float] = None
     for k, (blur, its) in enumerate(zip(search.blurs[1:], search.iterations[1:])):
-        view = any_reference_view(reference, f"map/{name}/{k}", camera, None)
+        if k > 0 or view is None:
+            view = any_reference_view(reference, f"map/{name}/{k}", camera, None)
         cmap, before, after = map_fit(image, image_reference(view, background))
         if cmap is None or before <= 0:
             return camera, share, view if k == 0 else None
@@ -207,11 +214,11 @@ def decode_unposed_images(
             renders[hw] = search_renders(reference, search, hw, value=True)
         pose = estimate_camera(reference, image, True, search, renders[hw])
         camera, share, view = pose.camera, None, None
-        if color_map:  # the view it builds at the camera found on V is the first round's when the camera stays
-            camera, share, view = recoloured_camera(reference, image, camera, search, name)
         degradation = Degradation()
-        if blur and (share is None or share < MAP_SEARCH_SHARE):
-            camera, degradation, view = blurred_camera(reference, image, camera, search, name, view)
+        if blur:  # before the colour map: a map of the samples explains part of a blur too
+            camera, degradation, view = blurred_camera(reference, image, camera, search, name, None)
+        if color_map and degradation.name == "none":  # its view at the camera found is the first round's
+            camera, share, view = recoloured_camera(reference, image, camera, search, name, view)
         if degradation.name != "none":  # read through the blur at that camera, as the posed decoder reads
             d = decode_selected(image_reference(view, background), st, image, degradation, gen, iterations)
             d.update(finding(camera, 0, pose, share, t0))
