@@ -1,8 +1,8 @@
-"""What the purification attack fine-tunes (gsticker_plugin.attacks.purify)."""
+"""What the purification attack fine-tunes (gsticker_plugin.recolor.purify)."""
 
 from torch import nn
 
-from gsticker_plugin.attacks.purify import purify_parameters
+from gsticker_plugin.recolor.purify import purify_parameters
 
 
 def test_purification_fits_every_float_parameter_but_the_scene_box_and_the_decoding_heads():

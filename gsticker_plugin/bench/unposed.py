@@ -156,11 +156,11 @@ def purify_steps(rows: Tuple[str, ...]) -> List[int]:
 
 def purified_renders(cfg: "BenchUnposedConfig", key, ref, steps: int, cameras, marked, clean) -> torch.Tensor:
     """8-bit renders at ``cameras`` of the watermarked run after ``steps`` steps of purification
-    (:func:`gsticker_plugin.attacks.purify.purify`, cumulative through the rows' step counts with the evaluation's
+    (:func:`gsticker_plugin.recolor.purify.purify`, cumulative through the rows' step counts with the evaluation's
     seeds); the informed geometric decoder's reading of that model and the renders' PSNR go to
     ``--work-dir/purify.json``."""
-    from gsticker_plugin.attacks.purify import clean_targets, purify
     from gsticker_plugin.decoders.geometric import decode_suspect
+    from gsticker_plugin.recolor.purify import clean_targets, purify
 
     with contextlib.redirect_stdout(sys.stderr):
         _, pipe, _ = load_run(cfg.load_config, data=cfg.data, device=torch.device("cpu"))

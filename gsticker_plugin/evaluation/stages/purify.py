@@ -5,8 +5,8 @@ from __future__ import annotations
 import time
 from typing import Any, Dict
 
-from gsticker_plugin.attacks.purify import clean_targets, purify, purify_parameters
 from gsticker_plugin.evaluation.workspace import Workspace
+from gsticker_plugin.recolor.purify import clean_targets, purify, purify_parameters
 
 
 def run(ws: Workspace) -> Dict[str, Any]:
