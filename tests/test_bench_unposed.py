@@ -9,6 +9,7 @@ import torch
 from gsticker_plugin import metrics
 from gsticker_plugin.bench.unposed import (
     BenchUnposedConfig,
+    breaking_points,
     drawn_spec,
     folder_images,
     is_null_row,
@@ -126,3 +127,28 @@ def test_threat_curve_pairs_each_purified_model_with_its_geometric_reading(tmp_p
     assert "| purify | 10 | 30.00 | 31.00 | 50.0 %, 0/2 | 67.7 %, 1/2 | 2.0 |" in threat_lines(
         [purify, leak], cfg.output
     )
+
+
+def test_the_threat_table_says_where_each_decoder_breaks():
+    def point(steps, images, geometric, acc):
+        return {
+            "attack": "purify",
+            "strength": steps,
+            "psnr_vs_marked_db": 40.0 - steps,
+            "images_passing": images,
+            "images_bit_acc": acc,
+            "geometric_passing": geometric,
+            "geometric_bit_acc": acc,
+        }
+
+    points = [point(10, "0/1", "2/2", 0.6), point(1, "1/1", "2/2", 1.0), point(3, "1/1", "1/2", 0.8)]
+    points.append({**point(0.5, "0/1", None, 0.5), "attack": "leak"})
+    lines = breaking_points(points)
+    assert lines == [
+        "- purify, images alone: every image passes up to 3 steps (37.0 dB vs marked); breaks at 10 steps "
+        "(30.0 dB vs marked, 60.0 % of bits).",
+        "- purify, informed geometric: every image passes up to 1 step (39.0 dB vs marked); breaks at 3 steps "
+        "(37.0 dB vs marked, 80.0 % of bits).",
+        "- leak, images alone: the weakest setting tried already breaks it; breaks at 0.5 blended (39.5 dB vs marked, "
+        "50.0 % of bits).",
+    ]

@@ -647,6 +647,44 @@ def threat_lines(points: List[Dict[str, Any]], output: Path) -> List[str]:
             f"{100 * p['images_bit_acc']:.1f} %, {p['images_passing']} | {geo} | "
             f"{'-' if p['purify_seconds'] is None else p['purify_seconds']} |"
         )
+    return lines + [""] + breaking_points(points)
+
+
+def breaking_points(points: List[Dict[str, Any]]) -> List[str]:
+    """One line per attack and decoder: the strongest setting at which every image still passes and the weakest at
+    which one fails (settings in increasing strength), with their PSNR against the marked renders."""
+
+    def fraction(passing: str) -> float:
+        k, n = passing.split("/")
+        return int(k) / max(1, int(n))
+
+    def setting(p: Dict[str, Any]) -> str:
+        if p["attack"] == "purify":
+            return f"{p['strength']} step" + ("" if p["strength"] == 1 else "s")
+        return f"{p['strength']} blended" if p["attack"] == "leak" else str(p["strength"])
+
+    lines = []
+    for attack in dict.fromkeys(p["attack"] for p in points):
+        rows = sorted((p for p in points if p["attack"] == attack), key=lambda p: p["strength"])
+        for decoder, name in (("images", "images alone"), ("geometric", "informed geometric")):
+            read = [(p, fraction(p[f"{decoder}_passing"])) for p in rows if p[f"{decoder}_passing"] is not None]
+            if not read:
+                continue
+            broke = next((p for p, f in read if f < 1.0), None)
+            held = [p for p, f in read if broke is None or p["strength"] < broke["strength"]]
+            text = f"- {attack}, {name}: " + (
+                f"every image passes up to {setting(held[-1])} ({held[-1]['psnr_vs_marked_db']:.1f} dB vs marked)"
+                if held
+                else "the weakest setting tried already breaks it"
+            )
+            if broke is None:
+                text += "; no setting tried breaks it"
+            else:
+                text += (
+                    f"; breaks at {setting(broke)} ({broke['psnr_vs_marked_db']:.1f} dB vs marked, "
+                    f"{100 * broke[f'{decoder}_bit_acc']:.1f} % of bits)"
+                )
+            lines.append(text + ".")
     return lines
 
 
