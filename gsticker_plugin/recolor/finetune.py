@@ -162,13 +162,14 @@ def finetune_color(
     progress: bool = True,
     color_params: Optional[Dict[str, nn.Parameter]] = None,
     on_step: Optional[Callable[[int, List[float]], None]] = None,
+    desc: str = "fine-tuning color",
 ) -> Dict[str, List[float]]:
     """Adam on the color parameters only, MSE of rendered rays vs target pixels of random training views.
 
     ``targets``: the [H, W, 3] target image of each of ``cameras`` (rays from :func:`ray_schedule` with ``seed``),
     or :class:`RayTargets` (its schedule and per-ray colors; at least ``steps`` steps of ``rays_per_step`` rays):
     the same fine-tune when its values are the images' pixels. ``on_step(k, losses)`` runs after step k (1-based;
-    the model holds the weights after k steps). Returns {"loss": per step}.
+    the model holds the weights after k steps); ``desc`` labels the progress bar. Returns {"loss": per step}.
     """
     if isinstance(targets, RayTargets):
         schedule, values = targets.schedule, targets.values
@@ -194,7 +195,7 @@ def finetune_color(
     opt = torch.optim.Adam(params, lr=lr, eps=1e-15)
     gen = RayGenerator(cameras.to(model.device))
     history: List[float] = []
-    bar = tqdm(range(steps), desc="fine-tuning color", disable=not progress)
+    bar = tqdm(range(steps), desc=desc, disable=not progress)
     try:
         for t in bar:
             bundle = gen(schedule[t].to(model.device))

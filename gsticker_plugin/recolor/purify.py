@@ -51,5 +51,6 @@ def purify(
         seed=seed,
         progress=progress,
         color_params=params,
+        desc="purifying (every parameter)",
     )
     return hist["loss"]
