@@ -200,3 +200,22 @@ def test_a_blurred_image_finds_its_camera_when_the_render_is_blurred_alike():
 
     matched, sharp = error(1.5), error(0.0)
     assert matched < 2e-3 and matched < sharp / 2, (matched, sharp)
+
+
+def test_a_rolled_camera_is_levelled_and_the_turn_that_maps_the_level_render_onto_the_image_is_found():
+    """An image turned 7 degrees after rendering is a picture of the held-out camera rolled about its axis; that
+    rolled camera is 7 degrees from level, levelling it gives back the held-out camera, and the 7 degree turn (not
+    its opposite) of the level render is the one nearer the image."""
+    from gsticker_plugin.attacks.geometric import rotate
+    from gsticker_plugin.decoders.unposed import level_roll, levelled, turn_of
+
+    held = orbit(24)[5:6]
+    level = P.render_cameras(TexturedSquare(), held)["rgb"][0].permute(2, 0, 1)
+    image = rotate(level[None], 7.0)[0].permute(1, 2, 0)
+    rolled = P.moved_camera(held, torch.tensor([0.0, 0.0, -math.radians(7.0), 0.0, 0.0, 0.0]))
+    assert abs(level_roll(held)) < 1e-4 and abs(abs(level_roll(rolled)) - 7.0) < 1e-3
+    back = levelled(rolled).camera_to_worlds[0]
+    assert float((back - held.camera_to_worlds[0]).abs().max()) < 1e-5
+    turn = turn_of(image, level, level_roll(rolled))
+    assert (turn.name, round(turn.strength, 3)) == ("rotate", 7.0)
+    assert turn_of(image, level, -level_roll(rolled)).strength == turn.strength

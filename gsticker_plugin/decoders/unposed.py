@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import time
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
@@ -23,12 +24,14 @@ from gsticker_plugin.decoders.fit import tie_generator
 from gsticker_plugin.decoders.image import (
     Degradation,
     ImageReferenceView,
+    decode_degraded_view,
     decode_image_view,
     decode_selected,
     image_at_rays,
     image_reference,
     match_blur_spectrum,
     reads_value,
+    residual_cost,
     rgb_of_sticker,
 )
 from gsticker_plugin.decoders.pose import (
@@ -154,6 +157,64 @@ def blurred_camera(
     return camera, again if again.name != "none" else deg, view
 
 
+TURN_READ_DEG = 0.05
+"""An image whose camera is turned at least this far (degrees) about its axis from level is also read as a level
+render turned after rendering (:func:`turned_reading`)."""
+
+
+def level_roll(camera) -> float:
+    """Degrees ``camera`` is turned about its viewing axis away from level (its x axis in the plane normal to the
+    world's z, the up of Blender and nerfstudio-data scenes)."""
+    r = camera.camera_to_worlds[0, :3, :3].double()
+    return math.degrees(math.atan2(float(r[2, 0]), float(r[2, 1])))
+
+
+def levelled(camera):
+    """``camera`` turned about its viewing axis until level (:func:`level_roll` 0)."""
+    return moved_camera(camera, torch.tensor([0.0, 0.0, -math.radians(level_roll(camera)), 0.0, 0.0, 0.0]))
+
+
+def turn_of(image: Float[Tensor, "H W 3"], level: Float[Tensor, "3 H W"], degrees: float) -> Degradation:
+    """The rotation about the image centre by ``degrees`` or ``-degrees`` whose turn of the level render ``level``
+    is nearer ``image`` (pixels)."""
+    x = image.permute(2, 0, 1)[None].float()
+    turns = [Degradation("rotate", float(a)) for a in (degrees, -degrees)]
+    errs = [float(((x - t.apply(level[None].float())) ** 2).mean()) for t in turns]
+    return turns[0] if errs[0] <= errs[1] else turns[1]
+
+
+def turned_reading(
+    reference,
+    st,
+    image: Float[Tensor, "H W 3"],
+    camera,
+    native: Tuple[Any, Dict[str, Any]],
+    gen,
+    iterations: int,
+    name: str,
+) -> Optional[Tuple[Any, Dict[str, Any]]]:
+    """``image`` read as the base's render at the level camera turned after rendering (a rotation attack resamples
+    the pixels, which a render at the rolled camera does not): the turn's bilinear resampling is applied to the
+    level render and to the mark's Jacobian alike (:func:`gsticker_plugin.decoders.image.decode_degraded_view`).
+    Kept, with the level camera, when it leaves a smaller squared residual over the whole image than the reading at
+    ``camera`` (``native``: its reference and result); None otherwise. Uses the image and the base only."""
+    roll = level_roll(camera)
+    if abs(roll) < TURN_READ_DEG:
+        return None
+    level = levelled(camera)
+    ref = image_reference(
+        any_reference_view(reference, f"turn/{name}", level, None), reference.model.background_color()
+    )
+    g = torch.Generator().set_state(gen.get_state())
+    d = decode_degraded_view(ref, st, image, turn_of(image, ref.view.image, roll), g, iterations)
+    cost, native_cost = residual_cost(ref, image, d), residual_cost(native[0], image, native[1])
+    if cost >= native_cost:
+        return None
+    gen.set_state(g.get_state())
+    d["residual_cost_none"], d["residual_cost_matched"] = native_cost, cost
+    return level, d
+
+
 def tinted(model, cmap: Optional[ColorMap]):
     """:func:`gsticker_plugin.decoders.colormap.mapped_colors` of ``cmap``, or a block that changes nothing."""
     return mapped_colors(model, cmap) if cmap is not None else contextlib.nullcontext()
@@ -185,6 +246,7 @@ def decode_unposed_images(
     color_map: bool = True,
     pattern: bool = True,
     blur: bool = True,
+    turn: bool = True,
 ) -> Dict[str, Any]:
     """Decode ``images`` (``[H W 3]`` each, cameras unknown) of the owner's scene against the owner's base
     ``reference`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`): camera search, then the image fit
@@ -197,7 +259,9 @@ def decode_unposed_images(
     itself (a recoloured copy, :func:`recolouring`) with the base's sample colours taken through that map.
     ``blur``: an image that a blur of the base render at the camera found explains far better than the render
     (:func:`blurred_camera`) has its camera refined through that blur and is read through it
-    (:func:`gsticker_plugin.decoders.image.decode_selected`). Returns the decoders' shared result, with per image the
+    (:func:`gsticker_plugin.decoders.image.decode_selected`). ``turn``: an image whose camera is turned about its axis
+    is also read as a level render turned after rendering, and kept so when that explains it better
+    (:func:`turned_reading`). Returns the decoders' shared result, with per image the
     found camera (``c2w``), the pose fit's RMS, the degradation read through and seconds in ``image``."""
     search = search or PoseSearch()
     st = cpu_sticker(reference.model)
@@ -225,7 +289,7 @@ def decode_unposed_images(
             bits.append(d.pop("bits"))
             details.append(d)
             continue
-        best: Optional[Tuple[float, Dict[str, Any], Any, int]] = None
+        best: Optional[Tuple[float, Dict[str, Any], Any, int, ImageReferenceView]] = None
         previous: Optional[Tensor] = None
         for k in range(rounds):  # Gauss-Newton on camera and message together: the fit's pose step moves the camera
             ref_view = (
@@ -249,7 +313,7 @@ def decode_unposed_images(
             left = d["residual_rms"] * max(0.0, 1.0 - d["explained"]) ** 0.5  # what the joint fit leaves
             d["color_map"] = cmap is not None
             if best is None or left < best[0]:
-                best = (left, d, camera, k + 1)
+                best = (left, d, camera, k + 1, ref)
             if float(step.abs().max()) <= 1e-6:
                 break
             if line_scale > 0:  # the fit's step falls short on a sharp render: the base render decides how far
@@ -272,9 +336,13 @@ def decode_unposed_images(
             else:
                 camera = moved_camera(camera, step, camera_distance(camera))
         assert best is not None
-        _, d, camera, used = best
-        d.update(finding(camera, used, pose, share, t0))
+        _, d, camera, used, ref = best
         d["degradation"] = "none"
+        if turn and not d["color_map"] and d["signals"] == ["rgb"]:
+            turned = turned_reading(reference, st, image, camera, (ref, d), gen, iterations, name)
+            if turned is not None:  # a level render turned after rendering explains the image better
+                (camera, d), used = turned, 0
+        d.update(finding(camera, used, pose, share, t0))
         bits.append(d.pop("bits"))
         details.append(d)
     return decoded(key, bits, "image", details)
@@ -282,7 +350,7 @@ def decode_unposed_images(
 
 def finding(camera, used: int, pose, share: Optional[float], t0: float) -> Dict[str, Any]:
     """What a decoded image's result records of its camera: the camera found (``c2w``), the fit round it came from
-    (0: read through a blur at the camera), the search's fit and the seconds since ``t0``."""
+    (0: read through a blur or a turn at the camera), the search's fit and the seconds since ``t0``."""
     return {
         "camera": "estimated",
         "c2w": camera.camera_to_worlds[0].tolist(),
