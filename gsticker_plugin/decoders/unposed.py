@@ -284,7 +284,11 @@ def decode_unposed_images(
         if color_map and degradation.name == "none":  # its view at the camera found is the first round's
             camera, share, view = recoloured_camera(reference, image, camera, search, name, view)
         if degradation.name != "none":  # read through the blur at that camera, as the posed decoder reads
-            d = decode_selected(image_reference(view, background), st, image, degradation, gen, iterations)
+            ref = image_reference(view, background)
+            d = decode_selected(ref, st, image, degradation, gen, iterations)
+            turned = turned_reading(reference, st, image, camera, (ref, d), gen, iterations, name) if turn else None
+            if turned is not None:  # a turn's resampling looks like a blur: the turn may explain it better
+                camera, d = turned
             d.update(finding(camera, 0, pose, share, t0))
             bits.append(d.pop("bits"))
             details.append(d)
