@@ -18,6 +18,7 @@ from gsticker_plugin.decoders.image import (
     decode_images_at_cameras,
     read_cameras_file,
 )
+from gsticker_plugin.decoders.pose import PoseSearch
 from gsticker_plugin.decoders.reference import (
     load_base_reference,
     missing_geometry_message,
@@ -210,6 +211,7 @@ def _verify_images_informed(
                     config.seed,
                     progress=config.progress,
                     names=[v.name for v in posed.views],
+                    search=PoseSearch(rolls=tuple(config.rolls)),
                 )
             posed.details["cameras_of"] = "found by a camera search against the owner's base"
         results.append(_informed_result(key, path, dec, posed, config, "image", ref, notes, bases))

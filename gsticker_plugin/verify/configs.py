@@ -45,6 +45,10 @@ class VerifyConfig:
     """--images only: a transforms JSON (Blender format, e.g. the base dataset's transforms_test.json) giving each
     image's camera, matched by file name without extension (r_0.png <-> ./test/r_0); without it the image decoder
     finds each image's camera itself. Images without a camera in the file are skipped and listed."""
+    rolls: Tuple[float, ...] = (0.0,)
+    """--images without --cameras: turns of each image about its centre (degrees) tried by the camera search, e.g.
+    -30 -20 -10 0 10 20 30 for images that may have been rotated after rendering (each one adds the search's
+    candidates again: slower)."""
     base_config: Optional[Path] = None
     """The owner's base run (config.yml) for --decode geometry, when the path recorded in the key moved."""
     base_data: Optional[Path] = None
