@@ -434,10 +434,13 @@ def decode_degraded_view(
     generator: torch.Generator,
     iterations: int = 10,
     luma: Optional[bool] = None,
+    pose_columns: Optional[Float[Tensor, "M 6"]] = None,
 ) -> Dict[str, Any]:
     """:func:`decode_image_view` for an image the degradation ``D`` was applied to: the image is compared with
     ``D(base render)`` over every pixel, and the change is predicted as ``D_lin(change on the base's rays)``;
-    ``luma`` (default: the degradation's own :attr:`Degradation.luma`): compare luma only."""
+    ``luma`` (default: the degradation's own :attr:`Degradation.luma`): compare luma only. ``pose_columns``: d base
+    render / d pose at the rays (RGB rows ``r * 3 + c``), taken through ``D_lin`` too and fitted beside the message
+    (:func:`without_columns`)."""
 
     luma = degradation.luma if luma is None else luma
     if degradation.name == "none":
@@ -466,6 +469,8 @@ def decode_degraded_view(
         j = image_change_jacobian(ref, sticker, sg)
         return None if j is None else spread(j)
 
+    if pose_columns is not None:  # the fit sees only what a small pose change of the degraded render cannot explain
+        target, predict, jac = without_columns(spread(pose_columns.float()), target, predict, jac)
     fit, bits, undetermined = fit_and_decide(
         predict, jac, target, sticker.num_bits, rays.numel() > 0, generator, iterations
     )

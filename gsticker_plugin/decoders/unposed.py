@@ -206,7 +206,8 @@ def turned_reading(
         any_reference_view(reference, f"turn/{name}", level, None), reference.model.background_color()
     )
     g = torch.Generator().set_state(gen.get_state())
-    d = decode_degraded_view(ref, st, image, turn_of(image, ref.view.image, roll), g, iterations)
+    cols = pose_columns(reference.model, level, ref.view.rays, False)  # the levelled camera's small error, fitted too
+    d = decode_degraded_view(ref, st, image, turn_of(image, ref.view.image, roll), g, iterations, pose_columns=cols)
     cost, native_cost = residual_cost(ref, image, d), residual_cost(native[0], image, native[1])
     if cost >= native_cost:
         return None
