@@ -469,17 +469,25 @@ def decode_degraded_view(
         j = image_change_jacobian(ref, sticker, sg)
         return None if j is None else spread(j)
 
+    plain, cols = (target, predict), None
     if pose_columns is not None:  # the fit sees only what a small pose change of the degraded render cannot explain
-        target, predict, jac = without_columns(spread(pose_columns.float()), target, predict, jac)
+        cols = spread(pose_columns.float())
+        target, predict, jac = without_columns(cols, target, predict, jac)
     fit, bits, undetermined = fit_and_decide(
         predict, jac, target, sticker.num_bits, rays.numel() > 0, generator, iterations
     )
-    return {
+    out = {
         "bits": bits,
         **fit_summary(fit, undetermined, int(rays.numel())),
         "signals": ["luma" if luma else "rgb"],
         "degradation": degradation.label(),
     }
+    if cols is not None:  # the pose change fitted beside the message (a step for the camera)
+        with torch.no_grad():
+            rest = plain[0] - (plain[1](fit.signs) - plain[1](torch.zeros_like(fit.signs)))
+            step = torch.linalg.lstsq(cols.double(), rest.double()[:, None]).solution[:, 0]
+        out["pose_step"] = [float(v) for v in step]
+    return out
 
 
 def residual_cost(ref: ImageReferenceView, image: Float[Tensor, "H W 3"], d: Dict[str, Any]) -> float:

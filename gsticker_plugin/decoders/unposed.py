@@ -162,6 +162,10 @@ TURN_READ_DEG = 0.05
 render turned after rendering (:func:`turned_reading`)."""
 
 
+TURN_ROUNDS = 2
+"""Fits of a turned reading, each at the levelled camera moved by the previous fit's pose step."""
+
+
 def level_roll(camera) -> float:
     """Degrees ``camera`` is turned about its viewing axis away from level (its x axis in the plane normal to the
     world's z, the up of Blender and nerfstudio-data scenes)."""
@@ -201,14 +205,22 @@ def turned_reading(
     roll = level_roll(camera)
     if abs(roll) < TURN_READ_DEG:
         return None
-    level = levelled(camera)
-    ref = image_reference(
-        any_reference_view(reference, f"turn/{name}", level, None), reference.model.background_color()
-    )
-    g = torch.Generator().set_state(gen.get_state())
-    cols = pose_columns(reference.model, level, ref.view.rays, False)  # the levelled camera's small error, fitted too
-    d = decode_degraded_view(ref, st, image, turn_of(image, ref.view.image, roll), g, iterations, pose_columns=cols)
-    cost, native_cost = residual_cost(ref, image, d), residual_cost(native[0], image, native[1])
+    level, best = levelled(camera), None
+    native_cost = residual_cost(native[0], image, native[1])
+    for k in range(TURN_ROUNDS):  # each round from the camera the previous one's pose step moved
+        view = any_reference_view(reference, f"turn/{name}/{k}", level, None)
+        ref = image_reference(view, reference.model.background_color())
+        cols = pose_columns(reference.model, level, view.rays, False)  # the camera's small error, fitted too
+        g = torch.Generator().set_state(gen.get_state())
+        deg = turn_of(image, view.image, level_roll(camera))
+        d = decode_degraded_view(ref, st, image, deg, g, iterations, pose_columns=cols)
+        step = torch.tensor(d.pop("pose_step"))
+        cost = residual_cost(ref, image, d)
+        if best is None or cost < best[0]:
+            best = (cost, level, d, g)
+        level = moved_camera(level, step, camera_distance(level))
+    assert best is not None
+    cost, level, d, g = best
     if cost >= native_cost:
         return None
     gen.set_state(g.get_state())
