@@ -349,6 +349,7 @@ def summarize(rows: List[Dict[str, Any]], threshold: int, num_bits: int) -> Dict
         "read_through_map": sum(bool(r.get("color_map")) for r in rows),
         "searched_through_map": sum((r.get("map_share_at_search") or 0.0) >= MAP_SEARCH_SHARE for r in rows),
         "read_through_blur": sum(r.get("degradation", "none").startswith("blur") for r in rows),
+        "read_as_turned": sum(r.get("degradation", "none").startswith("rotate") for r in rows),
         "seconds_per_image": float(sum(r["seconds"] for r in rows) / len(rows)),
     }
     rot = [r["rotation_error_deg"] for r in rows if "rotation_error_deg" in r]
@@ -491,7 +492,7 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
         "render: a recoloured copy), then the image fit with the pose Jacobian beside the message "
         f"([verify.md](verify.md)). A view passes at >= {threshold}/48 (per-view false-positive rate 1e-6).",
         "",
-        "| images | attack | decoded | bit accuracy | matches mean (min-max) | passing | read by V / colour map / camera searched through map / through a blur | camera error median / max (deg) | s per image (wall) |",
+        "| images | attack | decoded | bit accuracy | matches mean (min-max) | passing | read by V / colour map / camera searched through map / through a blur / as a turned render | camera error median / max (deg) | s per image (wall) |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for row, t in table.items():
@@ -505,7 +506,7 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
         lines.append(
             f"| {which} | {spec or 'none'} | {t['images']} | {100 * t['bit_acc']:.2f} % | {t['matches_mean']:.1f} "
             f"({t['matches_min']}-{t['matches_max']}) | {t['passing']}/{t['images']} | {t['read_by_value']} / "
-            f"{t['read_through_map']} / {t['searched_through_map']} / {t['read_through_blur']} | {cam} | "
+            f"{t['read_through_map']} / {t['searched_through_map']} / {t['read_through_blur']} / {t.get('read_as_turned', 0)} | {cam} | "
             f"{t['seconds_per_image']:.0f} |"
         )
     if others is not None:
