@@ -143,7 +143,7 @@ def blurred_camera(
     (:func:`gsticker_plugin.decoders.image.match_blur_spectrum`: the identity unless clearly nearer; a spectrum
     does not need the camera exact, as a comparison of pixels would); when one is found, the search's stages after
     the first run again with the render blurred by it too, and the blur is matched again at the camera they reach.
-    A rotation needs none of this: a turned image is a rolled camera, found by the search itself. Returns the
+    A turned image is a rolled camera, found by the search itself (and read by :func:`turned_reading`). Returns the
     camera, the blur (or the identity) and the reference view at the camera (``view``, built at ``camera`` already,
     when given and the camera stays)."""
     view = view if view is not None else any_reference_view(reference, f"blur/{name}/0", camera, None)
@@ -212,8 +212,7 @@ def turned_reading(
         ref = image_reference(view, reference.model.background_color())
         cols = pose_columns(reference.model, level, view.rays, False)  # the camera's small error, fitted too
         g = torch.Generator().set_state(gen.get_state())
-        deg = turn_of(image, view.image, level_roll(camera))
-        d = decode_degraded_view(ref, st, image, deg, g, iterations, pose_columns=cols)
+        d = decode_degraded_view(ref, st, image, turn_of(image, view.image, roll), g, iterations, pose_columns=cols)
         step = torch.tensor(d.pop("pose_step"))
         cost = residual_cost(ref, image, d)
         if best is None or cost < best[0]:
