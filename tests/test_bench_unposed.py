@@ -9,6 +9,7 @@ import torch
 from gsticker_plugin import metrics
 from gsticker_plugin.bench.unposed import (
     BenchUnposedConfig,
+    attacked,
     breaking_points,
     drawn_spec,
     folder_images,
@@ -124,9 +125,9 @@ def test_threat_curve_pairs_each_purified_model_with_its_geometric_reading(tmp_p
         51.0,
     )
     assert (tmp_path / "page.png").stat().st_size > 1000
-    assert "| purify | 10 | 30.00 | 31.00 | 50.0 %, 0/2 | 67.7 %, 1/2 | 2.0 |" in threat_lines(
-        [purify, leak], cfg.output
-    )
+    lines = threat_lines([purify, leak], cfg.output, 1e-4, 512)
+    assert "| purify | 10 | 30.00 | 31.00 | 50.0 %, 0/2 | 67.7 %, 1/2 | 2.0 |" in lines
+    assert any("learning rate 0.0001, 512 rays per step" in line for line in lines)
 
 
 def test_the_threat_table_says_where_each_decoder_breaks():
@@ -152,3 +153,16 @@ def test_the_threat_table_says_where_each_decoder_breaks():
         "- leak, images alone: the weakest setting tried already breaks it; breaks at 0.5 blended (39.5 dB vs marked, "
         "50.0 % of bits).",
     ]
+
+
+def test_a_cropout_row_pastes_the_clean_render_of_the_same_camera_or_paints_white_without_one():
+    marked = torch.full((20, 20, 3), 0.2)
+    clean = torch.full((20, 20, 3), 0.6)
+    pasted = attacked(marked, "crop=0.25", torch.Generator().manual_seed(0), clean)
+    painted = attacked(marked, "crop=0.25", torch.Generator().manual_seed(0), None)
+    inside = (pasted - marked).abs().amax(dim=-1) > 0.1
+    assert 80 <= int(inside.sum()) <= 120  # a quarter of the 400 pixels
+    assert torch.allclose(pasted[inside], torch.tensor(0.6), atol=1 / 255)
+    assert torch.equal((painted - marked).abs().amax(dim=-1) > 0.1, inside)  # the same rectangle
+    assert torch.allclose(painted[inside], torch.tensor(1.0))
+    assert torch.allclose(pasted[~inside], torch.tensor(0.2), atol=1 / 255)

@@ -23,6 +23,8 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import torch
 import tyro
+from jaxtyping import Float
+from torch import Tensor
 
 from gsticker_plugin import compat, metrics
 from gsticker_plugin.attacks.spec import apply_attacks, parse_attack_spec
@@ -73,6 +75,10 @@ class BenchUnposedConfig:
     on rows whose attack rotates; other rows search without turns. Recorded per image."""
     random_images: int = 8
     """Random images decoded as a null (:func:`gsticker_plugin.views.random_views`)."""
+    crop_cover: bool = True
+    """``crop=`` attacks paste the clean render of the same camera into their rectangle (the paper's cropout, and the
+    evaluation protocol's); off: a white rectangle (what a recipient without the owner's base can paint). Recorded
+    per image."""
     purify_lr: float = 1e-3
     """Adam learning rate of ``purify=`` rows (the evaluation's ``geometry.purify_lr``)."""
     purify_rays_per_step: int = 1024
@@ -214,6 +220,16 @@ def folder_images(folder: Path, count: int, hw: Tuple[int, int]) -> torch.Tensor
     return as_8_bit(torch.stack([v.image.permute(1, 2, 0) for v in views]))
 
 
+def attacked(
+    image: Float[Tensor, "H W 3"], spec: str, generator: torch.Generator, cover: Optional[Float[Tensor, "H W 3"]]
+) -> Float[Tensor, "H W 3"]:
+    """``image`` after the attacks of ``spec``, 8-bit; a cropout pastes ``cover`` (the clean render of the same
+    camera: the paper's cropout) into its rectangle, or white without one."""
+    c = None if cover is None else cover.float().permute(2, 0, 1)[None]
+    out = apply_attacks(image.float().permute(2, 0, 1)[None], spec, generator=generator, cover=c)
+    return as_8_bit(out[0].clamp(0, 1).permute(1, 2, 0))
+
+
 def held_out_renders(pipe, cameras) -> Tuple[torch.Tensor, torch.Tensor]:
     """8-bit renders of the watermarked run with its sticker on and off at ``cameras``: ``[N H W 3]`` each."""
     out = {}
@@ -288,15 +304,14 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
             src = folder_images(Path(which[len("scene=") :]), n, tuple(marked.shape[1:3]))
         else:
             src = recolored_renders(cfg, which, cams[:n])
+        at_cameras = which != "random" and not which.startswith("scene=")
         for i in range(n):
             img = src[i].float()
             drawn = ""
             if spec:
                 g = torch.Generator().manual_seed(cfg.seed * 1000 + i)
                 drawn = drawn_spec(spec, g)
-                img = as_8_bit(
-                    apply_attacks(img.permute(2, 0, 1)[None], drawn, generator=g)[0].clamp(0, 1).permute(1, 2, 0)
-                )
+                img = attacked(img, drawn, g, clean[i] if at_cameras and cfg.crop_cover else None)
             jobs.append((row, i, img, drawn))
     for i, v in enumerate(random_noise(cfg.random_images, int(marked.shape[1]), cfg.seed)):
         jobs.append(("random:", i, as_8_bit(v.image.permute(1, 2, 0)), ""))
@@ -323,6 +338,7 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
             "map_share_at_search": d.get("map_share_at_search"),
             "degradation": d.get("degradation", "none"),
             "attack": drawn,
+            "crop_fill": ("clean render" if cfg.crop_cover else "white") if "crop" in drawn else None,
         }
         if not row.startswith("random"):
             c2w = torch.tensor(d["c2w"])
@@ -503,6 +519,9 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
             if "rotation_error_deg_median" in t
             else "-"
         )
+        if "crop" in spec:  # rows decoded before crop_fill was recorded painted a white rectangle
+            fills = sorted({r.get("crop_fill") or "white" for (k, _), r in done.items() if k == row})
+            spec += f" ({' / '.join(fills)})"
         lines.append(
             f"| {which} | {spec or 'none'} | {t['images']} | {100 * t['bit_acc']:.2f} % | {t['matches_mean']:.1f} "
             f"({t['matches_min']}-{t['matches_max']}) | {t['passing']}/{t['images']} | {t['read_by_value']} / "
@@ -535,7 +554,7 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
     if threat:
         res["threat"] = threat
         js.write_text(json.dumps(res, indent=1))
-        lines += threat_lines(threat, cfg.output)
+        lines += threat_lines(threat, cfg.output, cfg.purify_lr, cfg.purify_rays_per_step)
     lines += [
         "",
         "*clean*, *foreign*, *scene* (another scene) and *random* images do not carry the owner's message, and the other keys' messages were "
@@ -622,15 +641,17 @@ def threat_chart(points: List[Dict[str, Any]], path: Path, num_bits: int, thresh
     plt.close(fig)
 
 
-def threat_lines(points: List[Dict[str, Any]], output: Path) -> List[str]:
+def threat_lines(
+    points: List[Dict[str, Any]], output: Path, purify_lr: float = 1e-3, purify_rays: int = 1024
+) -> List[str]:
     lines = [
         "",
         "## Threat model: the recipient removes the mark",
         "",
         f"![bit accuracy against PSNR]({output.with_suffix('.png').name})",
         "",
-        "*purify*: every parameter of the shared watermarked run fine-tuned on the clean training images (Adam, the "
-        "evaluation's purify stage), cumulative steps; the same model read by the informed geometric decoder at the "
+        "*purify*: every parameter of the shared watermarked run fine-tuned on the clean training images (Adam, "
+        f"learning rate {purify_lr:g}, {purify_rays} rays per step: the evaluation's purify stage), cumulative steps; the same model read by the informed geometric decoder at the "
         "base run's cameras beside the images-alone decoder at the held-out views. *leak*: the marked renders blended "
         "toward the owner's base renders by the share (what a holder of the base, i.e. of the owner key, can do; "
         "without the key the recipient has no unmarked render to blend toward). PSNR is against the shared marked "
