@@ -243,3 +243,41 @@ def sign_jacobian(view: ViewCache, wrap, num_bits: int, background: Tensor, eps:
         minus = render_signs(view, wrap, -e, background, clamp=False)
         rows.append((plus - minus) / (2 * eps))
     return torch.stack(rows)
+
+
+def sign_gram(view: ViewCache, wrap, message: Tensor, background: Tensor) -> Float[Tensor, "K K"]:
+    """``J^T J`` of the render's per-bit change at the corner ``message``: J[(r, c), b] = d colour / d s_b of every
+    active ray and channel (the informed image decoder's columns there). Differentiable in the sticker's weights
+    through d m / d s (the compositing's derivative in the density is held fixed)."""
+    sticker = wrap.sticker
+    psi, open_ = wrap.open_samples(view.density)
+    k = sticker.num_bits
+    if not open_.any():
+        return torch.zeros(k, k, device=view.density.device)
+    signs = message.float() * 2.0 - 1.0
+    feats = sticker.features(wrap.normalize(view.positions.float()[open_]))  # [N K]
+    m = sticker.mix(feats, signs.to(feats))  # [N 1]
+    ddelta = (psi[open_] * wrap.gate.scale) * sticker.mix_jacobian(feats, m)  # [N K]: d delta / d s
+    with torch.enable_grad():
+        delta = torch.zeros_like(view.density)
+        delta[open_] = (psi[open_] * wrap.gate.scale * m).detach()
+        delta.requires_grad_(True)
+        out, _ = composite(torch.relu(view.density + delta), view.rgb.float(), view.deltas, background)
+        grads = [torch.autograd.grad(out[:, c].sum(), delta, retain_graph=c < 2)[0][open_] for c in range(3)]
+    ray = open_.nonzero()[:, 0]
+    cols = [
+        torch.zeros(view.density.shape[0], k, device=ddelta.device, dtype=ddelta.dtype).index_add(0, ray, g * ddelta)
+        for g in grads
+    ]
+    j = torch.cat(cols)  # [3A K]
+    return j.T @ j
+
+
+def noise_variance(gram: Float[Tensor, "K K"], noise: float) -> Float[Tensor, ""]:
+    """Mean variance of the least-squares message estimate under white image noise of std ``noise``:
+    ``noise^2 * mean diag((G + eps I)^-1)``, eps a 1e-6 share of the mean diagonal (keeps it finite)."""
+    k = gram.shape[0]
+    eye = torch.eye(k, dtype=torch.float64, device=gram.device)
+    g = gram.double()
+    eps = 1e-6 * torch.diagonal(g).mean().detach().clamp_min(1e-30)
+    return (noise**2) * torch.diagonal(torch.linalg.inv(g + eps * eye)).mean()

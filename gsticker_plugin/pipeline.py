@@ -33,9 +33,11 @@ from gsticker_plugin.fastpath import (
     cache_view,
     camera_layout,
     coverage,
+    noise_variance,
     novel_cameras,
     pool_memory_mb,
     render_cached,
+    sign_gram,
 )
 from gsticker_plugin.heads import HeadConfig, Heads, count_parameters
 from gsticker_plugin.key import OwnerKey, message_from_owner_id, parse_message, random_message
@@ -111,6 +113,12 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     """Weight of the classifier loss (watermarked vs clean)."""
     sparse_weight: float = 0.01
     """Weight of the gate's sparsity loss."""
+    condition_weight: float = 0.0
+    """Fast path: weight of the conditioning loss, the log of the message estimate's variance under white image noise
+    of std ``condition_noise`` (from the Gram of one pool view's per-bit render change, ramped in with the content
+    loss): it spreads the mark's energy over the bits so the informed image decoder reads noisy images (0: off)."""
+    condition_noise: float = 0.1
+    """Image noise std the conditioning loss measures the estimate's variance at."""
     seed: int = 0
     """Seed of the pool cameras, messages and distortions (rank r of a distributed run draws its batches with
     seed + r)."""
@@ -382,6 +390,7 @@ class GeometryStickerPipeline(VanillaPipeline):
             self.pool[int(i)] for i in torch.randint(0, len(self.pool), (messages.shape[0],), generator=self.generator)
         ]
         marked, clean, psis = [], [], []
+        self._views = views
         for view, msg in zip(views, messages):
             img, psi = render_cached(view, wrap, msg, bg)
             marked.append(img.permute(2, 0, 1))
@@ -479,11 +488,20 @@ class GeometryStickerPipeline(VanillaPipeline):
         else:
             marked, clean, psi = self.render_batch_naive(messages)
         loss_dict = self.losses(marked, clean, psi, messages, step)
+        variance = None
+        if self.config.condition_weight > 0 and self.config.fast_path:
+            cfg = self.config
+            gram = sign_gram(self._views[0], self.model.final_wrap, messages[0], self.model.background_color())
+            variance = noise_variance(gram.to(self.device), cfg.condition_noise)
+            ramp = min(1.0, max(0.0, (step + 1 - cfg.warmup_steps) / max(1, cfg.warmup_steps)))
+            loss_dict["condition_loss"] = (cfg.condition_weight * ramp * torch.log(variance)).float()
         metrics_dict = {
             "psnr_marked_vs_clean": -10.0 * torch.log10(self._last["mse"].clamp_min(1e-12)),
             "gate_open_share": (psi > 0.5).float().mean() if psi.numel() else torch.tensor(0.0),
             "gate_beta_over_mu": (self.model.final_wrap.gate.beta / self.model.final_wrap.gate.mu).detach(),
         }
+        if variance is not None:  # std of the least-squares bit estimate at condition_noise (1 = the bit's size)
+            metrics_dict["sign_noise_std"] = variance.detach().sqrt().float()
         if self._last["logits"] is not None:
             metrics_dict["bit_acc"] = metrics.bit_accuracy(metrics.decode_bits(self._last["logits"]), messages).mean()
         if self.config.fast_path and self.monitor and (step + 1) % self.config.steps_per_monitor == 0:

@@ -220,6 +220,7 @@ def lk_refine(
     robust: bool = True,
     extend: int = 1,
     render_blur: float = 0.0,
+    trim: float = 1.0,
 ) -> Tuple[Cameras, float, int]:
     """Gauss-Newton (Lucas-Kanade with the base's depth) over the 6 pose parameters of ``camera`` (sized like
     ``target``): the pixel motion of each surface point under a pose change times the base render's image gradient
@@ -227,7 +228,8 @@ def lk_refine(
     residual drops; an accepted step is tried at 2, 4, ... up to ``extend`` times its length while the residual keeps
     dropping. Render and target are blurred by ``sigma`` px (a wider basin; and the render's gradient only follows
     its true derivative once blurred); the render by ``render_blur`` px more (an image blurred after rendering, so
-    both sides hold the same blur). Returns the camera, the final RMS and the iterations taken."""
+    both sides hold the same blur). Returns the camera, the final RMS (over the ``trim`` share of pixels with the
+    smallest residuals, :func:`trimmed_rms`) and the iterations taken."""
     dist = camera_distance(camera)
     lam = 1e-4
     keys = ("rgb", "expected_depth", "accumulation")
@@ -292,7 +294,15 @@ def lk_refine(
             lam *= 8.0
         if not accepted or float(step.abs().max()) < 1e-6:
             break
-    return cur, float((r0**2).mean().sqrt()), it
+    return cur, trimmed_rms(r0, trim), it
+
+
+def trimmed_rms(residual: Tensor, share: float = 1.0) -> float:
+    """RMS over the ``share`` of the entries with the smallest magnitude (1: the plain RMS)."""
+    sq = residual.reshape(-1) ** 2
+    if share < 1.0:
+        sq = torch.sort(sq).values[: max(1, int(round(share * sq.numel())))]
+    return float(sq.mean().sqrt())
 
 
 def line_search(
@@ -364,6 +374,9 @@ class PoseSearch:
     """Side (px) at which candidates are scored."""
     keep: int = 3
     """Best candidates refined."""
+    trim: float = 0.75
+    """The kept candidates' first stages are compared by the RMS of this share of the pixels with the smallest
+    residuals: a part of the image painted over (cropout) cannot choose the candidate."""
     rolls: Sequence[float] = (0.0,)
     """Turns of the image about its centre (degrees) tried with every candidate: a camera rolled about its axis, or
     an image rotated after rendering (e.g. ``(-30, -20, -10, 0, 10, 20, 30)``)."""
@@ -422,7 +435,7 @@ def estimate_camera(
     first = []
     for b, roll in best:
         cam, rms, n_it = refine_stage(
-            model, image, start(b, roll), value, search, search.blurs[0], search.first_iterations
+            model, image, start(b, roll), value, search, search.blurs[0], search.first_iterations, trim=search.trim
         )
         history.append({"candidate": b, **record(cam, rms, n_it, search.blurs[0])})
         first.append((b, cam, rms, n_it))
@@ -448,11 +461,12 @@ def refine_stage(
     blur: float,
     iterations: int,
     render_blur: float = 0.0,
+    trim: float = 1.0,
 ) -> Tuple[Cameras, float, int]:
     """One coarse-to-fine stage of :func:`estimate_camera`: :func:`lk_refine` of ``camera`` against ``image`` (V with
     ``value``) at ``blur`` px per 100 px of its larger side; stages blurred by at least twice
     :attr:`PoseSearch.half_size_blur` run at half size; ``render_blur``: px (at the image's size) the image was
-    blurred after rendering. Returns the camera at the image's size, the RMS and the iterations taken."""
+    blurred after rendering; ``trim``: the RMS's share of pixels (:func:`lk_refine`). Returns the camera at the image's size, the RMS and the iterations taken."""
     h, w = int(image.shape[0]), int(image.shape[1])
     sigma = blur * max(h, w) / 100.0
     # blurred stages run at half size (the blur has removed what the finer pixels would add)
@@ -468,6 +482,7 @@ def refine_stage(
         sigma / f,
         extend=search.extend,
         render_blur=render_blur / f,
+        trim=trim,
     )
     return scaled_camera(cam, h, w), rms, n_it
 
