@@ -219,3 +219,13 @@ def test_a_rolled_camera_is_levelled_and_the_turn_that_maps_the_level_render_ont
     turn = turn_of(image, level, level_roll(rolled))
     assert (turn.name, round(turn.strength, 3)) == ("rotate", 7.0)
     assert turn_of(image, level, -level_roll(rolled)).strength == turn.strength
+
+
+def test_the_trimmed_rms_leaves_the_largest_residuals_out_so_a_painted_rectangle_cannot_pick_the_candidate():
+    near = torch.full((10, 10), 0.01)
+    near[:4, :5] = 0.8  # the right camera, but a fifth of the image painted over
+    far = torch.full((10, 10), 0.2)  # a wrong camera: every pixel off a little
+    assert P.trimmed_rms(near) > P.trimmed_rms(far)  # the plain RMS prefers the wrong camera
+    assert P.trimmed_rms(near, 0.75) < P.trimmed_rms(far, 0.75)
+    assert math.isclose(P.trimmed_rms(near, 0.75), 0.01, rel_tol=1e-5)
+    assert math.isclose(P.trimmed_rms(far), 0.2, rel_tol=1e-6)
