@@ -33,3 +33,16 @@ def test_the_conditioning_term_trains_through_the_sticker_and_prefers_separable_
     assert grads and max(float(g.abs().max()) for g in grads) > 0
     # equal energy: orthogonal columns give a smaller variance than nearly collinear ones
     assert noise_variance(torch.eye(2), 0.1) < noise_variance(torch.tensor([[1.0, 0.99], [0.99, 1.0]]), 0.1)
+
+
+def test_the_gram_stats_give_each_bits_noise_deviation_and_flag_collinear_bits():
+    from gsticker_plugin.bench.conditioning import gram_stats
+
+    orthogonal = torch.zeros(6, 3)
+    orthogonal[0, 0], orthogonal[1, 1], orthogonal[2, 2] = 2.0, 1.0, 0.5
+    st = gram_stats(orthogonal, 0.1)
+    assert abs(st["trace"] - 5.25) < 1e-9 and abs(st["eig_min"] - 0.25) < 1e-9
+    assert abs(st["bit_std_median"] - 0.1) < 1e-9  # 0.1 / |column|: 0.05, 0.1, 0.2
+    assert st["bits_std_below_0.4"] == 3
+    collinear = torch.tensor([[1.0, 1.0, 0.0], [0.0, 1e-3, 0.0], [0.0, 0.0, 1.0]])
+    assert gram_stats(collinear, 0.1)["bit_std_median"] > 50 * gram_stats(orthogonal, 0.1)["bit_std_median"]
