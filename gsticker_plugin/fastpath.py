@@ -18,7 +18,7 @@ from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.sticker import composite, render_weights
+from gsticker_plugin.sticker import composite, message_to_signs, render_weights
 
 
 @dataclass
@@ -254,9 +254,8 @@ def sign_gram(view: ViewCache, wrap, message: Tensor, background: Tensor) -> Flo
     k = sticker.num_bits
     if not open_.any():
         return torch.zeros(k, k, device=view.density.device)
-    signs = message.float() * 2.0 - 1.0
     feats = sticker.features(wrap.normalize(view.positions.float()[open_]))  # [N K]
-    m = sticker.mix(feats, signs.to(feats))  # [N 1]
+    m = sticker.mix(feats, message_to_signs(message).to(feats))  # [N 1]
     ddelta = (psi[open_] * wrap.gate.scale) * sticker.mix_jacobian(feats, m)  # [N K]: d delta / d s
     with torch.enable_grad():
         delta = torch.zeros_like(view.density)

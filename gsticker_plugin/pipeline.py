@@ -425,6 +425,12 @@ class GeometryStickerPipeline(VanillaPipeline):
             psis.append(torch.zeros(1, device=self.device))
         return torch.stack(marked), torch.stack(clean), torch.cat(psis)
 
+    def ramp(self, step: int) -> float:
+        """Warm-up: 0 for ``warmup_steps`` (no content or conditioning loss, no distortions), then up to 1 over as
+        many steps."""
+        w = self.config.warmup_steps
+        return min(1.0, max(0.0, (step + 1 - w) / max(1, w)))
+
     def losses(
         self, marked: Tensor, clean: Tensor, psi: Tensor, messages: Tensor, step: int = 10**9
     ) -> Dict[str, Tensor]:
@@ -438,8 +444,7 @@ class GeometryStickerPipeline(VanillaPipeline):
         else:  # two-sided around the operating point, steep past the budget
             point = 10.0 ** (-cfg.mark_psnr / 10.0)
             content = (mse - point).abs() / budget + 10.0 * F.relu(mse / budget - 1.0)
-        # Warm-up: no content loss and no distortions for warmup_steps, then both ramp in over as many steps.
-        ramp = min(1.0, max(0.0, (step + 1 - cfg.warmup_steps) / max(1, cfg.warmup_steps)))
+        ramp = self.ramp(step)
         losses = {
             "content_loss": cfg.content_weight * ramp * content,
             "sparsity_loss": cfg.sparse_weight * sparsity_loss(psi),
@@ -490,11 +495,9 @@ class GeometryStickerPipeline(VanillaPipeline):
         loss_dict = self.losses(marked, clean, psi, messages, step)
         variance = None
         if self.config.condition_weight > 0 and self.config.fast_path:
-            cfg = self.config
             gram = sign_gram(self._views[0], self.model.final_wrap, messages[0], self.model.background_color())
-            variance = noise_variance(gram.to(self.device), cfg.condition_noise)
-            ramp = min(1.0, max(0.0, (step + 1 - cfg.warmup_steps) / max(1, cfg.warmup_steps)))
-            loss_dict["condition_loss"] = (cfg.condition_weight * ramp * torch.log(variance)).float()
+            variance = noise_variance(gram.to(self.device), self.config.condition_noise)
+            loss_dict["condition_loss"] = (self.config.condition_weight * self.ramp(step) * torch.log(variance)).float()
         metrics_dict = {
             "psnr_marked_vs_clean": -10.0 * torch.log10(self._last["mse"].clamp_min(1e-12)),
             "gate_open_share": (psi > 0.5).float().mean() if psi.numel() else torch.tensor(0.0),

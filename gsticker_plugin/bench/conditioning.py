@@ -32,6 +32,7 @@ from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.machine import machine_info
 from gsticker_plugin.runs import load_run
 from gsticker_plugin.sticker import message_to_signs
+from gsticker_plugin.views import progress_bar
 
 
 @dataclass
@@ -72,6 +73,11 @@ def gram_stats(jac: torch.Tensor, noise: float) -> Dict[str, float]:
 def bench_run(cfg: BenchConditioningConfig, run: Path) -> Dict[str, Any]:
     config = run / "bench/geometrysticker/watermarked/config.yml"
     key_path = run / "bench/geometrysticker/watermarked.gskey"
+    if not config.exists() or not key_path.exists():
+        raise SystemExit(
+            f"error: {run} holds no {config.relative_to(run)} and {key_path.relative_to(run)}: pass the "
+            "--output-dir of a bench.targets run"
+        )
     key = OwnerKey.load(key_path)
     with contextlib.redirect_stdout(sys.stderr):
         _, pipe, _ = load_run(config, data=cfg.data, device=torch.device("cpu"))
@@ -82,7 +88,7 @@ def bench_run(cfg: BenchConditioningConfig, run: Path) -> Dict[str, Any]:
     sticker, background = cpu_sticker(ref.model), ref.model.background_color()
     signs = message_to_signs(key.message).float()
     out: Dict[str, Any] = {"run": str(run), "views": []}
-    for i in cfg.views:
+    for i in progress_bar(list(cfg.views), f"views of {run}", True):
         cam = cams[i : i + 1]
         with pipe.model.sticker_enabled(True):
             marked = renders_8_bit(pipe.model, cam)[0]
