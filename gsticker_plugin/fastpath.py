@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Callable, Dict, List, Optional
 
 import torch
+import torch.nn.functional as F
 from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
@@ -245,10 +246,11 @@ def sign_jacobian(view: ViewCache, wrap, num_bits: int, background: Tensor, eps:
     return torch.stack(rows)
 
 
-def sign_gram(view: ViewCache, wrap, message: Tensor, background: Tensor) -> Float[Tensor, "K K"]:
+def sign_gram(view: ViewCache, wrap, message: Tensor, background: Tensor, blur: float = 0.0) -> Float[Tensor, "K K"]:
     """``J^T J`` of the render's per-bit change at the corner ``message``: J[(r, c), b] = d colour / d s_b of every
     active ray and channel (the informed image decoder's columns there). Differentiable in the sticker's weights
-    through d m / d s (the compositing's derivative in the density is held fixed)."""
+    through d m / d s (the compositing's derivative in the density is held fixed). ``blur`` > 0: the columns are
+    laid out as images and blurred by a Gaussian of that std (px) first, the low-pass of a blur or JPEG."""
     sticker = wrap.sticker
     psi, open_ = wrap.open_samples(view.density)
     k = sticker.num_bits
@@ -268,8 +270,34 @@ def sign_gram(view: ViewCache, wrap, message: Tensor, background: Tensor) -> Flo
         torch.zeros(view.density.shape[0], k, device=ddelta.device, dtype=ddelta.dtype).index_add(0, ray, g * ddelta)
         for g in grads
     ]
-    j = torch.cat(cols)  # [3A K]
+    if blur > 0:
+        cols = [blur_columns(c, view, blur) for c in cols]
+    j = torch.cat(cols)  # [3A K] (blurred: [3HW K])
     return j.T @ j
+
+
+def blur_columns(cols: Float[Tensor, "A K"], view: ViewCache, sigma: float) -> Float[Tensor, "HW K"]:
+    """Per-ray columns of one channel laid out on the view's image (zero off the active rays), each blurred by a
+    Gaussian of std ``sigma`` px; one row per pixel."""
+    h, w = view.hw
+    img = torch.zeros(h * w, cols.shape[1], device=cols.device, dtype=cols.dtype)
+    img = img.index_add(0, view.active.to(cols.device), cols).reshape(h, w, -1)
+    return smoothed(img, sigma).reshape(h * w, -1)
+
+
+def smoothed(img: Float[Tensor, "H W C"], sigma: float) -> Float[Tensor, "H W C"]:
+    """``img`` blurred by a separable Gaussian of ``sigma`` px (edges replicated); as it is for ``sigma <= 0``. Any
+    number of channels and float64, unlike the blur attack (``attacks.gaussian_blur``: RGB batches)."""
+    if sigma <= 0:
+        return img
+    r = int(3 * sigma + 0.5)
+    t = torch.arange(-r, r + 1, dtype=torch.float64)
+    k = torch.exp(-(t**2) / (2 * sigma**2))
+    k = (k / k.sum()).to(img.dtype)
+    x = img.permute(2, 0, 1)[:, None]
+    x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
+    x = F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
+    return x[:, 0].permute(1, 2, 0)
 
 
 def noise_variance(gram: Float[Tensor, "K K"], noise: float) -> Float[Tensor, ""]:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Iterable, List, Literal, Mapping, Optional, Sequence, Type
+from typing import Any, Dict, Iterable, List, Literal, Mapping, Optional, Sequence, Tuple, Type
 
 import torch
 import torch.distributed as dist
@@ -119,6 +119,12 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     loss): it spreads the mark's energy over the bits so the informed image decoder reads noisy images (0: off)."""
     condition_noise: float = 0.1
     """Image noise std the conditioning loss measures the estimate's variance at."""
+    condition_blur: float = 0.0
+    """Also condition the per-bit change blurred by a Gaussian of this std (px), the low-pass a blur or JPEG leaves
+    (the two log-variances are averaged; 0: off)."""
+    condition_scale_free: bool = False
+    """Divide the variance by the columns' mean energy (trace / bits): the loss then only evens the bits' spectrum
+    and the content loss alone sets the mark's strength."""
     seed: int = 0
     """Seed of the pool cameras, messages and distortions (rank r of a distributed run draws its batches with
     seed + r)."""
@@ -470,6 +476,23 @@ class GeometryStickerPipeline(VanillaPipeline):
             "classifier_loss": cfg.cls_weight * F.binary_cross_entropy_with_logits(cls, labels),
         }
 
+    def conditioning(self, message: Tensor) -> Tuple[Tensor, Tensor]:
+        """The message estimate's variance under white noise at one pool view (the batch's first) and the
+        conditioning loss's term: its log, averaged with the blurred columns' when ``condition_blur`` > 0, less the
+        log of the columns' mean energy when ``condition_scale_free``."""
+        cfg = self.config
+        args = (self._views[0], self.model.final_wrap, message, self.model.background_color())
+        grams = [sign_gram(*args).to(self.device)]
+        if cfg.condition_blur > 0:
+            grams.append(sign_gram(*args, blur=cfg.condition_blur).to(self.device))
+        terms = []
+        for gram in grams:
+            term = torch.log(noise_variance(gram, cfg.condition_noise))
+            if cfg.condition_scale_free:
+                term = term + torch.log(torch.diagonal(gram).mean().double().clamp_min(1e-30))
+            terms.append(term)
+        return noise_variance(grams[0], cfg.condition_noise), torch.stack(terms).mean()
+
     @property
     def trains_heads(self) -> bool:
         """False when the message, honesty and classifier losses all weigh 0: the extractor and classifier then stay
@@ -495,9 +518,8 @@ class GeometryStickerPipeline(VanillaPipeline):
         loss_dict = self.losses(marked, clean, psi, messages, step)
         variance = None
         if self.config.condition_weight > 0 and self.config.fast_path:
-            gram = sign_gram(self._views[0], self.model.final_wrap, messages[0], self.model.background_color())
-            variance = noise_variance(gram.to(self.device), self.config.condition_noise)
-            loss_dict["condition_loss"] = (self.config.condition_weight * self.ramp(step) * torch.log(variance)).float()
+            variance, term = self.conditioning(messages[0])
+            loss_dict["condition_loss"] = (self.config.condition_weight * self.ramp(step) * term).float()
         metrics_dict = {
             "psnr_marked_vs_clean": -10.0 * torch.log10(self._last["mse"].clamp_min(1e-12)),
             "gate_open_share": (psi > 0.5).float().mean() if psi.numel() else torch.tensor(0.0),

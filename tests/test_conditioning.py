@@ -24,6 +24,31 @@ def test_the_sign_gram_is_the_gram_of_the_renders_per_bit_change_at_the_corner()
     assert torch.allclose(gram.detach(), want, rtol=5e-2, atol=1e-3 * float(torch.diagonal(want).mean()))
 
 
+def test_the_blurred_sign_gram_is_the_gram_of_the_blurred_per_bit_change_images():
+    from gsticker_plugin.fastpath import smoothed
+
+    view, wrap, bg = tiny_view_and_wrap()
+    view.image = torch.full((5, 5, 3), 0.5)  # the 16 rays are a scattered subset of a 5x5 image
+    view.active = torch.tensor([0, 2, 3, 4, 6, 7, 9, 11, 12, 13, 15, 17, 19, 20, 22, 24])
+    message = torch.tensor([0, 1, 1, 0, 1, 0])
+    signs = message.float() * 2 - 1
+    eps = 1e-3
+    cols = []
+    for b in range(6):
+        e = torch.zeros(6)
+        e[b] = eps
+        plus = render_signs(view, wrap, signs + e, bg, clamp=False)
+        minus = render_signs(view, wrap, signs - e, bg, clamp=False)
+        change = ((plus - minus) / (2 * eps)).reshape(*view.hw, 3).double()
+        cols.append(smoothed(change, 1.0).permute(2, 0, 1).reshape(-1))
+    j = torch.stack(cols, dim=1)
+    want = j.T @ j
+    sharp = sign_gram(view, wrap, message, bg).double().detach()
+    gram = sign_gram(view, wrap, message, bg, blur=1.0).double().detach()
+    assert torch.allclose(gram, want, rtol=5e-2, atol=1e-3 * float(torch.diagonal(want).mean()))
+    assert float(torch.trace(gram)) < float(torch.trace(sharp))  # the low-pass removes some of the change's energy
+
+
 def test_the_conditioning_term_trains_through_the_sticker_and_prefers_separable_bits():
     view, wrap, bg = tiny_view_and_wrap()
     message = torch.tensor([1, 0, 1, 1, 0, 0])

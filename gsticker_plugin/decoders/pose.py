@@ -22,7 +22,7 @@ from torch import Tensor
 from gsticker_plugin.attacks.geometric import rotate
 from gsticker_plugin.decoders.geometric import render_rays
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.fastpath import axis_angle_matrix, novel_cameras
+from gsticker_plugin.fastpath import axis_angle_matrix, novel_cameras, smoothed
 
 
 def moved_camera(camera: Cameras, delta: Float[Tensor, " 6"], distance: float = 1.0) -> Cameras:
@@ -151,21 +151,6 @@ def projection(camera: Cameras, points: Float[Tensor, "P 3"]):
         return torch.stack([cy - fy * rotated[:, 1] / z, cx + fx * rotated[:, 0] / z], dim=-1)
 
     return pixels
-
-
-def smoothed(img: Float[Tensor, "H W C"], sigma: float) -> Float[Tensor, "H W C"]:
-    """``img`` blurred by a separable Gaussian of ``sigma`` px (edges replicated); as it is for ``sigma <= 0``. Any
-    number of channels and float64, unlike the blur attack (``attacks.gaussian_blur``: RGB batches)."""
-    if sigma <= 0:
-        return img
-    r = int(3 * sigma + 0.5)
-    t = torch.arange(-r, r + 1, dtype=torch.float64)
-    k = torch.exp(-(t**2) / (2 * sigma**2))
-    k = (k / k.sum()).to(img.dtype)
-    x = img.permute(2, 0, 1)[:, None]
-    x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
-    x = F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
-    return x[:, 0].permute(1, 2, 0)
 
 
 def image_gradient(img: Float[Tensor, "H W C"]) -> Tuple[Tensor, Tensor]:
