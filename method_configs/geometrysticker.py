@@ -44,8 +44,30 @@ def geometrysticker_config(max_num_iterations: int = 1500) -> GeometryStickerTra
     )
 
 
+def geometrysticker_robust_config() -> GeometryStickerTrainerConfig:
+    """The images-alone operating point: a mark near 36 dB whose bits stay separable in the image under noise, JPEG and
+    blur (sticker bound 30, scale-free conditioning on the sharp and the 1 px blurred change, weight 3), on the pool
+    sizes, warm-up and learning-rate decay (to its floor at step 1500) it was measured with (docs/verify.md)."""
+    cfg = geometrysticker_config()
+    cfg.method_name = "geometrysticker-robust"
+    cfg.max_num_iterations = 2000
+    cfg.steps_per_save = 500
+    p = cfg.pipeline
+    p.model.sticker_amplitude = 30.0
+    p.mark_psnr, p.target_psnr = 36.0, 35.0
+    p.condition_weight, p.condition_scale_free, p.condition_blur = 3.0, True, 1.0
+    p.pool_train_views, p.pool_novel_views, p.monitor_views = 16, 16, 4
+    p.warmup_steps, p.steps_per_monitor = 50, 50
+    return cfg
+
+
 geometrysticker = MethodSpecification(
     config=geometrysticker_config(),
     description="[gsticker] Stick a 48-bit owner message onto a trained model's geometry "
     "(--load-checkpoint BASE_RUN/nerfstudio_models/step-N.ckpt); writes a shareable model and a secret owner key.",
+)
+geometrysticker_robust = MethodSpecification(
+    config=geometrysticker_robust_config(),
+    description="[gsticker] geometrysticker for owners who must read images alone: a ~36 dB mark whose bits survive "
+    "noise, JPEG and blur (conditioned sticker, 2000 steps).",
 )

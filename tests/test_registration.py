@@ -17,7 +17,13 @@ from conftest import console_script, subprocess_env
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-METHODS = ("geometrysticker", "gsticker-nerfacto-small", "gsticker-tensorf-small", "gsticker-vanilla-nerf-small")
+METHODS = (
+    "geometrysticker",
+    "geometrysticker-robust",
+    "gsticker-nerfacto-small",
+    "gsticker-tensorf-small",
+    "gsticker-vanilla-nerf-small",
+)
 
 
 def test_ns_train_help_lists_plugin_methods():
@@ -51,6 +57,20 @@ def test_method_config_entry_points_load_to_method_specifications():
         assert isinstance(spec.config, TrainerConfig)
         assert spec.config.method_name == method
         assert spec.description.startswith("[gsticker]")
+
+
+def test_the_robust_preset_is_the_measured_images_alone_operating_point_and_leaves_the_default_alone():
+    from method_configs.geometrysticker import geometrysticker, geometrysticker_robust
+
+    robust, default = geometrysticker_robust.config, geometrysticker.config
+    p = robust.pipeline
+    assert (p.model.sticker_amplitude, p.mark_psnr, p.target_psnr) == (30.0, 36.0, 35.0)
+    assert (p.condition_weight, p.condition_scale_free, p.condition_blur) == (3.0, True, 1.0)
+    assert (p.pool_train_views, p.pool_novel_views, p.warmup_steps) == (16, 16, 50)
+    assert robust.max_num_iterations == 2000
+    assert robust.optimizers["sticker"]["scheduler"].max_steps == 1500
+    assert default.pipeline.condition_weight == 0 and default.pipeline.model.sticker_amplitude == 10.0
+    assert default.pipeline.pool_train_views == 48 and default.max_num_iterations == 1500
 
 
 def test_presets_are_cpu_sized_blender_recipes():
