@@ -308,3 +308,15 @@ def noise_variance(gram: Float[Tensor, "K K"], noise: float) -> Float[Tensor, ""
     g = gram.double()
     eps = 1e-6 * torch.diagonal(g).mean().detach().clamp_min(1e-30)
     return (noise**2) * torch.diagonal(torch.linalg.inv(g + eps * eye)).mean()
+
+
+def condition_term(grams: List[Tensor], noise: float, scale_free: bool) -> Float[Tensor, ""]:
+    """The conditioning loss's term: the mean over ``grams`` of the log estimate variance at ``noise``; with
+    ``scale_free`` each less the log of its mean energy (trace / bits), so scaling the change leaves it unchanged."""
+    terms = []
+    for gram in grams:
+        term = torch.log(noise_variance(gram, noise))
+        if scale_free:
+            term = term + torch.log(torch.diagonal(gram).mean().double().clamp_min(1e-30))
+        terms.append(term)
+    return torch.stack(terms).mean()

@@ -32,6 +32,7 @@ from gsticker_plugin.fastpath import (
     ViewCache,
     cache_view,
     camera_layout,
+    condition_term,
     coverage,
     noise_variance,
     novel_cameras,
@@ -478,20 +479,15 @@ class GeometryStickerPipeline(VanillaPipeline):
 
     def conditioning(self, message: Tensor) -> Tuple[Tensor, Tensor]:
         """The message estimate's variance under white noise at one pool view (the batch's first) and the
-        conditioning loss's term: its log, averaged with the blurred columns' when ``condition_blur`` > 0, less the
-        log of the columns' mean energy when ``condition_scale_free``."""
+        conditioning loss's term (``condition_term``) over that view's sharp and, with ``condition_blur``, blurred
+        Gram."""
         cfg = self.config
         args = (self._views[0], self.model.final_wrap, message, self.model.background_color())
         grams = [sign_gram(*args).to(self.device)]
         if cfg.condition_blur > 0:
             grams.append(sign_gram(*args, blur=cfg.condition_blur).to(self.device))
-        terms = []
-        for gram in grams:
-            term = torch.log(noise_variance(gram, cfg.condition_noise))
-            if cfg.condition_scale_free:
-                term = term + torch.log(torch.diagonal(gram).mean().double().clamp_min(1e-30))
-            terms.append(term)
-        return noise_variance(grams[0], cfg.condition_noise), torch.stack(terms).mean()
+        term = condition_term(grams, cfg.condition_noise, cfg.condition_scale_free)
+        return noise_variance(grams[0], cfg.condition_noise), term
 
     @property
     def trains_heads(self) -> bool:

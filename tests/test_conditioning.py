@@ -3,7 +3,7 @@
 import torch
 from conftest import tiny_view_and_wrap
 
-from gsticker_plugin.fastpath import noise_variance, render_signs, sign_gram
+from gsticker_plugin.fastpath import condition_term, noise_variance, render_signs, sign_gram
 
 
 def test_the_sign_gram_is_the_gram_of_the_renders_per_bit_change_at_the_corner():
@@ -58,6 +58,17 @@ def test_the_conditioning_term_trains_through_the_sticker_and_prefers_separable_
     assert grads and max(float(g.abs().max()) for g in grads) > 0
     # equal energy: orthogonal columns give a smaller variance than nearly collinear ones
     assert noise_variance(torch.eye(2), 0.1) < noise_variance(torch.tensor([[1.0, 0.99], [0.99, 1.0]]), 0.1)
+
+
+def test_the_scale_free_term_only_sees_the_spectrums_shape_and_blurred_grams_average_in():
+    even, uneven = torch.eye(3), torch.diag(torch.tensor([1.0, 1.0, 0.01]))
+    for gram in (even, uneven):  # the plain term drops by log 4 when the change doubles; the scale-free one does not
+        plain = float(condition_term([gram], 0.1, False)) - float(condition_term([4 * gram], 0.1, False))
+        free = float(condition_term([gram], 0.1, True)) - float(condition_term([4 * gram], 0.1, True))
+        assert abs(plain - torch.log(torch.tensor(4.0)).item()) < 1e-4 and abs(free) < 1e-4
+    assert float(condition_term([even], 0.1, True)) < float(condition_term([uneven], 0.1, True))
+    both = float(condition_term([even, uneven], 0.1, True))
+    assert abs(both - 0.5 * float(condition_term([even], 0.1, True) + condition_term([uneven], 0.1, True))) < 1e-6
 
 
 def test_the_gram_stats_give_each_bits_noise_deviation_and_flag_collinear_bits():

@@ -402,6 +402,32 @@ def test_with_the_head_losses_off_no_step_runs_the_heads(gs_runs, val_pipeline):
     assert pipeline.trains_heads
 
 
+def test_the_conditioning_loss_trains_the_sticker_from_a_training_step(gs_runs, val_pipeline):
+    """condition weight > 0 (scale-free, with the blurred change): the step reports the loss and the bits' noise std,
+    and that loss alone reaches the sticker."""
+    from gsticker_plugin.fastpath import noise_variance, sign_gram
+
+    pipeline = val_pipeline("nerfacto")
+    cfg = pipeline.config
+    old = (cfg.condition_weight, cfg.condition_scale_free, cfg.condition_blur)
+    cfg.condition_weight, cfg.condition_scale_free, cfg.condition_blur = 2.0, True, 1.0
+    _zero_grads(pipeline)
+    try:
+        _, loss_dict, metrics_dict = pipeline.get_train_loss_dict(10**6)
+        loss = loss_dict["condition_loss"]
+        assert torch.isfinite(loss) and loss.requires_grad
+        loss.backward()
+        assert any(p.grad is not None and float(p.grad.abs().max()) > 0 for p in pipeline.model.sticker.parameters())
+        assert all(p.grad is None for p in pipeline.heads.parameters())
+        message = pipeline._last["messages"][0]
+        gram = sign_gram(pipeline._views[0], pipeline.model.final_wrap, message, pipeline.model.background_color())
+        want = noise_variance(gram.detach(), cfg.condition_noise).sqrt()
+        assert abs(float(metrics_dict["sign_noise_std"]) - float(want)) <= 1e-4 * float(want)
+    finally:
+        cfg.condition_weight, cfg.condition_scale_free, cfg.condition_blur = old
+        _zero_grads(pipeline)
+
+
 @pytest.mark.parametrize("base", BASES)
 def test_fast_path_matches_the_real_render(gs_runs, val_pipeline, base):
     """What the sticker is trained on (cached samples, re-composited) is what the model renders: the sticker marks
