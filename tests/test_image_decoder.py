@@ -94,9 +94,8 @@ def test_an_image_of_another_size_is_one_line_naming_the_fix():
         I.image_at_rays(torch.zeros(4, 5, 3), torch.arange(3), (4, 4))
 
 
-def test_a_blurred_rotated_or_resized_image_is_matched_from_the_base_alone_and_decoded():
-    """The degradation is estimated from the base render (never the message); the fit through it reads the bits
-    that comparing with the unblurred base loses; the linear part is the attack's own on small changes."""
+def _edged_scene():
+    """A 24x24 view whose base render is 4 px blocks of random colour (edges), and the marked image [1 3 H W]."""
     torch.manual_seed(0)
     st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
     g = torch.Generator().manual_seed(3)
@@ -112,6 +111,14 @@ def test_a_blurred_rotated_or_resized_image_is_matched_from_the_base_alone_and_d
             ref, st, torch.zeros(48)
         )
     marked = (base.permute(1, 2, 0).reshape(-1, 3) + change).reshape(h, w, 3).permute(2, 0, 1)[None]
+    return st, ref, base, marked, msg, g
+
+
+def test_a_blurred_rotated_or_resized_image_is_matched_from_the_base_alone_and_decoded():
+    """The degradation is estimated from the base render (never the message); the fit through it reads the bits
+    that comparing with the unblurred base loses; the linear part is the attack's own on small changes."""
+    st, ref, base, marked, msg, g = _edged_scene()
+    h = w = 24
     for deg in (I.Degradation("blur", 1.0), I.Degradation("rotate", 10.0), I.Degradation("resize", 0.5)):
         x = deg.apply(marked)[0].permute(1, 2, 0)
         found, _ = I.match_degradation(x, base)
@@ -139,6 +146,21 @@ def test_a_blurred_rotated_or_resized_image_is_matched_from_the_base_alone_and_d
     x = I.Degradation("jpeg", 100.0).apply(marked)[0].permute(1, 2, 0)
     d = I.decode_selected(ref, st, x, I.match_degradation(x, base)[0], torch.Generator().manual_seed(0))
     assert d["signals"] == ["luma"] and int((d["bits"] == msg).sum()) >= 46, d
+
+
+def test_images_alone_a_jpeg_is_read_through_the_coded_base_render_and_an_uncoded_image_is_left_alone():
+    """The unposed decoder's JPEG reading at the camera it found: the quality whose coding of the base render is
+    nearest the image, fitted by luma; an image that is no JPEG gets no such reading."""
+    from gsticker_plugin.decoders.unposed import coded_reading
+
+    st, ref, base, marked, msg, _ = _edged_scene()
+    coded = I.Degradation("jpeg", 100.0).apply(marked)[0].permute(1, 2, 0)
+    d = coded_reading(ref, ref.view, st, coded, torch.Generator().manual_seed(0), 10)
+    assert d is not None and d["degradation"] == "jpeg=100" and d["signals"] == ["luma"], d
+    assert int((d["bits"] == msg).sum()) >= 46 and d["color_map"] is False
+    plain = I.decode_image_view(ref, st, coded.reshape(-1, 3), torch.Generator().manual_seed(0))
+    assert int((plain["bits"] == msg).sum()) <= 40  # read in RGB against the uncoded render, the chroma misleads
+    assert coded_reading(ref, ref.view, st, marked[0].permute(1, 2, 0), torch.Generator().manual_seed(0), 10) is None
 
 
 def test_the_fit_with_the_smaller_residual_is_kept_when_a_degradation_was_matched():

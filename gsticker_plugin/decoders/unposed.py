@@ -22,6 +22,7 @@ from torch import Tensor
 from gsticker_plugin.decoders.colormap import ColorMap, fit_color_map, map_columns, mapped_colors, scene_clusters
 from gsticker_plugin.decoders.fit import tie_generator
 from gsticker_plugin.decoders.image import (
+    DEGRADATION_GRID,
     Degradation,
     ImageReferenceView,
     decode_degraded_view,
@@ -30,6 +31,7 @@ from gsticker_plugin.decoders.image import (
     image_at_rays,
     image_reference,
     match_blur_spectrum,
+    match_degradation,
     reads_value,
     residual_cost,
     rgb_of_sticker,
@@ -227,6 +229,25 @@ def turned_reading(
     return level, d
 
 
+def coded_reading(
+    ref: ImageReferenceView, view: ReferenceView, st, image: Float[Tensor, "H W 3"], gen, iterations: int
+) -> Optional[Dict[str, Any]]:
+    """``image`` read through the JPEG quality whose coding of the base render at the camera found (``view``) is
+    nearest it (:func:`gsticker_plugin.decoders.image.match_degradation` over the JPEG grid, the posed decoder's
+    rule), by luma and against the coded render (:func:`gsticker_plugin.decoders.image.decode_selected`); None when
+    no quality is clearly nearer than the render itself or the uncoded fit leaves the smaller residual."""
+    deg, _ = match_degradation(image, view.image, {"jpeg": DEGRADATION_GRID["jpeg"]})
+    if deg.name == "none":
+        return None
+    g = torch.Generator().set_state(gen.get_state())
+    d = decode_selected(ref, st, image, deg, g, iterations)
+    if d["degradation"] == "none":
+        return None
+    gen.set_state(g.get_state())
+    d["color_map"] = False
+    return d
+
+
 def tinted(model, cmap: Optional[ColorMap]):
     """:func:`gsticker_plugin.decoders.colormap.mapped_colors` of ``cmap``, or a block that changes nothing."""
     return mapped_colors(model, cmap) if cmap is not None else contextlib.nullcontext()
@@ -259,6 +280,7 @@ def decode_unposed_images(
     pattern: bool = True,
     blur: bool = True,
     turn: bool = True,
+    jpeg: bool = True,
 ) -> Dict[str, Any]:
     """Decode ``images`` (``[H W 3]`` each, cameras unknown) of the owner's scene against the owner's base
     ``reference`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`): camera search, then the image fit
@@ -273,7 +295,8 @@ def decode_unposed_images(
     (:func:`blurred_camera`) has its camera refined through that blur and is read through it
     (:func:`gsticker_plugin.decoders.image.decode_selected`). ``turn``: an image whose camera is turned about its axis
     is also read as a level render turned after rendering, and kept so when that explains it better
-    (:func:`turned_reading`). Returns the decoders' shared result, with per image the
+    (:func:`turned_reading`). ``jpeg``: an image that a JPEG of the base render at the camera found explains far
+    better than the render is read through that JPEG, by its luma (:func:`coded_reading`). Returns the decoders' shared result, with per image the
     found camera (``c2w``), the pose fit's RMS, the degradation read through and seconds in ``image``."""
     search = search or PoseSearch()
     st = cpu_sticker(reference.model)
@@ -305,7 +328,7 @@ def decode_unposed_images(
             bits.append(d.pop("bits"))
             details.append(d)
             continue
-        best: Optional[Tuple[float, Dict[str, Any], Any, int, ImageReferenceView]] = None
+        best: Optional[Tuple[float, Dict[str, Any], Any, int, ImageReferenceView, Any]] = None
         previous: Optional[Tensor] = None
         for k in range(rounds):  # Gauss-Newton on camera and message together: the fit's pose step moves the camera
             ref_view = (
@@ -329,7 +352,7 @@ def decode_unposed_images(
             left = d["residual_rms"] * max(0.0, 1.0 - d["explained"]) ** 0.5  # what the joint fit leaves
             d["color_map"] = cmap is not None
             if best is None or left < best[0]:
-                best = (left, d, camera, k + 1, ref)
+                best = (left, d, camera, k + 1, ref, ref_view)
             if float(step.abs().max()) <= 1e-6:
                 break
             if line_scale > 0:  # the fit's step falls short on a sharp render: the base render decides how far
@@ -352,8 +375,12 @@ def decode_unposed_images(
             else:
                 camera = moved_camera(camera, step, camera_distance(camera))
         assert best is not None
-        _, d, camera, used, ref = best
+        _, d, camera, used, ref, ref_view = best
         d["degradation"] = "none"
+        if jpeg and not d["color_map"] and d["signals"] == ["rgb"]:
+            coded = coded_reading(ref, ref_view, st, image, gen, iterations)
+            if coded is not None:  # JPEG's blocks and chroma, not the mark, are most of what the base leaves
+                d, used = coded, 0
         if turn and not d["color_map"] and d["signals"] == ["rgb"]:
             turned = turned_reading(reference, st, image, camera, (ref, d), gen, iterations, name)
             if turned is not None:  # a level render turned after rendering explains the image better
