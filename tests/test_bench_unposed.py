@@ -166,3 +166,18 @@ def test_a_cropout_row_pastes_the_clean_render_of_the_same_camera_or_paints_whit
     assert torch.equal((painted - marked).abs().amax(dim=-1) > 0.1, inside)  # the same rectangle
     assert torch.allclose(painted[inside], torch.tensor(1.0))
     assert torch.allclose(pasted[~inside], torch.tensor(0.2), atol=1 / 255)
+
+
+def test_the_summary_counts_each_route_an_image_was_read_through():
+    from gsticker_plugin.bench.unposed import summarize
+
+    row = {"matches": 40, "signals": ["rgb"], "seconds": 1.0}
+    rows = [
+        {**row, "degradation": "jpeg=50"},
+        {**row, "degradation": "blur=1"},
+        {**row, "degradation": "rotate=-3"},
+        {**row, "signals": ["value"], "degradation": "none"},
+    ]
+    t = summarize(rows, 41, 48)
+    assert (t["read_through_jpeg"], t["read_through_blur"], t["read_as_turned"], t["read_by_value"]) == (1, 1, 1, 1)
+    assert t["passing"] == 0 and t["matches_mean"] == 40.0
