@@ -6,19 +6,23 @@ from conftest import tiny_view_and_wrap
 from gsticker_plugin.fastpath import condition_term, noise_variance, render_signs, sign_gram
 
 
+def _per_bit_changes(view, wrap, message, bg, eps: float = 1e-3):
+    """The render's change per bit at the corner ``message`` by float32 central differences: ``[K H W 3]``."""
+    signs = message.float() * 2 - 1
+    changes = []
+    for b in range(signs.numel()):
+        e = torch.zeros_like(signs)
+        e[b] = eps
+        plus = render_signs(view, wrap, signs + e, bg, clamp=False)
+        minus = render_signs(view, wrap, signs - e, bg, clamp=False)
+        changes.append(((plus - minus) / (2 * eps)).reshape(*view.hw, 3))
+    return torch.stack(changes)
+
+
 def test_the_sign_gram_is_the_gram_of_the_renders_per_bit_change_at_the_corner():
     view, wrap, bg = tiny_view_and_wrap()
     message = torch.tensor([1, 0, 1, 1, 0, 0])
-    signs = message.float() * 2 - 1
-    eps = 1e-3
-    cols = []
-    for b in range(6):
-        e = torch.zeros(6)
-        e[b] = eps
-        plus = render_signs(view, wrap, signs + e, bg, clamp=False).reshape(-1, 3)
-        minus = render_signs(view, wrap, signs - e, bg, clamp=False).reshape(-1, 3)
-        cols.append(((plus - minus) / (2 * eps)).T.reshape(-1))  # rows (channel, ray) like sign_gram's
-    j = torch.stack(cols, dim=1).double()
+    j = _per_bit_changes(view, wrap, message, bg).reshape(6, -1).T.double()  # [(ray, channel) K]
     gram = sign_gram(view, wrap, message, bg).double()
     want = (j.T @ j).detach()
     assert torch.allclose(gram.detach(), want, rtol=5e-2, atol=1e-3 * float(torch.diagonal(want).mean()))
@@ -31,17 +35,8 @@ def test_the_blurred_sign_gram_is_the_gram_of_the_blurred_per_bit_change_images(
     view.image = torch.full((5, 5, 3), 0.5)  # the 16 rays are a scattered subset of a 5x5 image
     view.active = torch.tensor([0, 2, 3, 4, 6, 7, 9, 11, 12, 13, 15, 17, 19, 20, 22, 24])
     message = torch.tensor([0, 1, 1, 0, 1, 0])
-    signs = message.float() * 2 - 1
-    eps = 1e-3
-    cols = []
-    for b in range(6):
-        e = torch.zeros(6)
-        e[b] = eps
-        plus = render_signs(view, wrap, signs + e, bg, clamp=False)
-        minus = render_signs(view, wrap, signs - e, bg, clamp=False)
-        change = ((plus - minus) / (2 * eps)).reshape(*view.hw, 3).double()
-        cols.append(smoothed(change, 1.0).permute(2, 0, 1).reshape(-1))
-    j = torch.stack(cols, dim=1)
+    changes = _per_bit_changes(view, wrap, message, bg).double()
+    j = torch.stack([smoothed(c, 1.0).reshape(-1) for c in changes], dim=1)
     want = j.T @ j
     sharp = sign_gram(view, wrap, message, bg).double().detach()
     gram = sign_gram(view, wrap, message, bg, blur=1.0).double().detach()
