@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -251,11 +251,18 @@ def sign_gram(view: ViewCache, wrap, message: Tensor, background: Tensor, blur: 
     active ray and channel (the informed image decoder's columns there). Differentiable in the sticker's weights
     through d m / d s (the compositing's derivative in the density is held fixed). ``blur`` > 0: the columns are
     laid out as images and blurred by a Gaussian of that std (px) first, the low-pass of a blur or JPEG."""
+    return sign_grams(view, wrap, message, background, (blur,))[0]
+
+
+def sign_grams(
+    view: ViewCache, wrap, message: Tensor, background: Tensor, blurs: Sequence[float]
+) -> List[Float[Tensor, "K K"]]:
+    """:func:`sign_gram` at each blur of ``blurs``, from one evaluation of the columns."""
     sticker = wrap.sticker
     psi, open_ = wrap.open_samples(view.density)
     k = sticker.num_bits
     if not open_.any():
-        return torch.zeros(k, k, device=view.density.device)
+        return [torch.zeros(k, k, device=view.density.device) for _ in blurs]
     feats = sticker.features(wrap.normalize(view.positions.float()[open_]))  # [N K]
     m = sticker.mix(feats, message_to_signs(message).to(feats))  # [N 1]
     ddelta = (psi[open_] * wrap.gate.scale) * sticker.mix_jacobian(feats, m)  # [N K]: d delta / d s
@@ -270,10 +277,11 @@ def sign_gram(view: ViewCache, wrap, message: Tensor, background: Tensor, blur: 
         torch.zeros(view.density.shape[0], k, device=ddelta.device, dtype=ddelta.dtype).index_add(0, ray, g * ddelta)
         for g in grads
     ]
-    if blur > 0:
-        cols = [blur_columns(c, view, blur) for c in cols]
-    j = torch.cat(cols)  # [3A K] (blurred: [3HW K])
-    return j.T @ j
+    grams = []
+    for blur in blurs:
+        j = torch.cat([blur_columns(c, view, blur) for c in cols] if blur > 0 else cols)  # [3A K] (blurred: [3HW K])
+        grams.append(j.T @ j)
+    return grams
 
 
 def blur_columns(cols: Float[Tensor, "A K"], view: ViewCache, sigma: float) -> Float[Tensor, "HW K"]:

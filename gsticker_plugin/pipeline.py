@@ -38,7 +38,7 @@ from gsticker_plugin.fastpath import (
     novel_cameras,
     pool_memory_mb,
     render_cached,
-    sign_gram,
+    sign_grams,
 )
 from gsticker_plugin.heads import HeadConfig, Heads, count_parameters
 from gsticker_plugin.key import OwnerKey, message_from_owner_id, parse_message, random_message
@@ -482,10 +482,9 @@ class GeometryStickerPipeline(VanillaPipeline):
         conditioning loss's term (``condition_term``) over that view's sharp and, with ``condition_blur``, blurred
         Gram."""
         cfg = self.config
-        args = (self._views[0], self.model.final_wrap, message, self.model.background_color())
-        grams = [sign_gram(*args).to(self.device)]
-        if cfg.condition_blur > 0:
-            grams.append(sign_gram(*args, blur=cfg.condition_blur).to(self.device))
+        blurs = (0.0, cfg.condition_blur) if cfg.condition_blur > 0 else (0.0,)
+        grams = sign_grams(self._views[0], self.model.final_wrap, message, self.model.background_color(), blurs)
+        grams = [g.to(self.device) for g in grams]
         term = condition_term(grams, cfg.condition_noise, cfg.condition_scale_free)
         return noise_variance(grams[0], cfg.condition_noise), term
 
