@@ -177,7 +177,9 @@ def test_the_summary_counts_each_route_an_image_was_read_through():
         {**row, "degradation": "blur=1"},
         {**row, "degradation": "rotate=-3"},
         {**row, "signals": ["value"], "degradation": "none"},
+        {**row, "degradation": "none", "covered_share": 0.3},
     ]
     t = summarize(rows, 41, 48)
     assert (t["read_through_jpeg"], t["read_through_blur"], t["read_as_turned"], t["read_by_value"]) == (1, 1, 1, 1)
+    assert t["read_around_cover"] == 1
     assert t["passing"] == 0 and t["matches_mean"] == 40.0

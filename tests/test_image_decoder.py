@@ -10,6 +10,7 @@ import pytest
 import torch
 from conftest import synthetic_reference_view
 
+from gsticker_plugin.decoders import cover as C
 from gsticker_plugin.decoders import fit as FIT
 from gsticker_plugin.decoders import image as I
 from gsticker_plugin.errors import GStickerError
@@ -311,3 +312,24 @@ def test_a_blur_is_matched_from_the_spectrum_even_when_the_camera_is_a_pixel_off
     assert I.match_blur_spectrum(shifted.permute(1, 2, 0), base) == I.Degradation()
     noisy = (shifted + 0.05 * torch.randn(shifted.shape, generator=g)).clamp(0, 1)
     assert I.match_blur_spectrum(noisy.permute(1, 2, 0), base) == I.Degradation()
+
+
+def test_a_stretch_pasted_from_the_base_render_is_left_out_of_the_second_fit(monkeypatch):
+    """A cropout that pastes the unmarked render (no occlusion to see) removes the mark from a stretch of the image:
+    the covered-rectangle rule finds the stretch after the first fit and reads the message from the rest."""
+    torch.manual_seed(0)
+    st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
+    ref = _view(st)
+    msg = parse_message(MESSAGE)
+    with torch.no_grad():
+        marked = torch.round(I.predict_image_change(ref, st, message_to_signs(msg)) * 255) / 255
+    pasted = marked.clone()
+    pasted[150:450] = torch.round(ref.base_rgb[150:450] * 255) / 255
+    d = I.decode_image_view(ref, st, pasted, torch.Generator().manual_seed(1))
+    assert abs(d["covered_share"] - 0.5) < 0.05 and d["occluded_share"] == 0.0
+    assert int((d["bits"] == msg).sum()) >= 46
+    monkeypatch.setattr(C, "COVER_Z", 1e9)  # the rule off: one fit over every pixel
+    d_all = I.decode_image_view(ref, st, pasted, torch.Generator().manual_seed(1))
+    assert d_all["covered_share"] == 0.0 and int((d_all["bits"] == msg).sum()) < int((d["bits"] == msg).sum())
+    # the whole mark there: nothing is left out
+    assert I.decode_image_view(ref, st, marked, torch.Generator().manual_seed(1))["covered_share"] == 0.0

@@ -47,6 +47,7 @@ from torch import Tensor
 
 from gsticker_plugin.attacks import ATTACKS, gaussian_blur, resize, rotate
 from gsticker_plugin.background import Background
+from gsticker_plugin.decoders.cover import covered_pixels
 from gsticker_plugin.decoders.fit import (
     fit_and_decide,
     fit_message,
@@ -168,19 +169,35 @@ def decode_image_view(
             j = image_change_jacobian(ref, sticker, x)
             return None if j is None else observe(j, luma)
 
-    cols = None if pose_columns is None else (observe(pose_columns, luma) if not value else pose_columns)
-    keep = occlusion_keep(image_rgb.float() - ref.base_rgb, 1 if (luma or value) else 3)
-    if keep is not None:  # rows of pixels that hold something the base does not (a cropout) are left out
-        target, predict, jac = on_rows(keep, target, predict, jac)
-        cols = None if cols is None else cols[keep]
-    plain = (target, predict)
-    if cols is not None:  # the fit sees only what a small pose change of the base render cannot explain
-        target, predict, jac = without_columns(cols, target, predict, jac)
-    fit, bits, undetermined = fit_and_decide(
-        predict, jac, target, sticker.num_bits, ref.view.rays.numel() > 0, generator, iterations
-    )
+    all_cols = None if pose_columns is None else (observe(pose_columns, luma) if not value else pose_columns)
+    per_pixel = 1 if (luma or value) else 3
+    keep = occluded = occlusion_keep(image_rgb.float() - ref.base_rgb, per_pixel)
+    state, covered = generator.get_state(), None
+    for _ in range(2):  # the second fit leaves out a covered rectangle the first one's mark is missing from
+        t, p, j, cols = target, predict, jac, all_cols
+        if keep is not None:  # rows of pixels that hold something the base does not (a cropout) are left out
+            t, p, j = on_rows(keep, t, p, j)
+            cols = None if cols is None else cols[keep]
+        plain = (t, p)
+        if cols is not None:  # the fit sees only what a small pose change of the base render cannot explain
+            t, p, j = without_columns(cols, t, p, j)
+        generator.set_state(state)
+        fit, bits, undetermined = fit_and_decide(
+            p, j, t, sticker.num_bits, ref.view.rays.numel() > 0, generator, iterations
+        )
+        if covered is not None or ref.view.rays.numel() == 0:
+            break
+        kept = torch.ones(ref.view.rays.numel(), dtype=torch.bool) if keep is None else keep[::per_pixel]
+        with torch.no_grad():
+            mark = plain[1](fit.signs) - plain[1](torch.zeros_like(fit.signs))
+        covered = covered_pixels(plain[0], mark, ref.view.rays[kept], ref.view.hw)
+        if covered is None:
+            break
+        inside = torch.zeros_like(kept).masked_scatter(kept, covered)
+        keep = (kept & ~inside).repeat_interleave(per_pixel)
     out = {"bits": bits, **fit_summary(fit, undetermined, int(ref.view.rays.numel())), "signals": [signal]}
-    out["occluded_share"] = 0.0 if keep is None else float(1.0 - keep.double().mean())
+    out["occluded_share"] = 0.0 if occluded is None else float(1.0 - occluded.double().mean())
+    out["covered_share"] = 0.0 if covered is None else float(covered.double().sum()) / max(1, ref.view.rays.numel())
     if cols is not None:  # the pose change fitted beside the message (a step for the camera)
         with torch.no_grad():
             mark = plain[1](fit.signs) - plain[1](torch.zeros_like(fit.signs))
