@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import torch
+import torch.nn.functional as F
 from jaxtyping import Float, Int
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
@@ -171,7 +172,7 @@ def decode_image_view(
 
     all_cols = None if pose_columns is None else (observe(pose_columns, luma) if not value else pose_columns)
     per_pixel = 1 if (luma or value) else 3
-    keep = occluded = occlusion_keep(image_rgb.float() - ref.base_rgb, per_pixel)
+    keep = occluded = occlusion_keep(image_rgb.float() - ref.base_rgb, per_pixel, ref.view.rays, ref.view.hw)
     state, covered = generator.get_state(), None
     for _ in range(2):  # the second fit leaves out a covered rectangle the first one's mark is missing from
         t, p, j, cols = target, predict, jac, all_cols
@@ -215,13 +216,26 @@ OCCLUSION_CHANGE = 0.25
 does not (a cropout's fill, an overlay): the mark changes a pixel by at most ~0.11 (lego100, 45 dB)."""
 
 OCCLUSION_SHARE = 0.01
-"""Such pixels are left out of the fit when they are at least this share of the pixels read (fewer: noise, edges)."""
+"""Such pixels are left out of the fit when they are at least this share of the pixels read (fewer: edges)."""
+
+OCCLUSION_NEIGHBOURS = 0.5
+"""... and only those that at least this share of their read 3 x 3 neighbours join: a fill covers a patch, while
+noise's far pixels stand alone (leaving them out would bias the fit: the ones kept lean against the mark)."""
 
 
-def occlusion_keep(change: Float[Tensor, "R 3"], per_pixel: int) -> Optional[Tensor]:
+def occlusion_keep(
+    change: Float[Tensor, "R 3"], per_pixel: int, rays: Optional[Tensor] = None, hw: Optional[Tuple[int, int]] = None
+) -> Optional[Tensor]:
     """The fit's rows to keep (``per_pixel`` rows per pixel) when :data:`OCCLUSION_SHARE` or more of the pixels
-    change by more than :data:`OCCLUSION_CHANGE`; None (keep all) otherwise."""
+    change by more than :data:`OCCLUSION_CHANGE` in patches (:data:`OCCLUSION_NEIGHBOURS`; ``rays``: the pixels'
+    flat indices into an ``hw`` image, without them every far pixel counts); None (keep all) otherwise."""
     far = change.abs().amax(dim=-1) > OCCLUSION_CHANGE
+    if rays is not None and hw is not None and bool(far.any()):
+        grid = torch.zeros(2, hw[0] * hw[1], dtype=torch.float32)
+        grid[0, rays] = far.float()
+        grid[1, rays] = 1.0
+        counts = F.avg_pool2d(grid.view(1, 2, *hw), 3, stride=1, padding=1, divisor_override=1).view(2, -1)[:, rays]
+        far = far & (counts[0] >= OCCLUSION_NEIGHBOURS * counts[1])
     if far.numel() == 0 or float(far.double().mean()) < OCCLUSION_SHARE:
         return None
     return (~far).repeat_interleave(per_pixel)
