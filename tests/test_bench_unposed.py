@@ -94,7 +94,7 @@ def test_another_scene_is_read_sorted_by_name_and_must_match_the_renders_size(tm
 
 
 def test_threat_curve_pairs_each_purified_model_with_its_geometric_reading(tmp_path):
-    cfg = config(("purify=10:@2", "leak=0.5:@2"))
+    cfg = config(("purify=10:@2", "leak=0.5:@2", "pgd=45:@2"))
     cfg.work_dir, cfg.output = tmp_path, tmp_path / "page.md"
     (tmp_path / "purify.json").write_text(
         json.dumps(
@@ -111,11 +111,16 @@ def test_threat_curve_pairs_each_purified_model_with_its_geometric_reading(tmp_p
         )
     )
     (tmp_path / "leak.json").write_text(json.dumps({"0.5": {"psnr_vs_marked_db": 51.0, "psnr_vs_clean_db": 51.2}}))
+    pgd_point = {"psnr_vs_marked_db": 45.5, "psnr_vs_clean_db": 36.0, "posed_matches": [30, 42], "posed_bit_acc": 0.75}
+    (tmp_path / "pgd.json").write_text(json.dumps({"45.0": pgd_point}))
     table = {
         "purify=10:": {"bit_acc": 0.5, "passing": 0, "images": 2},
         "leak=0.5:": {"bit_acc": 0.9, "passing": 1, "images": 2},
+        "pgd=45:": {"bit_acc": 0.6, "passing": 0, "images": 2},
     }
-    purify, leak = threat_curves(cfg, table, 41, 48)
+    purify, leak, pgd = threat_curves(cfg, table, 41, 48)
+    assert (pgd["attack"], pgd["strength"], pgd["posed_passing"], pgd["images_passing"]) == ("pgd", 45.0, "1/2", "0/2")
+    assert purify["posed_passing"] is None
     assert (purify["attack"], purify["strength"], purify["geometric_passing"]) == ("purify", 10, "1/2")
     assert purify["images_passing"] == "0/2" and purify["psnr_vs_marked_db"] == 30.0
     assert (leak["attack"], leak["strength"], leak["geometric_bit_acc"], leak["psnr_vs_marked_db"]) == (
@@ -125,8 +130,9 @@ def test_threat_curve_pairs_each_purified_model_with_its_geometric_reading(tmp_p
         51.0,
     )
     assert (tmp_path / "page.png").stat().st_size > 1000
-    lines = threat_lines([purify, leak], cfg.output, 1e-4, 512)
-    assert "| purify | 10 | 30.00 | 31.00 | 50.0 %, 0/2 | 67.7 %, 1/2 | 2.0 |" in lines
+    lines = threat_lines([purify, leak, pgd], cfg.output, 1e-4, 512)
+    assert "| purify | 10 | 30.00 | 31.00 | 50.0 %, 0/2 | 67.7 %, 1/2 | - | 2.0 |" in lines
+    assert "| pgd | 45.0 | 45.50 | 36.00 | 60.0 %, 0/2 | - | 75.0 %, 1/2 | - |" in lines
     assert any("learning rate 0.0001, 512 rays per step" in line for line in lines)
 
 
@@ -144,6 +150,8 @@ def test_the_threat_table_says_where_each_decoder_breaks():
 
     points = [point(10, "0/1", "2/2", 0.6), point(1, "1/1", "2/2", 1.0), point(3, "1/1", "1/2", 0.8)]
     points.append({**point(0.5, "0/1", None, 0.5), "attack": "leak"})
+    pgd = {**point(0, "1/1", None, 1.0), "attack": "pgd", "posed_passing": "2/2", "posed_bit_acc": 1.0}
+    points += [{**pgd, "strength": 50.0}, {**pgd, "strength": 40.0, "images_passing": "0/1", "images_bit_acc": 0.5}]
     lines = breaking_points(points)
     assert lines == [
         "- purify, images alone: every image passes up to 3 steps (37.0 dB vs marked); breaks at 10 steps "
@@ -152,6 +160,10 @@ def test_the_threat_table_says_where_each_decoder_breaks():
         "(37.0 dB vs marked, 80.0 % of bits).",
         "- leak, images alone: the weakest setting tried already breaks it; breaks at 0.5 blended (39.5 dB vs marked, "
         "50.0 % of bits).",
+        "- pgd, images alone: every image passes up to a 50 dB budget (40.0 dB vs marked); breaks at a 40 dB budget "
+        "(40.0 dB vs marked, 50.0 % of bits).",
+        "- pgd, informed image, true cameras: every image passes up to a 40 dB budget (40.0 dB vs marked); no setting "
+        "tried breaks it.",
     ]
 
 

@@ -62,7 +62,8 @@ class BenchUnposedConfig:
     ``modelhue=0.5``: a model-level hue turn) or of another run (``run=PATH/config.yml``, e.g. the watermarked run
     after ``ns-recolor finetune``), of the watermarked run purified (``purify=STEPS``: every parameter fine-tuned on
     the clean training images, as the evaluation's purify stage), the marked renders blended toward the clean ones
-    by a share (``leak=0.5``: what a holder of the owner's base can do), images of another scene in a folder
+    by a share (``leak=0.5``: what a holder of the owner's base can do) or attacked by projected gradient descent
+    on the informed decoder at a PSNR budget (``pgd=50``: what a holder of the owner key can do), images of another scene in a folder
     (``scene=DIR``, composited on white, sorted by name: a null), an attack spec (``noise=0.1,jpeg=50``; empty:
     none; ``hue=~0.5``: a strength drawn per view from [-0.5, 0.5]), the first ``N`` views only (rows that differ only
     in ``N`` share their images: ``marked:@12`` early, ``marked:@24`` later)."""
@@ -195,6 +196,32 @@ def purified_renders(cfg: "BenchUnposedConfig", key, ref, steps: int, cameras, m
     return src
 
 
+def leaked_key_renders(key, ref, budget: float, cameras, marked, clean, work_dir: Path) -> torch.Tensor:
+    """8-bit: each marked render after the leaked-key PGD at its true camera and a PSNR budget of ``budget`` dB
+    (:func:`gsticker_plugin.decoders.image.leaked_key_attack`: what a holder of the owner key and the base can do);
+    the informed image decoder's reading at the true cameras and the renders' PSNR go to ``work_dir/pgd.json``."""
+    from gsticker_plugin.decoders.image import decode_posed_images, image_reference, leaked_key_attack
+    from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker
+
+    st, bg = cpu_sticker(ref.model), ref.model.background_color()
+    views = [(f"pgd/{i}", cameras[i : i + 1]) for i in range(len(marked))]
+    out = [
+        leaked_key_attack(image_reference(any_reference_view(ref, name, cam, None), bg), st, marked[i].float(), budget)
+        for i, (name, cam) in enumerate(views)
+    ]
+    src = as_8_bit(torch.stack(out))
+    with contextlib.redirect_stdout(sys.stderr):
+        dec = decode_posed_images(key, ref, [x.float() for x in src], views, 0)
+    matches = [int(m) for m in dec["matches"]]
+    point = {
+        "budget_db": budget,
+        "posed_matches": matches,
+        "posed_bit_acc": float(torch.tensor(matches, dtype=torch.float64).mean() / key.num_bits),
+    }
+    record_point(work_dir / "pgd.json", str(budget), src, marked, clean, **point)
+    return src
+
+
 def record_point(path: Path, name: str, images, marked, clean, **extra) -> None:
     """Add ``name``'s mean PSNR vs the marked and the clean renders (and ``extra``) to the JSON at ``path``."""
     as_chw = lambda x: x.permute(0, 3, 1, 2)  # noqa: E731
@@ -300,6 +327,10 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
             t = float(which[len("leak=") :])
             src = as_8_bit(marked[:n] * (1 - t) + clean[:n] * t)
             record_point(cfg.work_dir / "leak.json", str(t), src, marked[:n], clean[:n])
+        elif which.startswith("pgd="):
+            src = leaked_key_renders(
+                key, ref, float(which[len("pgd=") :]), cams[:n], marked[:n], clean[:n], cfg.work_dir
+            )
         elif which.startswith("scene="):
             src = folder_images(Path(which[len("scene=") :]), n, tuple(marked.shape[1:3]))
         else:
@@ -574,11 +605,13 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
 def threat_curves(cfg: BenchUnposedConfig, table, threshold: int, num_bits: int) -> List[Dict[str, Any]]:
     """Bit accuracy against PSNR (vs the shared marked renders) of the ``purify=`` rows (images alone, and the informed
     geometric decoder on the same model) and of the ``leak=`` rows; a PNG chart beside the page."""
-    points, leaks = ({}, {})
+    points, leaks, pgds = ({}, {}, {})
     if (cfg.work_dir / "purify.json").exists():
         points = json.loads((cfg.work_dir / "purify.json").read_text())
     if (cfg.work_dir / "leak.json").exists():
         leaks = json.loads((cfg.work_dir / "leak.json").read_text())
+    if (cfg.work_dir / "pgd.json").exists():
+        pgds = json.loads((cfg.work_dir / "pgd.json").read_text())
     out = []
     for row, t in table.items():
         which = row.partition(":")[0]
@@ -613,6 +646,27 @@ def threat_curves(cfg: BenchUnposedConfig, table, threshold: int, num_bits: int)
                     "purify_seconds": None,
                 }
             )
+        elif which.startswith("pgd=") and str(float(which[len("pgd=") :])) in pgds:
+            p = pgds[str(float(which[len("pgd=") :]))]
+            posed = torch.tensor(p["posed_matches"])
+            out.append(
+                {
+                    "attack": "pgd",
+                    "strength": float(which[len("pgd=") :]),
+                    "psnr_vs_marked_db": p["psnr_vs_marked_db"],
+                    "psnr_vs_clean_db": p["psnr_vs_clean_db"],
+                    "images_bit_acc": t["bit_acc"],
+                    "images_passing": f"{t['passing']}/{t['images']}",
+                    "geometric_bit_acc": None,
+                    "geometric_passing": None,
+                    "posed_bit_acc": p["posed_bit_acc"],
+                    "posed_passing": f"{int((posed >= threshold).sum())}/{len(posed)}",
+                    "purify_seconds": None,
+                }
+            )
+    for p in out:
+        p.setdefault("posed_bit_acc", None)
+        p.setdefault("posed_passing", None)
     if out:
         threat_chart(out, cfg.output.with_suffix(".png"), num_bits, threshold)
     return out
@@ -629,6 +683,8 @@ def threat_chart(points: List[Dict[str, Any]], path: Path, num_bits: int, thresh
         ("purify", "images_bit_acc", "purification: images alone", "o-"),
         ("purify", "geometric_bit_acc", "purification: informed geometric", "s--"),
         ("leak", "images_bit_acc", "blend toward the owner's base: images alone", "^-"),
+        ("pgd", "images_bit_acc", "leaked-key PGD: images alone", "v-"),
+        ("pgd", "posed_bit_acc", "leaked-key PGD: informed image decoder, true cameras", "d--"),
     ]
     for attack, field, label, style in series:
         pts = sorted(
@@ -659,19 +715,24 @@ def threat_lines(
         f"learning rate {purify_lr:g}, {purify_rays} rays per step: the evaluation's purify stage), cumulative steps; the same model read by the informed geometric decoder at the "
         "base run's cameras beside the images-alone decoder at the held-out views. *leak*: the marked renders blended "
         "toward the owner's base renders by the share (what a holder of the base, i.e. of the owner key, can do; "
-        "without the key the recipient has no unmarked render to blend toward). PSNR is against the shared marked "
-        "renders at the held-out views.",
+        "without the key the recipient has no unmarked render to blend toward). *pgd*: each marked render attacked by "
+        "projected gradient descent on the informed image decoder at its true camera within a PSNR budget (dB), the "
+        "leaked-key attack (`decoders.image.leaked_key_attack`), read without the camera and, beside it, by the "
+        "informed image decoder given the true camera. PSNR is against the shared marked renders at the held-out "
+        "views.",
         "",
-        "| attack | steps / share | PSNR vs marked (dB) | PSNR vs clean (dB) | images alone: bit acc, passing | informed geometric: bit acc, passing | purify s |",
-        "|---|---|---|---|---|---|---|",
+        "| attack | steps / share / budget | PSNR vs marked (dB) | PSNR vs clean (dB) | images alone: bit acc, passing | informed geometric: bit acc, passing | informed image, true cameras: bit acc, passing | purify s |",
+        "|---|---|---|---|---|---|---|---|",
     ]
+
+    def reading(p: Dict[str, Any], decoder: str) -> str:
+        acc = p.get(f"{decoder}_bit_acc")
+        return "-" if acc is None else f"{100 * acc:.1f} %, {p[f'{decoder}_passing']}"
+
     for p in points:
-        geo = (
-            "-" if p["geometric_bit_acc"] is None else f"{100 * p['geometric_bit_acc']:.1f} %, {p['geometric_passing']}"
-        )
         lines.append(
             f"| {p['attack']} | {p['strength']} | {p['psnr_vs_marked_db']:.2f} | {p['psnr_vs_clean_db']:.2f} | "
-            f"{100 * p['images_bit_acc']:.1f} %, {p['images_passing']} | {geo} | "
+            f"{reading(p, 'images')} | {reading(p, 'geometric')} | {reading(p, 'posed')} | "
             f"{'-' if p['purify_seconds'] is None else p['purify_seconds']} |"
         )
     return lines + [""] + breaking_points(points)
@@ -688,17 +749,27 @@ def breaking_points(points: List[Dict[str, Any]]) -> List[str]:
     def setting(p: Dict[str, Any]) -> str:
         if p["attack"] == "purify":
             return f"{p['strength']} step" + ("" if p["strength"] == 1 else "s")
+        if p["attack"] == "pgd":
+            return f"a {p['strength']:g} dB budget"
         return f"{p['strength']} blended" if p["attack"] == "leak" else str(p["strength"])
 
+    def strength(p: Dict[str, Any]) -> float:  # a smaller PSNR budget is the stronger attack
+        return -p["strength"] if p["attack"] == "pgd" else p["strength"]
+
     lines = []
+    decoders = (
+        ("images", "images alone"),
+        ("geometric", "informed geometric"),
+        ("posed", "informed image, true cameras"),
+    )
     for attack in dict.fromkeys(p["attack"] for p in points):
-        rows = sorted((p for p in points if p["attack"] == attack), key=lambda p: p["strength"])
-        for decoder, name in (("images", "images alone"), ("geometric", "informed geometric")):
-            read = [(p, fraction(p[f"{decoder}_passing"])) for p in rows if p[f"{decoder}_passing"] is not None]
+        rows = sorted((p for p in points if p["attack"] == attack), key=strength)
+        for decoder, name in decoders:
+            read = [(p, fraction(p[f"{decoder}_passing"])) for p in rows if p.get(f"{decoder}_passing") is not None]
             if not read:
                 continue
             broke = next((p for p, f in read if f < 1.0), None)
-            held = [p for p, f in read if broke is None or p["strength"] < broke["strength"]]
+            held = [p for p, f in read if broke is None or strength(p) < strength(broke)]
             text = f"- {attack}, {name}: " + (
                 f"every image passes up to {setting(held[-1])} ({held[-1]['psnr_vs_marked_db']:.1f} dB vs marked)"
                 if held
