@@ -30,6 +30,17 @@ def _view(st: Sticker, r: int = 600, s: int = 24, seed: int = 0) -> I.ImageRefer
     return I.image_reference(view, bg)
 
 
+def _marked_8_bit():
+    """A sticker, a synthetic reference view, the message and the 8-bit marked image at its rays."""
+    torch.manual_seed(0)
+    st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
+    ref = _view(st)
+    msg = parse_message(MESSAGE)
+    with torch.no_grad():
+        marked = torch.round(I.predict_image_change(ref, st, message_to_signs(msg)) * 255) / 255
+    return st, ref, msg, marked
+
+
 def test_prediction_at_zero_is_the_base_render_and_the_jacobian_is_ad():
     torch.manual_seed(0)
     st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
@@ -279,12 +290,7 @@ def test_a_hue_shifted_image_is_read_by_its_value_channel():
 
 
 def test_pixels_a_cropout_filled_are_left_out_of_the_fit_and_the_message_still_reads(monkeypatch):
-    torch.manual_seed(0)
-    st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
-    ref = _view(st)
-    msg = parse_message(MESSAGE)
-    with torch.no_grad():
-        marked = torch.round(I.predict_image_change(ref, st, message_to_signs(msg)) * 255) / 255
+    st, ref, msg, marked = _marked_8_bit()
     cropped = marked.clone()
     cropped[200:400] = 1.0  # a third of the image filled white
     far = (cropped - ref.base_rgb).abs().amax(dim=-1) > I.OCCLUSION_CHANGE
@@ -315,12 +321,7 @@ def test_noise_that_pushes_single_pixels_far_from_the_base_is_not_taken_for_an_o
 def test_a_stretch_pasted_from_the_base_render_is_left_out_of_the_second_fit(monkeypatch):
     """A cropout that pastes the unmarked render (no occlusion to see) removes the mark from a stretch of the image:
     the covered-rectangle rule finds the stretch after the first fit and reads the message from the rest."""
-    torch.manual_seed(0)
-    st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
-    ref = _view(st)
-    msg = parse_message(MESSAGE)
-    with torch.no_grad():
-        marked = torch.round(I.predict_image_change(ref, st, message_to_signs(msg)) * 255) / 255
+    st, ref, msg, marked = _marked_8_bit()
     pasted = marked.clone()
     pasted[150:450] = torch.round(ref.base_rgb[150:450] * 255) / 255
     d = I.decode_image_view(ref, st, pasted, torch.Generator().manual_seed(1))

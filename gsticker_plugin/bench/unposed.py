@@ -613,60 +613,35 @@ def threat_curves(cfg: BenchUnposedConfig, table, threshold: int, num_bits: int)
     if (cfg.work_dir / "pgd.json").exists():
         pgds = json.loads((cfg.work_dir / "pgd.json").read_text())
     out = []
+
+    def point(attack: str, strength: float, p: Dict[str, Any], t: Dict[str, Any], **informed) -> Dict[str, Any]:
+        read = {"geometric_bit_acc": None, "geometric_passing": None, "posed_bit_acc": None, "posed_passing": None}
+        for decoder, matches in informed.items():  # an informed decoder's matches per view beside the images alone
+            m = torch.tensor(matches)
+            read[f"{decoder}_bit_acc"] = p[f"{decoder}_bit_acc"]
+            read[f"{decoder}_passing"] = f"{int((m >= threshold).sum())}/{len(m)}"
+        return {
+            "attack": attack,
+            "strength": strength,
+            "psnr_vs_marked_db": p["psnr_vs_marked_db"],
+            "psnr_vs_clean_db": p["psnr_vs_clean_db"],
+            "images_bit_acc": t["bit_acc"],
+            "images_passing": f"{t['passing']}/{t['images']}",
+            **read,
+            "purify_seconds": p.get("purify_seconds"),
+        }
+
     for row, t in table.items():
         which = row.partition(":")[0]
-        if which.startswith("purify=") and which[len("purify=") :] in points:
-            p = points[which[len("purify=") :]]
-            geo = torch.tensor(p["geometric_matches"])
-            out.append(
-                {
-                    "attack": "purify",
-                    "strength": p["steps"],
-                    "psnr_vs_marked_db": p["psnr_vs_marked_db"],
-                    "psnr_vs_clean_db": p["psnr_vs_clean_db"],
-                    "images_bit_acc": t["bit_acc"],
-                    "images_passing": f"{t['passing']}/{t['images']}",
-                    "geometric_bit_acc": p["geometric_bit_acc"],
-                    "geometric_passing": f"{int((geo >= threshold).sum())}/{len(geo)}",
-                    "purify_seconds": p["purify_seconds"],
-                }
-            )
-        elif which.startswith("leak=") and str(float(which[len("leak=") :])) in leaks:
-            p = leaks[str(float(which[len("leak=") :]))]
-            out.append(
-                {
-                    "attack": "leak",
-                    "strength": float(which[len("leak=") :]),
-                    "psnr_vs_marked_db": p["psnr_vs_marked_db"],
-                    "psnr_vs_clean_db": p["psnr_vs_clean_db"],
-                    "images_bit_acc": t["bit_acc"],
-                    "images_passing": f"{t['passing']}/{t['images']}",
-                    "geometric_bit_acc": None,
-                    "geometric_passing": None,
-                    "purify_seconds": None,
-                }
-            )
-        elif which.startswith("pgd=") and str(float(which[len("pgd=") :])) in pgds:
-            p = pgds[str(float(which[len("pgd=") :]))]
-            posed = torch.tensor(p["posed_matches"])
-            out.append(
-                {
-                    "attack": "pgd",
-                    "strength": float(which[len("pgd=") :]),
-                    "psnr_vs_marked_db": p["psnr_vs_marked_db"],
-                    "psnr_vs_clean_db": p["psnr_vs_clean_db"],
-                    "images_bit_acc": t["bit_acc"],
-                    "images_passing": f"{t['passing']}/{t['images']}",
-                    "geometric_bit_acc": None,
-                    "geometric_passing": None,
-                    "posed_bit_acc": p["posed_bit_acc"],
-                    "posed_passing": f"{int((posed >= threshold).sum())}/{len(posed)}",
-                    "purify_seconds": None,
-                }
-            )
-    for p in out:
-        p.setdefault("posed_bit_acc", None)
-        p.setdefault("posed_passing", None)
+        attack, _, value = which.partition("=")
+        if attack == "purify" and value in points:
+            p = points[value]
+            out.append(point("purify", p["steps"], p, t, geometric=p["geometric_matches"]))
+        elif attack == "leak" and str(float(value)) in leaks:
+            out.append(point("leak", float(value), leaks[str(float(value))], t))
+        elif attack == "pgd" and str(float(value)) in pgds:
+            p = pgds[str(float(value))]
+            out.append(point("pgd", float(value), p, t, posed=p["posed_matches"]))
     if out:
         threat_chart(out, cfg.output.with_suffix(".png"), num_bits, threshold)
     return out
