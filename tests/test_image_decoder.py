@@ -63,13 +63,8 @@ def test_prediction_at_zero_is_the_base_render_and_the_jacobian_is_ad():
 
 
 def test_fit_reads_the_message_from_an_8_bit_image_and_the_base_render_reads_no_match():
-    torch.manual_seed(0)
-    st = Sticker(48, 5, 64, 2, 0.5, "bilinear").requires_grad_(False)
-    ref = _view(st)
-    msg = parse_message(MESSAGE)
-    with torch.no_grad():
-        marked = I.predict_image_change(ref, st, message_to_signs(msg))
-    d = I.decode_image_view(ref, st, torch.round(marked * 255) / 255, torch.Generator().manual_seed(1))
+    st, ref, msg, marked = _marked_8_bit()
+    d = I.decode_image_view(ref, st, marked, torch.Generator().manual_seed(1))
     assert torch.equal(d["bits"], msg) and d["undetermined"] == 0 and d["explained"] > 0.9
     # the base render itself: nothing to fit, every bit undetermined and a mismatch whatever the message
     d0 = I.decode_image_view(ref, st, ref.base_rgb.clone(), torch.Generator().manual_seed(2))
