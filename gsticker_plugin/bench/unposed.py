@@ -28,8 +28,9 @@ from torch import Tensor
 
 from gsticker_plugin import compat, metrics
 from gsticker_plugin.attacks.spec import apply_attacks, parse_attack_spec
+from gsticker_plugin.decoders.image import decode_posed_images, image_reference, leaked_key_attack
 from gsticker_plugin.decoders.pose import PoseSearch
-from gsticker_plugin.decoders.reference import load_base_reference
+from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker, load_base_reference
 from gsticker_plugin.decoders.unposed import MAP_SEARCH_SHARE, decode_unposed_images
 from gsticker_plugin.evaluate import final_rgb
 from gsticker_plugin.fastpath import novel_cameras
@@ -200,9 +201,6 @@ def leaked_key_renders(key, ref, budget: float, cameras, marked, clean, work_dir
     """8-bit: each marked render after the leaked-key PGD at its true camera and a PSNR budget of ``budget`` dB
     (:func:`gsticker_plugin.decoders.image.leaked_key_attack`: what a holder of the owner key and the base can do);
     the informed image decoder's reading at the true cameras and the renders' PSNR go to ``work_dir/pgd.json``."""
-    from gsticker_plugin.decoders.image import decode_posed_images, image_reference, leaked_key_attack
-    from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker
-
     st, bg = cpu_sticker(ref.model), ref.model.background_color()
     views = [(f"pgd/{i}", cameras[i : i + 1]) for i in range(len(marked))]
     out = [

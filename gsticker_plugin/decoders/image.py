@@ -173,7 +173,7 @@ def decode_image_view(
     all_cols = None if pose_columns is None else (observe(pose_columns, luma) if not value else pose_columns)
     per_pixel = 1 if (luma or value) else 3
     keep = occluded = occlusion_keep(image_rgb.float() - ref.base_rgb, per_pixel, ref.view.rays, ref.view.hw)
-    state, covered = generator.get_state(), None
+    covered = None
     for _ in range(2):  # the second fit leaves out a covered rectangle the first one's mark is missing from
         t, p, j, cols = target, predict, jac, all_cols
         if keep is not None:  # rows of pixels that hold something the base does not (a cropout) are left out
@@ -182,15 +182,14 @@ def decode_image_view(
         plain = (t, p)
         if cols is not None:  # the fit sees only what a small pose change of the base render cannot explain
             t, p, j = without_columns(cols, t, p, j)
-        generator.set_state(state)
         fit, bits, undetermined = fit_and_decide(
             p, j, t, sticker.num_bits, ref.view.rays.numel() > 0, generator, iterations
         )
+        with torch.no_grad():  # the fitted message's change at the rows read
+            mark = plain[1](fit.signs) - plain[1](torch.zeros_like(fit.signs))
         if covered is not None or ref.view.rays.numel() == 0:
             break
         kept = torch.ones(ref.view.rays.numel(), dtype=torch.bool) if keep is None else keep[::per_pixel]
-        with torch.no_grad():
-            mark = plain[1](fit.signs) - plain[1](torch.zeros_like(fit.signs))
         covered = covered_pixels(plain[0], mark, ref.view.rays[kept], ref.view.hw)
         if covered is None:
             break
@@ -201,7 +200,6 @@ def decode_image_view(
     out["covered_share"] = 0.0 if covered is None else float(covered.double().sum()) / max(1, ref.view.rays.numel())
     if cols is not None:  # the pose change fitted beside the message (a step for the camera)
         with torch.no_grad():
-            mark = plain[1](fit.signs) - plain[1](torch.zeros_like(fit.signs))
             rest = plain[0] - mark
             if keep is not None:  # the change at every row: none at the rows left out
                 mark = torch.zeros(keep.numel(), dtype=mark.dtype).masked_scatter(keep, mark)
@@ -224,13 +222,13 @@ noise's far pixels stand alone (leaving them out would bias the fit: the ones ke
 
 
 def occlusion_keep(
-    change: Float[Tensor, "R 3"], per_pixel: int, rays: Optional[Tensor] = None, hw: Optional[Tuple[int, int]] = None
+    change: Float[Tensor, "R 3"], per_pixel: int, rays: Int[Tensor, " R"], hw: Tuple[int, int]
 ) -> Optional[Tensor]:
     """The fit's rows to keep (``per_pixel`` rows per pixel) when :data:`OCCLUSION_SHARE` or more of the pixels
-    change by more than :data:`OCCLUSION_CHANGE` in patches (:data:`OCCLUSION_NEIGHBOURS`; ``rays``: the pixels'
-    flat indices into an ``hw`` image, without them every far pixel counts); None (keep all) otherwise."""
+    (``rays``: their flat indices into an ``hw`` image) change by more than :data:`OCCLUSION_CHANGE` in patches
+    (:data:`OCCLUSION_NEIGHBOURS`); None (keep all) otherwise."""
     far = change.abs().amax(dim=-1) > OCCLUSION_CHANGE
-    if rays is not None and hw is not None and bool(far.any()):
+    if bool(far.any()):
         grid = torch.zeros(2, hw[0] * hw[1], dtype=torch.float32)
         grid[0, rays] = far.float()
         grid[1, rays] = 1.0
