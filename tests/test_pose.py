@@ -229,3 +229,28 @@ def test_the_trimmed_rms_leaves_the_largest_residuals_out_so_a_painted_rectangle
     assert P.trimmed_rms(near, 0.75) < P.trimmed_rms(far, 0.75)
     assert math.isclose(P.trimmed_rms(near, 0.75), 0.01, rel_tol=1e-5)
     assert math.isclose(P.trimmed_rms(far), 0.2, rel_tol=1e-6)
+
+
+class ChunkedSquare(TexturedSquare):
+    """:class:`TexturedSquare` rendered in chunks of rays, as nerfstudio's ``Model.get_outputs_for_camera_ray_bundle``
+    does: no rays, no chunks, no outputs."""
+
+    def get_outputs_for_camera_ray_bundle(self, bundle):
+        flat = bundle.flatten()
+        chunks = [
+            super(ChunkedSquare, self).get_outputs_for_camera_ray_bundle(flat[i : i + 64])
+            for i in range(0, len(flat), 64)
+        ]
+        return {k: torch.cat([c[k] for c in chunks]) for k in (chunks[0] if chunks else {})}
+
+
+def test_a_view_with_no_ray_to_read_has_no_pose_columns_instead_of_a_failed_render():
+    """A camera the pose step moved off every ray the gate reads (seen on a random image) gets ``[0 6]`` pose
+    columns, so the image fit reads nothing there; a view with rays gets one row per ray and channel."""
+    cam = orbit(8)[2:3]
+    none = torch.zeros(0, dtype=torch.long)
+    for value in (False, True):
+        assert P.pose_columns(ChunkedSquare(), cam, none, value).shape == (0, 6)
+    some = torch.arange(0, 48 * 48, 37)
+    cols = P.pose_columns(ChunkedSquare(), cam, some, False)
+    assert cols.shape == (some.numel() * 3, 6) and float(cols.abs().sum()) > 0

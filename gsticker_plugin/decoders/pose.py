@@ -492,7 +492,9 @@ def search_renders(reference, search: PoseSearch, hw: Tuple[int, int], value: bo
 
 
 def render_at(model, camera: Cameras, rays: Int[Tensor, " R"]) -> Float[Tensor, "R 3"]:
-    """The model's colour at the flat pixel indices ``rays`` of one camera, on the CPU."""
+    """The model's colour at the flat pixel indices ``rays`` of one camera, on the CPU (``[0 3]`` for no rays)."""
+    if rays.numel() == 0:
+        return torch.zeros(0, 3)
     out = render_rays(model, camera, rays)["rgb"].reshape(-1, 3)[rays.to(model.device)]
     return out.float().cpu()
 
