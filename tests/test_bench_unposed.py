@@ -195,3 +195,21 @@ def test_the_summary_counts_each_route_an_image_was_read_through():
     assert (t["read_through_jpeg"], t["read_through_blur"], t["read_as_turned"], t["read_by_value"]) == (1, 1, 1, 1)
     assert t["read_around_cover"] == 1
     assert t["passing"] == 0 and t["matches_mean"] == 40.0
+
+
+def test_an_image_with_nothing_to_read_is_left_out_of_the_null_mean_and_counts_zero_for_the_owner():
+    """Every bit undetermined (no ray the gate reads at the camera found): a null row's mean is over the images read,
+    with the unread one counted apart; a marked row keeps its 0 matches (never flattering the owner)."""
+    from gsticker_plugin.bench.unposed import read_nothing, summarize
+
+    row = {"signals": ["rgb"], "seconds": 1.0}
+    rows = [{**row, "matches": 22, "bits": "01" * 24}, {**row, "matches": 26, "bits": "10" * 24}]
+    rows.append({**row, "matches": 0, "bits": "?" * 48})
+    assert [read_nothing(r) for r in rows] == [False, False, True]
+    null = summarize(rows, 41, 48, null=True)
+    assert null["matches_mean"] == 24.0 and null["matches_min"] == 22 and null["nothing_read"] == 1
+    marked = summarize(rows, 41, 48)
+    assert marked["matches_mean"] == 16.0 and marked["matches_min"] == 0 and marked["nothing_read"] == 1
+    pooled = null_summary(rows, None, 41)
+    assert pooled["images"] == 2 and pooled["checks"] == 2 and pooled["nothing_read"] == 1
+    assert pooled["matches_mean"] == 24.0

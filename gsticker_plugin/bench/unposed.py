@@ -382,10 +382,26 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
     return write_page(cfg, key, done, threshold, psnr)
 
 
-def summarize(rows: List[Dict[str, Any]], threshold: int, num_bits: int) -> Dict[str, Any]:
-    m = torch.tensor([r["matches"] for r in rows], dtype=torch.float64)
+def read_nothing(row: Dict[str, Any]) -> bool:
+    """Whether an image's every bit is undetermined: the camera found showed no ray the gate reads."""
+    return "bits" in row and not any(c in "01" for c in row["bits"])
+
+
+def unread(summary: Dict[str, Any]) -> str:
+    """The table's note on a row's images with nothing to read (none: empty)."""
+    n = summary.get("nothing_read", 0)
+    return f"; {n} with nothing to read" if n else ""
+
+
+def summarize(rows: List[Dict[str, Any]], threshold: int, num_bits: int, null: bool = False) -> Dict[str, Any]:
+    """A row's images: their matches (a ``null`` row's over the images with bits read, those with nothing to read
+    counted apart; a marked image with nothing to read counts its 0 matches), the routes they were read through, the
+    camera error and the seconds."""
+    read = ([r for r in rows if not read_nothing(r)] if null else rows) or rows
+    m = torch.tensor([r["matches"] for r in read], dtype=torch.float64)
     out = {
         "images": len(rows),
+        "nothing_read": sum(map(read_nothing, rows)),
         "bit_acc": float(m.mean() / num_bits),
         "matches_mean": float(m.mean()),
         "matches_min": int(m.min()),
@@ -439,9 +455,10 @@ def is_null_row(row: str) -> bool:
 def null_summary(
     rows: List[Dict[str, Any]], others: Optional[Dict[str, Any]], threshold: int
 ) -> Optional[Dict[str, Any]]:
-    """Every null check together: the unmarked images' matches (``rows`` of :data:`NULL_IMAGES`) and the marked
-    images checked with other keys; the empirical false-positive rate at ``threshold`` with its 95 % upper bound."""
-    m = [float(r["matches"]) for r in rows]
+    """Every null check together: the unmarked images' matches (``rows`` of :data:`NULL_IMAGES`; those with nothing
+    to read counted apart) and the marked images checked with other keys; the empirical false-positive rate at
+    ``threshold`` with its 95 % upper bound."""
+    m = [float(r["matches"]) for r in rows if not read_nothing(r)]
     checks, total, top = len(m), sum(m), max(m, default=0.0)
     passing = sum(v >= threshold for v in m)
     if others is not None:
@@ -454,6 +471,7 @@ def null_summary(
     return {
         "checks": checks,
         "images": len(m),
+        "nothing_read": sum(map(read_nothing, rows)),
         "matches_mean": total / checks,
         "matches_max": int(top),
         "passing": int(passing),
@@ -496,7 +514,9 @@ def not_reached(cfg: BenchUnposedConfig, done: Dict[Any, Dict[str, Any]]) -> Dic
 
 def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], threshold: int, psnr) -> Dict[str, Any]:
     table = {
-        row: summarize([r for (k, v), r in done.items() if k == row and v < n], threshold, key.num_bits)
+        row: summarize(
+            [r for (k, v), r in done.items() if k == row and v < n], threshold, key.num_bits, is_null_row(row)
+        )
         for row, n in wanted(cfg).items()
         if any(k == row and v < n for k, v in done)
     }
@@ -558,7 +578,7 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
             spec += f" ({' / '.join(fills)})"
         lines.append(
             f"| {which} | {spec or 'none'} | {t['images']} | {100 * t['bit_acc']:.2f} % | {t['matches_mean']:.1f} "
-            f"({t['matches_min']}-{t['matches_max']}) | {t['passing']}/{t['images']} | {t['read_by_value']} / "
+            f"({t['matches_min']}-{t['matches_max']}){unread(t)} | {t['passing']}/{t['images']} | {t['read_by_value']} / "
             f"{t['read_through_map']} / {t['searched_through_map']} / {t['read_through_blur']} / {t.get('read_as_turned', 0)} / {t.get('read_through_jpeg', 0)} / {t.get('read_around_cover', 0)} | {cam} | "
             f"{t['seconds_per_image']:.0f} |"
         )
@@ -572,7 +592,13 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
         lines += [
             "",
             f"The null together ({null['images']} unmarked images and the other keys' checks): {null['checks']} checks, "
-            f"matches mean {null['matches_mean']:.1f}, max {null['matches_max']}; {null['passing']} pass at >= "
+            + (
+                f"{null['nothing_read']} more unmarked images with nothing to read left out (every bit undetermined, "
+                "no ray the gate reads at the camera found), "
+                if null.get("nothing_read")
+                else ""
+            )
+            + f"matches mean {null['matches_mean']:.1f}, max {null['matches_max']}; {null['passing']} pass at >= "
             f"{threshold}/48: empirical false-positive rate {null['fpr']:.4f}, 95 % upper bound "
             f"{null['fpr_upper_95']:.4f} (Clopper-Pearson).",
         ]
