@@ -35,6 +35,8 @@ def test_rows_that_differ_in_count_share_their_images():
     assert wanted(cfg) == {"marked:": 24, "clean:": 4, "marked:jpeg=50": 2, "random:": 3}
     done = {("marked:", v): {} for v in range(12)} | {("clean:", v): {} for v in range(4)}
     assert not_reached(cfg, done) == {"marked:": 12, "marked:jpeg=50": 2, "random:": 3}
+    # held-out camera rows stop at --num-views (24); random images need no camera: as many as asked
+    assert wanted(config(("marked:@64", "random:@64"))) == {"marked:": 24, "random:": 64}
 
 
 def test_jittered_strengths_are_drawn_per_view_within_range_and_reproducibly():

@@ -306,9 +306,9 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
     jobs: List[Tuple[str, int, torch.Tensor, str]] = []
     for row in cfg.rows:
         which, _, spec = row.partition(":")
-        spec, _, count = spec.partition("@")
+        spec = spec.partition("@")[0]
         parse_attack_spec(drawn_spec(spec, torch.Generator().manual_seed(0)))
-        n = min(int(count), cfg.num_views) if count else cfg.num_views
+        n = row_count(cfg, row)
         if all((row_key(row), i) in done for i in range(n)):  # decoded already: no renders needed
             continue
         if which in ("marked", "clean"):
@@ -490,13 +490,20 @@ def random_noise(count: int, size: int, seed: int):
     return random_views(count, size, seed + 7).views if count > 0 else []
 
 
+def row_count(cfg: BenchUnposedConfig, row: str) -> int:
+    """Images a row asks for: ``@N`` (default ``--num-views``), at most ``--num-views`` for rows at the held-out
+    cameras; random images need no camera (as many as asked)."""
+    count = row.partition("@")[2]
+    n = int(count) if count else cfg.num_views
+    return n if row.startswith("random") else min(n, cfg.num_views)
+
+
 def wanted(cfg: BenchUnposedConfig) -> Dict[str, int]:
-    """Images per row key, in the order of ``--rows`` (the largest ``@N`` of rows sharing a key), random images last."""
+    """Images per row key (:func:`row_count`), in the order of ``--rows`` (the largest of rows sharing a key), random
+    images last."""
     out: Dict[str, int] = {}
     for row in cfg.rows:
-        count = row.partition("@")[2]
-        n = min(int(count), cfg.num_views) if count else cfg.num_views
-        out[row_key(row)] = max(out.get(row_key(row), 0), n)
+        out[row_key(row)] = max(out.get(row_key(row), 0), row_count(cfg, row))
     if cfg.random_images > 0:
         out["random:"] = max(out.get("random:", 0), cfg.random_images)
     return out
@@ -593,8 +600,8 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
             "",
             f"The null together ({null['images']} unmarked images and the other keys' checks): {null['checks']} checks, "
             + (
-                f"{null['nothing_read']} more unmarked images with nothing to read left out (every bit undetermined, "
-                "no ray the gate reads at the camera found), "
+                f"left out: {null['nothing_read']} more unmarked image(s) with nothing to read (every bit "
+                "undetermined, no ray the gate reads at the camera found); "
                 if null.get("nothing_read")
                 else ""
             )
