@@ -336,9 +336,8 @@ def decode_unposed_images(
                 if k == 0 and view is not None
                 else any_reference_view(reference, f"unposed/{name}/{k}", camera, None)
             )
-            if (
-                k > 0 and ref_view.rays.numel() == 0
-            ):  # the pose step left every ray the gate reads: earlier rounds stand
+            # the pose step left every ray the gate reads: earlier rounds stand (a round with no ray has residual 0)
+            if k > 0 and ref_view.rays.numel() == 0:
                 break
             ref = image_reference(ref_view, background)
             value, cmap = reading(image, ref, value_mode and reads_value(image, ref_view.image), color_map)
