@@ -14,7 +14,10 @@ from gsticker_plugin.bench.unposed import (
     drawn_spec,
     folder_images,
     is_null_row,
+    is_removal_row,
+    match_histogram,
     not_reached,
+    null_chart,
     null_summary,
     other_keys,
     purify_steps,
@@ -51,8 +54,16 @@ def test_jittered_strengths_are_drawn_per_view_within_range_and_reproducibly():
 def test_other_keys_match_the_decoded_bits_like_coin_flips():
     rows = [{"bits": "01" * 24} for _ in range(10)]
     out = other_keys(rows, 64, 41)
-    assert out["checks"] == 640 and 21 < out["matches_mean"] < 27 and out["passing"] == 0
+    assert 21 < out["matches_mean"] < 27 and out["passing"] == 0 and out["passing_pairs"] == 0
     assert other_keys([], 64, 41) is None
+
+
+def test_each_other_key_is_one_check_because_images_of_one_model_read_alike():
+    """Ten images decoding the same bits checked with 64 keys are 64 independent checks, not 640: counting every
+    pair would shrink the null's confidence bound tenfold with no new evidence."""
+    out = other_keys([{"bits": "01" * 24} for _ in range(10)], 64, 41)
+    assert out["checks"] == 64 and out["pairs"] == 640 and sum(out["histogram"]) == 64
+    assert out["matches_max_pairs"] == out["matches_max"]  # every image reads alike: the pairs add nothing
 
 
 def test_the_null_bound_is_clopper_pearson():
@@ -70,6 +81,32 @@ def test_the_null_pools_unmarked_images_and_other_keys():
     assert abs(n["matches_mean"] - (20 + 28 + 42 + 7 * 24) / 10) < 1e-12
     assert n["fpr"] == 0.1 and n["fpr_upper_95"] > 0.1
     assert null_summary([], None, 41) is None
+
+
+def test_the_null_histogram_counts_every_check_once():
+    """The other keys' checks and the unmarked images read land in one histogram that sums to the null's checks; an
+    image with nothing to read is left out of it like it is left out of the checks."""
+    rows = [{"bits": "01" * 24} for _ in range(5)]
+    others = other_keys(rows, 8, 41)
+    assert sum(others["histogram"]) == others["checks"] == 8 and len(others["histogram"]) == 49
+    assert sum(k * c for k, c in enumerate(others["histogram"])) == others["matches_mean"] * 8
+    unmarked = [{"matches": 20, "bits": "0" * 48}, {"matches": 20, "bits": "1" * 48}, {"matches": 0, "bits": "?" * 48}]
+    n = null_summary(unmarked, others, 41)
+    assert sum(n["histogram"]) == n["checks"] == 10 and n["histogram"][20] == others["histogram"][20] + 2
+    assert n["images"] == 2 and n["images_passing"] == 0 and 0.77 < n["images_fpr_upper_95"] < 0.78
+    assert n["histogram"][0] == others["histogram"][0]
+    assert match_histogram([0, 48, 48], 48)[48] == 2
+
+
+def test_the_null_chart_is_written_beside_the_page(tmp_path):
+    n = null_summary([{"matches": 22}, {"matches": 27}], other_keys([{"bits": "01" * 24}] * 3, 16, 41), 41)
+    null_chart(n, [48, 47, 46], [23, 33], tmp_path / "p-null.png", 48, 41)
+    assert (tmp_path / "p-null.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_removal_rows_are_the_threat_models_and_nothing_else():
+    assert [is_removal_row(r) for r in ("pgd=40:", "purify=3:", "leak=0.5:")] == [True] * 3
+    assert [is_removal_row(r) for r in ("marked:", "palette=blue:", "random:", "marked:jpeg=50")] == [False] * 4
 
 
 def test_scene_rows_join_the_null_and_leak_or_purify_rows_do_not():
@@ -215,3 +252,43 @@ def test_an_image_with_nothing_to_read_is_left_out_of_the_null_mean_and_counts_z
     pooled = null_summary(rows, None, 41)
     assert pooled["images"] == 2 and pooled["checks"] == 2 and pooled["nothing_read"] == 1
     assert pooled["matches_mean"] == 24.0
+
+
+def test_a_page_rewritten_from_its_rows_keeps_the_recorded_psnr_and_draws_the_null(tmp_path):
+    """--page-only on a work dir whose run has changed since: the page's own JSON keeps the PSNR it was decoded at."""
+    from types import SimpleNamespace
+
+    from gsticker_plugin.bench.unposed import recorded_psnr, write_page
+
+    cfg = BenchUnposedConfig(
+        load_config=Path("c.yml"),
+        key=Path("k.gskey"),
+        rows=("marked:@2", "clean:@1"),
+        random_images=0,
+        work_dir=tmp_path / "work",
+        output=tmp_path / "page.md",
+    )
+    row = {"signals": ["rgb"], "seconds": 1.0, "explained": 0.0, "pose_rms": 0.0}
+    done = {
+        ("marked:", 0): {**row, "row": "marked:@2", "view": 0, "matches": 48, "bits": "01" * 24},
+        ("marked:", 1): {**row, "row": "marked:@2", "view": 1, "matches": 47, "bits": "01" * 23 + "00"},
+        ("clean:", 0): {**row, "row": "clean:@1", "view": 0, "matches": 22, "bits": "10" * 24},
+    }
+    assert recorded_psnr(cfg.output.with_suffix(".json")) is None
+    res = write_page(cfg, SimpleNamespace(num_bits=48), done, 41, {"mean": 45.42, "min": 43.53})
+    assert recorded_psnr(cfg.output.with_suffix(".json")) == {"mean": 45.42, "min": 43.53}
+    page = cfg.output.read_text()
+    assert "PSNR marked vs clean 45.42 dB mean, 43.53 dB worst view" in page
+    assert res["null"]["checks"] == 1 + 64 and res["rows"]["marked:"]["passing"] == 2
+    assert "![matches of the null beside the marked images](page-null.png)" in page
+    assert (tmp_path / "page-null.png").exists()
+    first = res["date"]
+    again = write_page(
+        cfg.__class__(**{**vars(cfg), "page_only": True}),
+        SimpleNamespace(num_bits=48),
+        done,
+        41,
+        {"mean": 45.42, "min": 43.53},
+    )
+    assert again["decoded"] == first and again["machine"] == res["machine"]
+    assert f"first page {first}; this page rewritten from their rows" in cfg.output.read_text()

@@ -69,7 +69,8 @@ class BenchUnposedConfig:
     none; ``hue=~0.5``: a strength drawn per view from [-0.5, 0.5]), the first ``N`` views only (rows that differ only
     in ``N`` share their images: ``marked:@12`` early, ``marked:@24`` later)."""
     other_keys: int = 64
-    """Other owners' random messages every marked image's bits are also checked against (a null)."""
+    """Other owners' random messages, each checked against one marked image's bits, the images in turn (a null of
+    independent checks; the largest match over every image and key is reported beside it)."""
     foreign_config: Optional[Path] = None
     """Another model of the scene (config.yml) rendered for ``foreign:`` rows, e.g. a TensoRF base: a null."""
     rolls: Tuple[float, ...] = (0.0,)
@@ -90,7 +91,7 @@ class BenchUnposedConfig:
     seed: int = 0
     page_only: bool = False
     """Write the page from the images already decoded in ``--work-dir`` (rows not reached are left out), decode
-    nothing."""
+    nothing; the held-out views' PSNR comes from the work dir, else from the page's own JSON, else a render."""
     work_dir: Path = Path("outputs/bench-unposed")
     output: Path = Path("docs/bench-unposed.md")
     """The page; its JSON goes beside it."""
@@ -293,13 +294,18 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
             done[(row_key(r["row"]), r["view"])] = r
     psnr_path = cfg.work_dir / "psnr.json"
     if cfg.page_only and psnr_path.exists():
-        return write_page(cfg, key, done, threshold, torch.tensor(json.loads(psnr_path.read_text())["per_view_db"]))
+        per_view = json.loads(psnr_path.read_text())["per_view_db"]
+        return write_page(cfg, key, done, threshold, {"mean": sum(per_view) / len(per_view), "min": min(per_view)})
+    recorded = recorded_psnr(cfg.output.with_suffix(".json"))
+    if cfg.page_only and recorded is not None:  # the page's own record: the run may have changed since
+        return write_page(cfg, key, done, threshold, recorded)
     t0 = time.time()
     marked, clean = held_out_renders(pipe, cams)
-    psnr = metrics.psnr(marked.permute(0, 3, 1, 2), clean.permute(0, 3, 1, 2))
-    psnr_path.write_text(json.dumps({"per_view_db": [float(v) for v in psnr]}))
+    per_view = metrics.psnr(marked.permute(0, 3, 1, 2), clean.permute(0, 3, 1, 2))
+    psnr = {"mean": float(per_view.mean()), "min": float(per_view.min())}
+    psnr_path.write_text(json.dumps({"per_view_db": [float(v) for v in per_view]}))
     print(
-        f"rendered {cfg.num_views} held-out views in {time.time() - t0:.0f} s; PSNR marked vs clean {float(psnr.mean()):.2f} dB"
+        f"rendered {cfg.num_views} held-out views in {time.time() - t0:.0f} s; PSNR marked vs clean {psnr['mean']:.2f} dB"
     )
     if cfg.page_only:
         return write_page(cfg, key, done, threshold, psnr)
@@ -425,22 +431,37 @@ def summarize(rows: List[Dict[str, Any]], threshold: int, num_bits: int, null: b
 
 def other_keys(rows: List[Dict[str, Any]], count: int, threshold: int) -> Optional[Dict[str, Any]]:
     """The marked images' decoded bits checked against ``count`` other owners' keys (messages drawn uniformly at
-    random, seed 99): the same model under a second key, a null. None without rows or keys."""
+    random, seed 99): the same model under a second key, a null. Each key is one check, against one marked image
+    (the images in turn), so the checks are independent draws; ``matches_max_pairs`` and ``passing_pairs`` cover
+    every image with every key (those pairs share images, so they are not independent). None without rows or keys."""
     rows = [r for r in rows if "bits" in r]
     if not rows or count <= 0:
         return None
     n = len(rows[0]["bits"])
     msgs = torch.randint(0, 2, (count, n), generator=torch.Generator().manual_seed(99))
     bits = torch.tensor([[int(c) if c in "01" else -1 for c in r["bits"]] for r in rows])
-    m = (bits[:, None, :] == msgs[None]).sum(-1).double()  # [images, keys]
+    m = (bits[:, None, :] == msgs[None]).sum(-1)  # [images, keys]
+    one = m[torch.arange(count) % len(rows), torch.arange(count)].double()  # key j against image j mod images
     return {
         "keys": count,
         "images": len(rows),
-        "checks": int(m.numel()),
-        "matches_mean": float(m.mean()),
-        "matches_max": int(m.max()),
-        "passing": int((m >= threshold).sum()),
+        "checks": count,
+        "matches_mean": float(one.mean()),
+        "matches_max": int(one.max()),
+        "passing": int((one >= threshold).sum()),
+        "histogram": match_histogram(one.long().tolist(), n),
+        "pairs": int(m.numel()),
+        "matches_max_pairs": int(m.max()),
+        "passing_pairs": int((m >= threshold).sum()),
     }
+
+
+def match_histogram(matches: List[int], num_bits: int) -> List[int]:
+    """How many checks matched 0, 1, ..., ``num_bits`` bits."""
+    out = [0] * (num_bits + 1)
+    for v in matches:
+        out[int(v)] += 1
+    return out
 
 
 NULL_IMAGES = ("clean", "foreign", "random", "scene")
@@ -452,23 +473,67 @@ def is_null_row(row: str) -> bool:
     return row.partition(":")[0].partition("=")[0] in NULL_IMAGES
 
 
+REMOVAL_ATTACKS = ("pgd", "purify", "leak")
+"""Rows of the threat model: the recipient removing the mark (they may read like the null where they break it)."""
+
+
+def is_removal_row(row: str) -> bool:
+    """Whether a row's images are a removal attack's (:data:`REMOVAL_ATTACKS`)."""
+    return row.partition(":")[0].partition("=")[0] in REMOVAL_ATTACKS
+
+
+def null_chart(
+    null: Dict[str, Any], marked: List[int], removed: List[int], path: Path, num_bits: int, threshold: int
+) -> None:
+    """Histogram of the null's matches beside Binomial(``num_bits``, 1/2) scaled to its checks, the marked images'
+    matches and the removal attacks' (log count axis), with the pass line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = list(range(num_bits + 1))
+    fig, ax = plt.subplots(figsize=(6.5, 3.6))
+    ax.bar(x, null["histogram"], 0.8, color="tab:gray", label=f"null: {null['checks']} checks")
+    expected = [null["checks"] * math.comb(num_bits, k) / 2**num_bits for k in x]
+    ax.plot(x, expected, "k-", lw=1, label=f"Binomial({num_bits}, 1/2) x checks")
+    for values, color, label in (
+        (marked, "tab:green", "marked model's images (attacked, recoloured)"),
+        (removed, "tab:red", "removal attacks (pgd, purify)"),
+    ):
+        if values:
+            ax.bar(x, match_histogram(values, num_bits), 0.8, color=color, alpha=0.8, label=f"{label}: {len(values)}")
+    ax.axvline(threshold - 0.5, color="tab:blue", ls=":", label=f"pass line ({threshold}/{num_bits})")
+    ax.set_yscale("log")
+    ax.set_ylim(0.5, max(max(null["histogram"]), len(marked), len(removed), 1) * 3)
+    ax.set_xlabel(f"matching bits (of {num_bits})")
+    ax.set_ylabel("images or checks")
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def null_summary(
-    rows: List[Dict[str, Any]], others: Optional[Dict[str, Any]], threshold: int
+    rows: List[Dict[str, Any]], others: Optional[Dict[str, Any]], threshold: int, num_bits: int = 48
 ) -> Optional[Dict[str, Any]]:
     """Every null check together: the unmarked images' matches (``rows`` of :data:`NULL_IMAGES`; those with nothing
     to read counted apart) and the marked images checked with other keys; the empirical false-positive rate at
-    ``threshold`` with its 95 % upper bound."""
+    ``threshold`` with its 95 % upper bound, and the histogram of the matches."""
     m = [float(r["matches"]) for r in rows if not read_nothing(r)]
     checks, total, top = len(m), sum(m), max(m, default=0.0)
-    passing = sum(v >= threshold for v in m)
+    passing = images_passing = int(sum(v >= threshold for v in m))
+    histogram = match_histogram([int(v) for v in m], num_bits)
     if others is not None:
         checks += others["checks"]
         total += others["matches_mean"] * others["checks"]
         top = max(top, float(others["matches_max"]))
         passing += others["passing"]
+        histogram = [a + b for a, b in zip(histogram, others.get("histogram") or [0] * (num_bits + 1))]
     if checks == 0:
         return None
     return {
+        "histogram": histogram,
         "checks": checks,
         "images": len(m),
         "nothing_read": sum(map(read_nothing, rows)),
@@ -477,6 +542,8 @@ def null_summary(
         "passing": int(passing),
         "fpr": passing / checks,
         "fpr_upper_95": metrics.clopper_pearson_upper(int(passing), checks),
+        "images_passing": images_passing,
+        "images_fpr_upper_95": metrics.clopper_pearson_upper(images_passing, len(m)) if m else 1.0,
     }
 
 
@@ -519,7 +586,26 @@ def not_reached(cfg: BenchUnposedConfig, done: Dict[Any, Dict[str, Any]]) -> Dic
     return out
 
 
-def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], threshold: int, psnr) -> Dict[str, Any]:
+def recorded_psnr(page_json: Path) -> Optional[Dict[str, float]]:
+    """The marked-vs-clean PSNR (mean, min over the held-out views) a page's JSON recorded; None without one."""
+    if not page_json.exists():
+        return None
+    return json.loads(page_json.read_text()).get("psnr_marked_vs_clean_db")
+
+
+def recorded_run(page_json: Path) -> Dict[str, Any]:
+    """What a page's JSON recorded of the decoding (the machine, the date it was first written, as ``decoded``) for
+    a page rewritten from its rows; empty without one."""
+    if not page_json.exists():
+        return {}
+    old = json.loads(page_json.read_text())
+    return {"machine": old["machine"], "decoded": old.get("decoded", old["date"])}
+
+
+def write_page(
+    cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], threshold: int, psnr: Dict[str, float]
+) -> Dict[str, Any]:
+    """The page and its JSON from the images decoded (``done``); ``psnr``: marked vs clean, mean and min (dB)."""
     table = {
         row: summarize(
             [r for (k, v), r in done.items() if k == row and v < n], threshold, key.num_bits, is_null_row(row)
@@ -533,7 +619,7 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
         for (k, v), r in done.items()
         if k.partition(":")[0].partition("=")[0] in NULL_IMAGES and v < wanted(cfg).get(k, 0)
     ]
-    null = null_summary(null_rows, others, threshold)
+    null = null_summary(null_rows, others, threshold, key.num_bits)
     res = {
         "other_keys": others,
         "null": null,
@@ -541,8 +627,9 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
         "not_reached": not_reached(cfg, done),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": machine_info(),
+        **(recorded_run(cfg.output.with_suffix(".json")) if cfg.page_only else {}),
         "threshold": threshold,
-        "psnr_marked_vs_clean_db": {"mean": float(psnr.mean()), "min": float(psnr.min())},
+        "psnr_marked_vs_clean_db": {"mean": psnr["mean"], "min": psnr["min"]},
         "rows": table,
         "per_image": list(done.values()),
     }
@@ -552,7 +639,14 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
     lines = [
         "# Images alone: the informed image decoder finds each image's camera",
         "",
-        f"Command ({res['date']}, {res['machine'].get('cpu', '')}; every number here is in [{js.name}]({js.name}), written by it):",
+        (
+            f"Command (images decoded on {res['machine'].get('cpu', '')}, first page {res['decoded']}; this page "
+            f"rewritten from their rows on {res['date']} with `--page-only`: the columns say which route each image "
+            "was read through then, the text below describes the decoder as it is now; every number here is in "
+            f"[{js.name}]({js.name})):"
+            if "decoded" in res
+            else f"Command ({res['date']}, {res['machine'].get('cpu', '')}; every number here is in [{js.name}]({js.name}), written by it):"
+        ),
         "",
         "```bash",
         res["command"],
@@ -560,7 +654,7 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
         "",
         f"{cfg.num_views} orbit cameras drawn with seed {cfg.camera_seed} (held out: the sticker never trained or "
         "calibrated on them), the watermarked run rendered there with its sticker on (*marked*) and off (*clean*: "
-        f"the owner's base), 8-bit; PSNR marked vs clean {float(psnr.mean()):.2f} dB mean, {float(psnr.min()):.2f} dB "
+        f"the owner's base), 8-bit; PSNR marked vs clean {psnr['mean']:.2f} dB mean, {psnr['min']:.2f} dB "
         "worst view. Every image is decoded **without its camera**: a search over candidate poses against the owner's "
         "base, Gauss-Newton on the pixels (on V; again on RGB with the base rendered through a colour map of its "
         f"samples when that map explains at least {MAP_SEARCH_SHARE:.0%} of the image's difference from the base "
@@ -591,8 +685,9 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
         )
     if others is not None:
         lines.append(
-            f"| marked, checked with {others['keys']} other keys | none | {others['checks']} checks | - | "
-            f"{others['matches_mean']:.1f} (max {others['matches_max']}) | {others['passing']}/{others['checks']} | - | - "
+            f"| marked, checked with {others['keys']} other keys (one image each) | none | {others['checks']} checks | - | "
+            f"{others['matches_mean']:.1f} (max {others['matches_max']}; every image with every key: max "
+            f"{others.get('matches_max_pairs', others['matches_max'])}) | {others['passing']}/{others['checks']} | - | - "
             "| - |"
         )
     if null is not None:
@@ -607,8 +702,25 @@ def write_page(cfg: BenchUnposedConfig, key, done: Dict[Any, Dict[str, Any]], th
             )
             + f"matches mean {null['matches_mean']:.1f}, max {null['matches_max']}; {null['passing']} pass at >= "
             f"{threshold}/48: empirical false-positive rate {null['fpr']:.4f}, 95 % upper bound "
-            f"{null['fpr_upper_95']:.4f} (Clopper-Pearson).",
+            f"{null['fpr_upper_95']:.4f} (Clopper-Pearson over independent checks)."
+            + (
+                f" The unmarked images alone: {null['images']} images, {null['images_passing']} pass, 95 % upper "
+                f"bound {null['images_fpr_upper_95']:.3f}."
+                if null["images"]
+                else ""
+            ),
         ]
+        chart = cfg.output.with_name(cfg.output.stem + "-null.png")
+        kept = [(k, r) for (k, v), r in done.items() if not is_null_row(k) and v < wanted(cfg).get(k, 0)]
+        null_chart(
+            null,
+            [r["matches"] for k, r in kept if not is_removal_row(k)],
+            [r["matches"] for k, r in kept if is_removal_row(k)],
+            chart,
+            key.num_bits,
+            threshold,
+        )
+        lines += ["", f"![matches of the null beside the marked images]({chart.name})"]
     if res["not_reached"]:
         lines += [
             "",
