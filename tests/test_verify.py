@@ -216,6 +216,49 @@ def test_vote_pvalue_and_clopper_pearson_against_scipy():
     assert metrics.clopper_pearson_upper(5, 5) == 1.0
 
 
+def test_the_summary_names_views_with_nothing_to_read_instead_of_a_bare_zero():
+    """An image whose camera shows no ray the gate reads decodes every bit undetermined (0 matches): the summary says
+    so, rather than leave a 0/48 that reads like an anti-watermark."""
+    from gsticker_plugin.verify.report import nothing_read, summary_text
+
+    def view(name, matches, undetermined):
+        return {"name": name, "matches": matches, "pvalue": 1.0, "image_fit": {"undetermined": undetermined}}
+
+    key = {
+        "owner_id": "alice",
+        "key": "a.gskey",
+        "verdict": "not shown",
+        "decoder": "image",
+        "num_bits": 48,
+        "thresholds": {"used": 41, "theoretical": 41, "per_view_fpr_target": 1e-6, "empirical": None},
+        "empirical_null": None,
+        "views_passing": 0,
+        "views": 2,
+        "share_passing": 0.0,
+        "views_needed": 1,
+        "min_share": 0.5,
+        "matches_min": 0,
+        "matches_median": 12,
+        "matches_max": 24,
+        "mean_bit_accuracy": 0.25,
+        "mean_score": None,
+        "model_pvalue": 1.0,
+        "model_fpr_bound": 1.0,
+        "per_view": [view("a.png", 24, 0), view("b.png", 0, 48)],
+    }
+    report = {
+        "verdict": "not shown",
+        "owned_by": [],
+        "settings": {"attack": ""},
+        "keys": [key],
+        "input": {"kind": "images", "source": "dir", "views": 2, "skipped": []},
+    }
+    assert nothing_read(key) == 1
+    assert "1 view(s) with nothing to read" in summary_text(report)
+    key["per_view"][1]["image_fit"]["undetermined"] = 47
+    assert nothing_read(key) == 0 and "nothing to read" not in summary_text(report)
+
+
 # ---------------------------------------------------------------------------------------------- hand-built key
 def test_hand_built_extractor_reads_the_grid_and_sits_at_chance_on_random_images(alice):
     key = OwnerKey.load(alice["path"])

@@ -25,6 +25,13 @@ def _fmt_p(p: float) -> str:
     return f"{p:.2g}" if p >= 1e-3 or p == 0 else f"{p:.1e}"
 
 
+def nothing_read(key_report: Dict[str, Any]) -> int:
+    """Images of a key's result whose every bit the informed image decoder left undetermined (its fit read no ray)."""
+    return sum(
+        (v.get("image_fit") or {}).get("undetermined", 0) >= key_report["num_bits"] for v in key_report["per_view"]
+    )
+
+
 def summary_text(report: Dict[str, Any]) -> str:
     lines = []
     owners = report["owned_by"]
@@ -67,6 +74,12 @@ def summary_text(report: Dict[str, Any]) -> str:
             f"{r['views_needed']} = {100 * r['min_share']:.0f} %) at >= {t['used']}/{r['num_bits']} matches "
             f"(theoretical {t['theoretical']} at per-view FPR {t['per_view_fpr_target']:g}; {emp})"
         )
+        unread = nothing_read(r)
+        if unread:
+            lines.append(
+                f"    {unread} view(s) with nothing to read: every bit undetermined (no ray the gate reads in that "
+                "view; an image at a camera found away from the owner's scene), counted as 0 matches"
+            )
         best = max(r["per_view"], key=lambda v: v["matches"])
         lines.append(
             f"    matches min/median/max {r['matches_min']}/{r['matches_median']}/{r['matches_max']} of "
