@@ -1,4 +1,5 @@
-"""The bookkeeping of the images-without-cameras bench (gsticker_plugin.bench.unposed): rows, resume, jitter."""
+"""The images-without-cameras bench (gsticker_plugin.bench.unposed and its page, bench.unposed_page): rows, resume,
+jitter, the null, the page."""
 
 import json
 from pathlib import Path
@@ -7,12 +8,9 @@ import pytest
 import torch
 
 from gsticker_plugin import metrics
-from gsticker_plugin.bench.unposed import (
-    BenchUnposedConfig,
-    attacked,
+from gsticker_plugin.bench.unposed import BenchUnposedConfig, attacked, drawn_spec, folder_images, purify_steps
+from gsticker_plugin.bench.unposed_page import (
     breaking_points,
-    drawn_spec,
-    folder_images,
     is_null_row,
     is_removal_row,
     match_histogram,
@@ -20,7 +18,6 @@ from gsticker_plugin.bench.unposed import (
     null_chart,
     null_summary,
     other_keys,
-    purify_steps,
     row_key,
     threat_curves,
     threat_lines,
@@ -220,7 +217,7 @@ def test_a_cropout_row_pastes_the_clean_render_of_the_same_camera_or_paints_whit
 
 
 def test_the_summary_counts_each_route_an_image_was_read_through():
-    from gsticker_plugin.bench.unposed import summarize
+    from gsticker_plugin.bench.unposed_page import summarize
 
     row = {"matches": 40, "signals": ["rgb"], "seconds": 1.0}
     rows = [
@@ -239,7 +236,7 @@ def test_the_summary_counts_each_route_an_image_was_read_through():
 def test_an_image_with_nothing_to_read_is_left_out_of_the_null_mean_and_counts_zero_for_the_owner():
     """Every bit undetermined (no ray the gate reads at the camera found): a null row's mean is over the images read,
     with the unread one counted apart; a marked row keeps its 0 matches (never flattering the owner)."""
-    from gsticker_plugin.bench.unposed import read_nothing, summarize
+    from gsticker_plugin.bench.unposed_page import read_nothing, summarize
 
     row = {"signals": ["rgb"], "seconds": 1.0}
     rows = [{**row, "matches": 22, "bits": "01" * 24}, {**row, "matches": 26, "bits": "10" * 24}]
@@ -258,7 +255,7 @@ def test_a_page_rewritten_from_its_rows_keeps_the_recorded_psnr_and_draws_the_nu
     """--page-only on a work dir whose run has changed since: the page's own JSON keeps the PSNR it was decoded at."""
     from types import SimpleNamespace
 
-    from gsticker_plugin.bench.unposed import recorded_psnr, write_page
+    from gsticker_plugin.bench.unposed_page import recorded_psnr, write_page
 
     cfg = BenchUnposedConfig(
         load_config=Path("c.yml"),
