@@ -72,7 +72,13 @@ def test_the_null_bound_is_clopper_pearson():
 
 def test_the_null_pools_unmarked_images_and_other_keys():
     rows = [{"matches": 20}, {"matches": 28}, {"matches": 42}]
-    others = {"checks": 7, "matches_mean": 24.0, "matches_max": 35, "passing": 0}
+    others = {
+        "checks": 7,
+        "matches_mean": 24.0,
+        "matches_max": 35,
+        "passing": 0,
+        "histogram": [0] * 24 + [7] + [0] * 24,
+    }
     n = null_summary(rows, others, 41)
     assert n["checks"] == 10 and n["images"] == 3 and n["passing"] == 1 and n["matches_max"] == 42
     assert abs(n["matches_mean"] - (20 + 28 + 42 + 7 * 24) / 10) < 1e-12
@@ -255,7 +261,7 @@ def test_a_page_rewritten_from_its_rows_keeps_the_recorded_psnr_and_draws_the_nu
     """--page-only on a work dir whose run has changed since: the page's own JSON keeps the PSNR it was decoded at."""
     from types import SimpleNamespace
 
-    from gsticker_plugin.bench.unposed_page import recorded_psnr, write_page
+    from gsticker_plugin.bench.unposed_page import recorded_page, write_page
 
     cfg = BenchUnposedConfig(
         load_config=Path("c.yml"),
@@ -271,9 +277,9 @@ def test_a_page_rewritten_from_its_rows_keeps_the_recorded_psnr_and_draws_the_nu
         ("marked:", 1): {**row, "row": "marked:@2", "view": 1, "matches": 47, "bits": "01" * 23 + "00"},
         ("clean:", 0): {**row, "row": "clean:@1", "view": 0, "matches": 22, "bits": "10" * 24},
     }
-    assert recorded_psnr(cfg.output.with_suffix(".json")) is None
+    assert recorded_page(cfg.output.with_suffix(".json")).get("psnr_marked_vs_clean_db") is None
     res = write_page(cfg, SimpleNamespace(num_bits=48), done, 41, {"mean": 45.42, "min": 43.53})
-    assert recorded_psnr(cfg.output.with_suffix(".json")) == {"mean": 45.42, "min": 43.53}
+    assert recorded_page(cfg.output.with_suffix(".json"))["psnr_marked_vs_clean_db"] == {"mean": 45.42, "min": 43.53}
     page = cfg.output.read_text()
     assert "PSNR marked vs clean 45.42 dB mean, 43.53 dB worst view" in page
     assert res["null"]["checks"] == 1 + 64 and res["rows"]["marked:"]["passing"] == 2

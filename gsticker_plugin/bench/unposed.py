@@ -28,7 +28,7 @@ from torch import Tensor
 
 from gsticker_plugin import compat, metrics
 from gsticker_plugin.attacks.spec import apply_attacks, parse_attack_spec
-from gsticker_plugin.bench.unposed_page import recorded_psnr, row_count, row_key, write_page
+from gsticker_plugin.bench.unposed_page import recorded_page, row_count, row_key, write_page
 from gsticker_plugin.decoders.image import decode_posed_images, image_reference, leaked_key_attack
 from gsticker_plugin.decoders.pose import PoseSearch
 from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker, load_base_reference
@@ -296,8 +296,8 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
     if cfg.page_only and psnr_path.exists():
         per_view = json.loads(psnr_path.read_text())["per_view_db"]
         return write_page(cfg, key, done, threshold, {"mean": sum(per_view) / len(per_view), "min": min(per_view)})
-    recorded = recorded_psnr(cfg.output.with_suffix(".json"))
-    if cfg.page_only and recorded is not None:  # the page's own record: the run may have changed since
+    recorded = recorded_page(cfg.output.with_suffix(".json")).get("psnr_marked_vs_clean_db") if cfg.page_only else None
+    if recorded is not None:  # the page's own record: the run may have changed since
         return write_page(cfg, key, done, threshold, recorded)
     t0 = time.time()
     marked, clean = held_out_renders(pipe, cams)

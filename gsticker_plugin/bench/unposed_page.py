@@ -102,10 +102,7 @@ def other_keys(rows: List[Dict[str, Any]], count: int, threshold: int) -> Option
 
 def match_histogram(matches: List[int], num_bits: int) -> List[int]:
     """How many checks matched 0, 1, ..., ``num_bits`` bits."""
-    out = [0] * (num_bits + 1)
-    for v in matches:
-        out[int(v)] += 1
-    return out
+    return torch.bincount(torch.tensor(matches, dtype=torch.long), minlength=num_bits + 1).tolist()
 
 
 NULL_IMAGES = ("clean", "foreign", "random", "scene")
@@ -173,7 +170,7 @@ def null_summary(
         total += others["matches_mean"] * others["checks"]
         top = max(top, float(others["matches_max"]))
         passing += others["passing"]
-        histogram = [a + b for a, b in zip(histogram, others.get("histogram") or [0] * (num_bits + 1))]
+        histogram = [a + b for a, b in zip(histogram, others["histogram"])]
     if checks == 0:
         return None
     return {
@@ -225,40 +222,28 @@ def not_reached(cfg: PageConfig, done: Dict[Any, Dict[str, Any]]) -> Dict[str, i
     return out
 
 
-def recorded_psnr(page_json: Path) -> Optional[Dict[str, float]]:
-    """The marked-vs-clean PSNR (mean, min over the held-out views) a page's JSON recorded; None without one."""
-    if not page_json.exists():
-        return None
-    return json.loads(page_json.read_text()).get("psnr_marked_vs_clean_db")
-
-
-def recorded_run(page_json: Path) -> Dict[str, Any]:
-    """What a page's JSON recorded of the decoding (the machine, the date it was first written, as ``decoded``) for
-    a page rewritten from its rows; empty without one."""
-    if not page_json.exists():
-        return {}
-    old = json.loads(page_json.read_text())
-    return {"machine": old["machine"], "decoded": old.get("decoded", old["date"])}
+def recorded_page(page_json: Path) -> Dict[str, Any]:
+    """What a page's JSON recorded (its PSNR, machine and date: a page rewritten from its rows keeps them); empty
+    without one."""
+    return json.loads(page_json.read_text()) if page_json.exists() else {}
 
 
 def write_page(
     cfg: PageConfig, key, done: Dict[Any, Dict[str, Any]], threshold: int, psnr: Dict[str, float]
 ) -> Dict[str, Any]:
     """The page and its JSON from the images decoded (``done``); ``psnr``: marked vs clean, mean and min (dB)."""
+    want = wanted(cfg)
     table = {
         row: summarize(
             [r for (k, v), r in done.items() if k == row and v < n], threshold, key.num_bits, is_null_row(row)
         )
-        for row, n in wanted(cfg).items()
+        for row, n in want.items()
         if any(k == row and v < n for k, v in done)
     }
+    kept = [(k, r) for (k, v), r in done.items() if v < want.get(k, 0)]
     others = other_keys([r for (k, _), r in done.items() if k.startswith("marked:")], cfg.other_keys, threshold)
-    null_rows = [
-        r
-        for (k, v), r in done.items()
-        if k.partition(":")[0].partition("=")[0] in NULL_IMAGES and v < wanted(cfg).get(k, 0)
-    ]
-    null = null_summary(null_rows, others, threshold, key.num_bits)
+    null = null_summary([r for k, r in kept if is_null_row(k)], others, threshold, key.num_bits)
+    old = recorded_page(cfg.output.with_suffix(".json")) if cfg.page_only else {}
     res = {
         "other_keys": others,
         "null": null,
@@ -266,7 +251,7 @@ def write_page(
         "not_reached": not_reached(cfg, done),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": machine_info(),
-        **(recorded_run(cfg.output.with_suffix(".json")) if cfg.page_only else {}),
+        **({"machine": old["machine"], "decoded": old.get("decoded", old["date"])} if old else {}),
         "threshold": threshold,
         "psnr_marked_vs_clean_db": {"mean": psnr["mean"], "min": psnr["min"]},
         "rows": table,
@@ -350,10 +335,9 @@ def write_page(
             ),
         ]
         chart = cfg.output.with_name(cfg.output.stem + "-null.png")
-        kept = [(k, r) for (k, v), r in done.items() if not is_null_row(k) and v < wanted(cfg).get(k, 0)]
         null_chart(
             null,
-            [r["matches"] for k, r in kept if not is_removal_row(k)],
+            [r["matches"] for k, r in kept if not is_null_row(k) and not is_removal_row(k)],
             [r["matches"] for k, r in kept if is_removal_row(k)],
             chart,
             key.num_bits,
