@@ -178,6 +178,24 @@ def test_threat_curve_pairs_each_purified_model_with_its_geometric_reading(tmp_p
     assert any("learning rate 0.0001, 512 rays per step" in line for line in lines)
 
 
+def test_a_work_dir_restored_without_attack_records_keeps_the_pages_recorded_threat_points(tmp_path):
+    cfg = config(("purify=10:@2", "pgd=45:@1"))
+    cfg.work_dir, cfg.output = tmp_path, tmp_path / "page.md"
+    kept = {
+        **{k: None for k in ("posed_bit_acc", "posed_passing", "purify_seconds", "psnr_vs_clean_db")},
+        **{"attack": "purify", "strength": 10, "psnr_vs_marked_db": 33.6},
+        **{"geometric_bit_acc": 0.97, "geometric_passing": "8/8", "images_bit_acc": 1.0, "images_passing": "2/2"},
+    }
+    table = {
+        "purify=10:": {"bit_acc": 0.5, "passing": 0, "images": 2},
+        "pgd=45:": {"bit_acc": 0.9, "passing": 1, "images": 1},
+    }
+    (purify,) = threat_curves(cfg, table, 41, 48, [kept, {**kept, "attack": "leak"}])
+    assert purify["psnr_vs_marked_db"] == 33.6 and purify["geometric_passing"] == "8/8"
+    assert (purify["images_bit_acc"], purify["images_passing"]) == (0.5, "0/2")  # read from the rows, not kept
+    assert threat_curves(cfg, table, 41, 48) == []  # nothing recorded anywhere: no point is made up
+
+
 def test_the_threat_table_says_where_each_decoder_breaks():
     def point(steps, images, geometric, acc):
         return {

@@ -8,7 +8,7 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Protocol, Tuple
+from typing import Any, Dict, List, Optional, Protocol, Sequence, Tuple
 
 import torch
 
@@ -243,7 +243,8 @@ def write_page(
     kept = [(k, r) for (k, v), r in done.items() if v < want.get(k, 0)]
     others = other_keys([r for (k, _), r in done.items() if k.startswith("marked:")], cfg.other_keys, threshold)
     null = null_summary([r for k, r in kept if is_null_row(k)], others, threshold, key.num_bits)
-    old = recorded_page(cfg.output.with_suffix(".json")) if cfg.page_only else {}
+    recorded = recorded_page(cfg.output.with_suffix(".json"))
+    old = recorded if cfg.page_only else {}
     res = {
         "other_keys": others,
         "null": null,
@@ -352,7 +353,7 @@ def write_page(
             + ".",
             "",
         ]
-    threat = threat_curves(cfg, table, threshold, key.num_bits)
+    threat = threat_curves(cfg, table, threshold, key.num_bits, recorded.get("threat", []))
     if threat:
         res["threat"] = threat
         js.write_text(json.dumps(res, indent=1))
@@ -368,9 +369,12 @@ def write_page(
     return res
 
 
-def threat_curves(cfg: PageConfig, table, threshold: int, num_bits: int) -> List[Dict[str, Any]]:
-    """Bit accuracy against PSNR (vs the shared marked renders) of the ``purify=`` rows (images alone, and the informed
-    geometric decoder on the same model) and of the ``leak=`` rows; a PNG chart beside the page."""
+def threat_curves(
+    cfg: PageConfig, table, threshold: int, num_bits: int, recorded: Sequence[Dict[str, Any]] = ()
+) -> List[Dict[str, Any]]:
+    """Bit accuracy against PSNR (vs the shared marked renders) of the ``purify=``, ``leak=`` and ``pgd=`` rows
+    (images alone, and an informed decoder beside them); a PNG chart beside the page. A row whose record is not in
+    the work dir (one restored from a page's per-image rows) keeps its point from ``recorded`` (the page's JSON)."""
     points, leaks, pgds = ({}, {}, {})
     if (cfg.work_dir / "purify.json").exists():
         points = json.loads((cfg.work_dir / "purify.json").read_text())
@@ -402,16 +406,22 @@ def threat_curves(cfg: PageConfig, table, threshold: int, num_bits: int) -> List
             "purify_seconds": p.get("purify_seconds"),
         }
 
+    records = {"purify": points, "leak": leaks, "pgd": pgds}
+    kept = {(r["attack"], float(r["strength"])): r for r in recorded}
     for row, t in table.items():
-        which = row.partition(":")[0]
-        attack, _, value = which.partition("=")
-        if attack == "purify" and value in points:
-            p = points[value]
+        attack, _, value = row.partition(":")[0].partition("=")
+        if attack not in records:
+            continue
+        p = records[attack].get(value if attack == "purify" else str(float(value)))
+        if p is None:
+            if (attack, float(value)) in kept:
+                read = {"images_bit_acc": t["bit_acc"], "images_passing": f"{t['passing']}/{t['images']}"}
+                out.append({**kept[(attack, float(value))], **read})
+        elif attack == "purify":
             out.append(point("purify", p["steps"], p, t, geometric=p["geometric_matches"]))
-        elif attack == "leak" and str(float(value)) in leaks:
-            out.append(point("leak", float(value), leaks[str(float(value))], t))
-        elif attack == "pgd" and str(float(value)) in pgds:
-            p = pgds[str(float(value))]
+        elif attack == "leak":
+            out.append(point("leak", float(value), p, t))
+        else:
             out.append(point("pgd", float(value), p, t, posed=p["posed_matches"]))
     if out:
         threat_chart(out, cfg.output.with_suffix(".png"), num_bits, threshold)
