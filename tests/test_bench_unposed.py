@@ -1,6 +1,7 @@
 """The images-without-cameras bench (gsticker_plugin.bench.unposed and its page, bench.unposed_page): rows, resume,
 jitter, the null, the page."""
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -304,6 +305,13 @@ def test_a_page_rewritten_from_its_rows_keeps_the_recorded_psnr_and_draws_the_nu
     assert "![matches of the null beside the marked images](page-null.png)" in page
     assert (tmp_path / "page-null.png").exists()
     first = res["date"]
+    assert res["key_sha256"] is None  # no key file: no identity made up
+    cfg.key = tmp_path / "k.gskey"
+    cfg.key.write_bytes(b"first key")
+    res = write_page(cfg, SimpleNamespace(num_bits=48), done, 41, {"mean": 45.42, "min": 43.53})
+    assert res["key_sha256"] == hashlib.sha256(b"first key").hexdigest()
+    assert f"Owner key sha256 `{res['key_sha256'][:16]}`." in cfg.output.read_text()
+    cfg.key.write_bytes(b"a retrained model's key")  # a page-only rewrite keeps the key it was decoded with
     again = write_page(
         cfg.__class__(**{**vars(cfg), "page_only": True}),
         SimpleNamespace(num_bits=48),
@@ -312,4 +320,5 @@ def test_a_page_rewritten_from_its_rows_keeps_the_recorded_psnr_and_draws_the_nu
         {"mean": 45.42, "min": 43.53},
     )
     assert again["decoded"] == first and again["machine"] == res["machine"]
+    assert again["key_sha256"] == hashlib.sha256(b"first key").hexdigest()
     assert f"first page {first}; this page rewritten from their rows" in cfg.output.read_text()

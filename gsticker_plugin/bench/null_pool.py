@@ -91,6 +91,7 @@ def main(cfg: NullPoolConfig) -> Dict[str, Any]:
             "model": p["command"].split("--load-config ")[-1].split(" ")[0],
             "psnr_marked_vs_clean_db": p.get("psnr_marked_vs_clean_db"),
             "decoded": p.get("decoded", p.get("date")),
+            "key_sha256": p.get("key_sha256"),
         }
         for p, n in zip(pages, names)
     ]
@@ -110,13 +111,14 @@ def main(cfg: NullPoolConfig) -> Dict[str, Any]:
         res["command"],
         "```",
         "",
-        "| page | model | PSNR marked vs clean (dB) | decoded | unmarked images counted |",
-        "|---|---|---:|---|---:|",
+        "| page | model | owner key sha256 | PSNR marked vs clean (dB) | decoded | unmarked images counted |",
+        "|---|---|---|---:|---|---:|",
     ]
     for p in res["pages"]:
         psnr = p["psnr_marked_vs_clean_db"] or {}
         lines.append(
-            f"| [{p['page']}]({p['page']}) | `{p['model']}` | {psnr.get('mean', float('nan')):.2f} | {p['decoded']} | "
+            f"| [{p['page']}]({p['page']}) | `{p['model']}` | {(p['key_sha256'] or 'not recorded')[:16]} | "
+            f"{psnr.get('mean', float('nan')):.2f} | {p['decoded']} | "
             f"{res['images_per_page'][p['page']]} |"
         )
     lines += ["", "| unmarked images | read | mean matches | max |", "|---|---:|---:|---:|"]

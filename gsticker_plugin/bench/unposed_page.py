@@ -3,6 +3,7 @@ images and other keys), the threat-model curves, and the Markdown page with its 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import sys
@@ -20,6 +21,7 @@ from gsticker_plugin.machine import machine_info
 class PageConfig(Protocol):
     """What the page reads of the bench's config (:class:`gsticker_plugin.bench.unposed.BenchUnposedConfig`)."""
 
+    key: Path
     rows: Tuple[str, ...]
     num_views: int
     camera_seed: int
@@ -222,6 +224,11 @@ def not_reached(cfg: PageConfig, done: Dict[Any, Dict[str, Any]]) -> Dict[str, i
     return out
 
 
+def file_sha256(path: Path) -> Optional[str]:
+    """The sha256 of a file's bytes (the owner key a page was decoded with names the model); None without the file."""
+    return hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+
+
 def recorded_page(page_json: Path) -> Dict[str, Any]:
     """What a page's JSON recorded (its PSNR, machine and date: a page rewritten from its rows keeps them); empty
     without one."""
@@ -253,6 +260,7 @@ def write_page(
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": machine_info(),
         **({"machine": old["machine"], "decoded": old.get("decoded", old["date"])} if old else {}),
+        "key_sha256": old.get("key_sha256") if old else file_sha256(cfg.key),
         "threshold": threshold,
         "psnr_marked_vs_clean_db": {"mean": psnr["mean"], "min": psnr["min"]},
         "rows": table,
@@ -286,7 +294,8 @@ def write_page(
         "render: a recoloured copy), then the image fit with the pose Jacobian beside the message (through a blur or a "
         "JPEG of the base render when one explains the image far better; again without a rectangle the fitted mark is "
         "missing from, when one stands far above the noise: a cropout pasted from an unmarked render) "
-        f"([verify.md](verify.md)). A view passes at >= {threshold}/48 (per-view false-positive rate 1e-6).",
+        f"([verify.md](verify.md)). A view passes at >= {threshold}/48 (per-view false-positive rate 1e-6)."
+        + (f" Owner key sha256 `{res['key_sha256'][:16]}`." if res.get("key_sha256") else ""),
         "",
         "| images | attack | decoded | bit accuracy | matches mean (min-max) | passing | read by V / colour map / camera searched through map / through a blur / as a turned render / through a JPEG / around a covered rectangle | camera error median / max (deg) | s per image (wall) |",
         "|---|---|---|---|---|---|---|---|---|",
