@@ -24,6 +24,7 @@ import tyro
 
 from gsticker_plugin import compat, metrics
 from gsticker_plugin.attacks import hue_shift
+from gsticker_plugin.bench import command_lines
 from gsticker_plugin.decoders.image import decode_posed_images
 from gsticker_plugin.decoders.reference import load_base_reference
 from gsticker_plugin.evaluate import render_split
@@ -105,15 +106,12 @@ def main(cfg: BenchHueConfig) -> Dict[str, Any]:
     cfg.output.parent.mkdir(parents=True, exist_ok=True)
     cfg.output.with_suffix(".json").write_text(json.dumps(res, indent=1))
     lines = [
-        "# The informed image decoder under hue shifts",
-        "",
-        f"Command ({res['date']}; every number here is in [{cfg.output.with_suffix('.json').name}]"
-        f"({cfg.output.with_suffix('.json').name}), written by it):",
-        "",
-        "```bash",
-        res["command"],
-        "```",
-        "",
+        *command_lines(
+            "The informed image decoder under hue shifts",
+            res["date"],
+            cfg.output.with_suffix(".json").name,
+            res["command"],
+        ),
         f"The first {n} test views of the watermarked run (sticker on) and of its base (sticker off), hue-shifted with "
         f"kornia's HSV rotation, rounded to 8 bits, decoded at their cameras. A view passes at >= {threshold}/48 "
         "(per-view false-positive rate 1e-6). *V mode on*: the default (an image whose V matches the base render's "

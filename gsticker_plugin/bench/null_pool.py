@@ -21,6 +21,7 @@ from typing import Any, Dict, List, Tuple
 
 import tyro
 
+from gsticker_plugin.bench import command_lines
 from gsticker_plugin.bench.unposed_page import is_null_row, null_chart, null_summary, read_nothing, row_key
 
 
@@ -102,15 +103,12 @@ def main(cfg: NullPoolConfig) -> Dict[str, Any]:
     chart = cfg.output.with_name(cfg.output.stem + ".png")
     null_chart(null, [], [], chart, num_bits, t)
     lines = [
-        "# The images-alone null, pooled over pages",
-        "",
-        f"Command ({res['date']}; every number here is in [{cfg.output.with_suffix('.json').name}]"
-        f"({cfg.output.with_suffix('.json').name}), written by it):",
-        "",
-        "```bash",
-        res["command"],
-        "```",
-        "",
+        *command_lines(
+            "The images-alone null, pooled over pages",
+            res["date"],
+            cfg.output.with_suffix(".json").name,
+            res["command"],
+        ),
         "| page | model | owner key sha256 | PSNR marked vs clean (dB) | decoded | unmarked images counted |",
         "|---|---|---|---:|---|---:|",
     ]
