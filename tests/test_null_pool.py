@@ -66,6 +66,7 @@ def test_the_pooled_page_counts_every_check_and_draws_its_chart(tmp_path):
     res = main(NullPoolConfig(pages=(tmp_path / "a.json", tmp_path / "b.json"), output=out))
     assert res["null"]["passing"] == 1 and res["null"]["checks"] == 6
     text = out.read_text()
+    assert "| other keys (a.md's marked images, one check a key) | 2 | 23.0 | 25 |" in text
     assert "**6 independent checks: mean 25.0, max 41, 1 at or above 41/48**" in text
     assert (tmp_path / "pool.png").stat().st_size > 1000
     assert json.loads((tmp_path / "pool.json").read_text())["images_per_page"] == {"a.md": 3, "b.md": 1}

@@ -123,8 +123,11 @@ def main(cfg: NullPoolConfig) -> Dict[str, Any]:
     for row, s in res["rows"].items():
         lines.append(f"| {row} | {s['images']} | {s['mean']:.1f} | {s['max']} |")
     if res["other_keys_from"]:
-        o = null["checks"] - null["images"]
-        lines.append(f"| other keys ({res['other_keys_from']}'s marked images, one check a key) | {o} | | |")
+        ok = next(p["other_keys"] for p, n in zip(pages, names) if n == res["other_keys_from"])
+        lines.append(
+            f"| other keys ({res['other_keys_from']}'s marked images, one check a key) | {ok['checks']} | "
+            f"{ok['matches_mean']:.1f} | {ok['matches_max']} |"
+        )
     lines += [
         "",
         f"**{null['checks']} independent checks: mean {null['matches_mean']:.1f}, max {null['matches_max']}, "
