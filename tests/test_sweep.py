@@ -85,3 +85,19 @@ def test_cost_lines_give_the_first_checkpoint_meeting_both_targets_ordered_by_im
     slow["pool_seconds"] = 40.0
     body = [x for x in cost_lines([slow], 0.99, 35.0) if x.startswith("| res-200")]
     assert body[0].endswith("| 3.00 | 40 | 0.40 |")  # (100 s at step 150 - 40 s pool) / 150 steps
+
+
+def test_the_robust_variant_trains_the_robust_presets_sticker_settings():
+    from method_configs.geometrysticker import geometrysticker_robust_config
+
+    args = VARIANTS["robust"][0]
+    given = dict(zip(args[::2], args[1::2]))
+    p = geometrysticker_robust_config().pipeline
+    assert float(given["--pipeline.model.sticker-amplitude"]) == p.model.sticker_amplitude
+    assert (float(given["--pipeline.mark-psnr"]), float(given["--pipeline.target-psnr"])) == (
+        p.mark_psnr,
+        p.target_psnr,
+    )
+    assert float(given["--pipeline.condition-weight"]) == p.condition_weight
+    assert given["--pipeline.condition-scale-free"] == str(p.condition_scale_free)
+    assert float(given["--pipeline.condition-blur"]) == p.condition_blur

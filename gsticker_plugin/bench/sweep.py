@@ -63,6 +63,16 @@ VARIANTS: Dict[str, Tuple[List[str], Optional[str]]] = {
     ),
     "heads-8": (["--pipeline.heads.width", "8"], None),
     "heads-vgg16": (["--pipeline.heads.backbone", "vgg16"], None),
+    # the geometrysticker-robust preset's sticker settings (its pool sizes, steps and warm-up: --pool-views 16
+    # --steps 2000 --warmup-steps 50)
+    "robust": (
+        [
+            *("--pipeline.model.sticker-amplitude", "30", "--pipeline.mark-psnr", "36", "--pipeline.target-psnr", "35"),
+            *("--pipeline.condition-weight", "3", "--pipeline.condition-scale-free", "True"),
+            *("--pipeline.condition-blur", "1"),
+        ],
+        None,
+    ),
     "res-200": ([], "200"),
     "res-400": ([], "400"),
 }
@@ -89,7 +99,7 @@ class SweepConfig:
         "res-200",
     )
     """Which of: default, width-16, width-32, width-128, bits-16, bits-32, bits-64, gate-0.25, gate-0.75, heads-none,
-    heads-8, heads-vgg16, res-200, res-400."""
+    heads-8, heads-vgg16, robust, res-200, res-400."""
     steps: int = 150
     """Sticker training steps per variant."""
     save_every: int = 50
