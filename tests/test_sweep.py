@@ -64,6 +64,7 @@ def test_markdown_has_a_row_per_point_and_names_the_command():
     cfg = SweepConfig(load_checkpoint=Path("base/step.ckpt"), variants=("default", "width-16"))
     md = markdown(cfg, [_row("default", 9000, 1.0, 40.0), _row("width-16", 2000, 0.7, 45.0)], "today", "cpu")
     assert "python -m gsticker_plugin.bench.sweep --load-checkpoint base/step.ckpt" in md
+    assert "--warmup-steps 25 --pool-views 8 --work-dir outputs/bench-sweep " in md  # what the page's runs used
     # one row per checkpoint, and one in the cost table
     assert md.count("| default |") == 2 and md.count("| width-16 |") == 2
     assert "**default**" in md

@@ -323,7 +323,8 @@ def markdown(cfg: SweepConfig, rows: List[Dict[str, Any]], when: str, machine: s
         f"Command: `python -m gsticker_plugin.bench.sweep --load-checkpoint {cfg.load_checkpoint}"
         + (f" --data {cfg.data}" if cfg.data else "")
         + f" --variants {' '.join(cfg.variants)} --steps {cfg.steps} "
-        f"--save-every {cfg.save_every} --output {cfg.output}`",
+        f"--save-every {cfg.save_every} --warmup-steps {cfg.warmup_steps} --pool-views {cfg.pool_views} "
+        f"--work-dir {cfg.work_dir} --output {cfg.output}`",
         f"Machine: {machine}. Date: {when}.",
         "",
         f"Each variant: `ns-train geometrysticker` for {cfg.steps} steps ({cfg.pool_views}+{cfg.pool_views} pool views, "
