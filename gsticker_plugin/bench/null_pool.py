@@ -55,7 +55,8 @@ def pool_null(pages: List[Dict[str, Any]], names: List[str]) -> Dict[str, Any]:
                 continue
             first[image] = {**r, "page": name}
             counted[name] += 1
-    others = next((p["other_keys"] for p in pages if p.get("other_keys")), None)
+    others_from = next((n for p, n in zip(pages, names) if p.get("other_keys")), None)
+    others = pages[names.index(others_from)]["other_keys"] if others_from is not None else None
     rows = list(first.values())
     num_bits = next((len(r["bits"]) for r in rows if "bits" in r), 48)
     null = null_summary(rows, others, pages[0]["threshold"], num_bits)
@@ -67,7 +68,8 @@ def pool_null(pages: List[Dict[str, Any]], names: List[str]) -> Dict[str, Any]:
             by_row.setdefault(row_key(r["row"]), []).append(int(r["matches"]))
     return {
         "null": null,
-        "other_keys_from": next((n for p, n in zip(pages, names) if p.get("other_keys")), None),
+        "other_keys": others,
+        "other_keys_from": others_from,
         "images_per_page": counted,
         "rows": {k: {"images": len(v), "mean": sum(v) / len(v), "max": max(v)} for k, v in by_row.items()},
         "read_again": [
@@ -80,10 +82,15 @@ def pool_null(pages: List[Dict[str, Any]], names: List[str]) -> Dict[str, Any]:
 def main(cfg: NullPoolConfig) -> Dict[str, Any]:
     missing = [str(p) for p in cfg.pages if not p.is_file()]
     if missing:
-        raise SystemExit(f"no page JSON at {', '.join(missing)}: write it with python -m gsticker_plugin.bench.unposed")
+        raise SystemExit(
+            f"error: no page JSON at {', '.join(missing)}: write it with python -m gsticker_plugin.bench.unposed"
+        )
     pages = [json.loads(p.read_text()) for p in cfg.pages]
     names = [p.with_suffix(".md").name for p in cfg.pages]
-    res = pool_null(pages, names)
+    try:
+        res = pool_null(pages, names)
+    except ValueError as e:
+        raise SystemExit(f"error: {e}") from None
     res["command"] = "python -m gsticker_plugin.bench.null_pool " + " ".join(sys.argv[1:])
     res["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     res["pages"] = [
@@ -123,7 +130,7 @@ def main(cfg: NullPoolConfig) -> Dict[str, Any]:
     for row, s in res["rows"].items():
         lines.append(f"| {row} | {s['images']} | {s['mean']:.1f} | {s['max']} |")
     if res["other_keys_from"]:
-        ok = next(p["other_keys"] for p, n in zip(pages, names) if n == res["other_keys_from"])
+        ok = res["other_keys"]
         lines.append(
             f"| other keys ({res['other_keys_from']}'s marked images, one check a key) | {ok['checks']} | "
             f"{ok['matches_mean']:.1f} | {ok['matches_max']} |"

@@ -384,13 +384,8 @@ def threat_curves(
     """Bit accuracy against PSNR (vs the shared marked renders) of the ``purify=``, ``leak=`` and ``pgd=`` rows
     (images alone, and an informed decoder beside them); a PNG chart beside the page. A row whose record is not in
     the work dir (one restored from a page's per-image rows) keeps its point from ``recorded`` (the page's JSON)."""
-    points, leaks, pgds = ({}, {}, {})
-    if (cfg.work_dir / "purify.json").exists():
-        points = json.loads((cfg.work_dir / "purify.json").read_text())
-    if (cfg.work_dir / "leak.json").exists():
-        leaks = json.loads((cfg.work_dir / "leak.json").read_text())
-    if (cfg.work_dir / "pgd.json").exists():
-        pgds = json.loads((cfg.work_dir / "pgd.json").read_text())
+    paths = {attack: cfg.work_dir / f"{attack}.json" for attack in ("purify", "leak", "pgd")}
+    records = {attack: json.loads(path.read_text()) if path.exists() else {} for attack, path in paths.items()}
     out = []
 
     def point(attack: str, strength: float, p: Dict[str, Any], t: Dict[str, Any], **informed) -> Dict[str, Any]:
@@ -415,17 +410,16 @@ def threat_curves(
             "purify_seconds": p.get("purify_seconds"),
         }
 
-    records = {"purify": points, "leak": leaks, "pgd": pgds}
-    kept = {(r["attack"], float(r["strength"])): r for r in recorded}
+    on_page = {(r["attack"], float(r["strength"])): r for r in recorded}
     for row, t in table.items():
         attack, _, value = row.partition(":")[0].partition("=")
         if attack not in records:
             continue
         p = records[attack].get(value if attack == "purify" else str(float(value)))
         if p is None:
-            if (attack, float(value)) in kept:
+            if (attack, float(value)) in on_page:
                 read = {"images_bit_acc": t["bit_acc"], "images_passing": f"{t['passing']}/{t['images']}"}
-                out.append({**kept[(attack, float(value))], **read})
+                out.append({**on_page[(attack, float(value))], **read})
         elif attack == "purify":
             out.append(point("purify", p["steps"], p, t, geometric=p["geometric_matches"]))
         elif attack == "leak":
