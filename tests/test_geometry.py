@@ -644,6 +644,32 @@ def test_image_decoder_reads_8_bit_renders_of_the_watermarked_run_at_their_camer
         decode_posed_images(key, ref, q(on)[:3], cams, seed=0)
 
 
+def test_a_sweep_point_reads_the_checkpoint_from_its_images_and_compares_with_the_keys_message(runs, tiny_scene):
+    """bench.sweep's checkpoint point with ``image_cameras``: the informed image decoder reads 8-bit renders of the
+    watermarked run at their true cameras (>= 41/48 clean, as the geometric decoder does), records each attack's
+    row and the renders' PSNR; a key carrying the complement of the message reads exactly 48 - m on every view (the
+    decoded bits are compared with the key, not printed)."""
+    import dataclasses
+
+    from gsticker_plugin.bench.sweep import decode_checkpoint
+
+    key = OwnerKey.load(runs["key"])
+    _, pipe, _ = RUNS.load_run(runs["run"], data=tiny_scene, device=torch.device("cpu"))
+    pipe.restore_owner(key, heads=False)
+    pipe.model.eval()
+    cams = pipe.datamanager.train_dataset.cameras[:2]
+    base = runs["base"]
+    pt = decode_checkpoint(pipe, key, base, tiny_scene, 2, 1, 41, cams, ("clean", "noise=0.02"))
+    assert set(pt["image"]) == {"clean", "noise=0.02"} and len(pt["image"]["clean"]["matches"]) == 2
+    assert min(pt["image"]["clean"]["matches"]) >= 41 and pt["image"]["clean"]["views_passing"] == 2, pt["image"]
+    assert pt["image_psnr_db"] > 20 and pt["image_decode_seconds_per_view"] > 0
+    flipped = dataclasses.replace(key, message=(1 - key.message.long()).to(key.message.dtype))
+    other = decode_checkpoint(pipe, flipped, base, tiny_scene, 2, 1, 41, cams, ("clean", "noise=0.02"))
+    for a in ("clean", "noise=0.02"):
+        assert other["image"][a]["matches"] == [48 - m for m in pt["image"][a]["matches"]], a
+    assert other["matches"] == [48 - m for m in pt["matches"]]
+
+
 def test_verify_images_at_known_cameras_with_the_image_decoder(runs, ws, capsys, tiny_scene):
     """``ns-verify-owner --images DIR --cameras transforms_test.json``: the image decoder reads 8-bit PNGs of the
     watermarked run saved under the test frames' names (OWNED); the cameras built from the transforms file equal the

@@ -2,7 +2,15 @@
 
 from pathlib import Path
 
-from gsticker_plugin.bench.sweep import VARIANTS, SweepConfig, cost_lines, markdown, smallest_meeting, train_seconds
+from gsticker_plugin.bench.sweep import (
+    VARIANTS,
+    SweepConfig,
+    cost_lines,
+    image_lines,
+    markdown,
+    smallest_meeting,
+    train_seconds,
+)
 
 
 def test_train_seconds_reads_pool_and_monitor_lines(tmp_path):
@@ -102,3 +110,39 @@ def test_the_robust_variant_trains_the_robust_presets_sticker_settings():
     assert float(given["--pipeline.condition-weight"]) == p.condition_weight
     assert given["--pipeline.condition-scale-free"] == str(p.condition_scale_free)
     assert float(given["--pipeline.condition-blur"]) == p.condition_blur
+
+
+def _with_images(row, readings):
+    """``row`` whose points carry image-decoder readings ``readings[i] = {attack: (bit_acc, matches)}``."""
+    for p, r in zip(row["points"], readings):
+        p["image_psnr_db"] = 36.5
+        p["image_decode_seconds_per_view"] = 1.3
+        p["image"] = {
+            a: {"bit_acc": acc, "matches": m, "views_passing": sum(x >= 41 for x in m)} for a, (acc, m) in r.items()
+        }
+    return row
+
+
+def test_the_image_table_gives_a_row_per_checkpoint_with_each_attacks_accuracy_and_views_passing():
+    cfg = SweepConfig(load_checkpoint=Path("base/step.ckpt"), variants=("robust",), image_views=2)
+    plain = _row("default", 9000, 1.0, 40.0)
+    assert image_lines([plain], cfg) == []  # no readings, no table
+    row = _with_images(_row("robust", 9456, 1.0, 35.0), [{"clean": (1.0, [48, 48]), "jpeg=50": (0.9375, [48, 42])}])
+    lines = image_lines([plain, row], cfg)
+    assert (
+        "| variant | step | train s | held-out PSNR (dB) | image clean | image jpeg=50 | image decode s/view |" in lines
+    )
+    assert "| robust | 150 | 100.0 | 36.50 | 100.0 (2/2) | 93.8 (2/2) | 1.3 |" in lines
+    assert sum(line.startswith("| default |") for line in lines) == 0  # the point without readings has no row
+
+
+def test_the_command_line_names_the_image_views_and_attacks_only_when_asked():
+    row = _row("robust", 9456, 1.0, 35.0)
+    cfg = SweepConfig(load_checkpoint=Path("b.ckpt"), image_views=24, image_attacks=("clean", "hue=~0.5"))
+    md = markdown(cfg, [row], "today", "cpu")
+    assert (
+        "--work-dir outputs/bench-sweep --image-views 24 --image-attacks clean hue=~0.5 --output docs/bench-sweep.md`"
+        in md
+    )
+    assert "--camera-seed" not in md  # bench.unposed's default seed is left out
+    assert "--image-views" not in markdown(SweepConfig(load_checkpoint=Path("b.ckpt")), [row], "today", "cpu")

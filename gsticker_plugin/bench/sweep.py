@@ -28,16 +28,19 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
 import tyro
 
 from gsticker_plugin import metrics, runs
 from gsticker_plugin.bench.geometry import _run
+from gsticker_plugin.bench.unposed import attacked, drawn_spec, held_out_renders
 from gsticker_plugin.decoders.geometric import decode_suspect
+from gsticker_plugin.decoders.image import decode_posed_images
 from gsticker_plugin.decoders.reference import load_base_reference
 from gsticker_plugin.evaluate import psnr_nhw3, render_split
+from gsticker_plugin.fastpath import novel_cameras
 from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.machine import machine_info, sticker_train_argv
 from gsticker_plugin.model import geometry_reference
@@ -112,6 +115,13 @@ class SweepConfig:
     """Cameras per geometric decode."""
     psnr_views: int = 4
     """Test views for the watermarked-vs-unwatermarked PSNR."""
+    image_views: int = 0
+    """Held-out orbit views (bench.unposed's cameras) that the informed image decoder reads at every checkpoint, at
+    their true cameras, 8-bit, clean and under each of ``--image-attacks``; 0: none."""
+    image_attacks: Tuple[str, ...] = ("clean", "noise=0.1", "jpeg=50")
+    """Attack specs for ``--image-views`` (``clean``: none), drawn per view as bench.unposed draws them."""
+    camera_seed: int = 12345
+    """Seed of the held-out orbit cameras (bench.unposed's default: the same views as its pages)."""
     fpr: float = 1e-6
     """Per-view false-positive rate of the verdict threshold."""
     target_bit_acc: float = 0.99
@@ -136,10 +146,49 @@ def train_seconds(log: Path) -> Tuple[Optional[float], Dict[int, float]]:
     return (float(pool.group(1)) if pool else None), {int(m.group(1)): float(m.group(2)) for m in _STEP.finditer(text)}
 
 
+def image_readings(pipeline, key, ref, cameras, attacks: Sequence[str], threshold: int) -> Dict[str, Any]:
+    """The informed image decoder at ``cameras`` (their true poses) on 8-bit renders of the loaded state, clean and
+    under each attack spec of ``attacks`` (``clean``: none; view i's draw seeded with i, as bench.unposed's), and the
+    PSNR of those renders marked vs unmarked."""
+    marked, clean = held_out_renders(pipeline, cameras)
+    n = marked.shape[0]
+    names = [(f"view{i}", cameras[i : i + 1]) for i in range(n)]
+    cache: Dict[Any, Any] = {}  # the base's reference views, shared by the attacks
+    out: Dict[str, Any] = {
+        "image_psnr_db": float(metrics.psnr(marked.permute(0, 3, 1, 2), clean.permute(0, 3, 1, 2)).mean()),
+        "image": {},
+    }
+    t0 = time.time()
+    for spec in attacks:
+        images = []
+        for i in range(n):
+            g = torch.Generator().manual_seed(i)
+            images.append(attacked(marked[i], drawn_spec("" if spec == "clean" else spec, g), g, clean[i]))
+        with contextlib.redirect_stdout(sys.stderr):
+            d = decode_posed_images(key, ref, images, names, 0, ref_cache=cache)
+        m = d["matches"]
+        out["image"][spec] = {
+            "bit_acc": float(d["bit_acc"].float().mean()),
+            "matches": [int(x) for x in m],
+            "views_passing": int((m >= threshold).sum()),
+        }
+    out["image_decode_seconds_per_view"] = round((time.time() - t0) / max(n * len(attacks), 1), 2)
+    return out
+
+
 def decode_checkpoint(
-    pipeline, key, base_config: Path, data: Optional[Path], num_views: int, psnr_views: int, threshold: int
+    pipeline,
+    key,
+    base_config: Path,
+    data: Optional[Path],
+    num_views: int,
+    psnr_views: int,
+    threshold: int,
+    image_cameras=None,
+    image_attacks: Sequence[str] = (),
 ) -> Dict[str, Any]:
-    """Geometric bit accuracy (the checkpoint's own sticker as the reference) and PSNR on/off, at the loaded state."""
+    """Geometric bit accuracy (the checkpoint's own sticker as the reference) and PSNR on/off, at the loaded state;
+    with ``image_cameras``, the informed image decoder's readings there too (:func:`image_readings`)."""
     model = pipeline.model
     ref_key = SimpleNamespace(
         geometry=geometry_reference(model), message=key.message, base=key.base, num_bits=key.num_bits
@@ -152,7 +201,7 @@ def decode_checkpoint(
     on = render_split(pipeline, "test", psnr_views, sticker=True, progress=False)
     off = render_split(pipeline, "test", psnr_views, sticker=False, progress=False)
     m = dec["matches"]
-    return {
+    out = {
         "bit_acc": float(dec["bit_acc"].float().mean()),
         "matches": [int(x) for x in m],
         "views_passing": int((m >= threshold).sum()),
@@ -160,6 +209,9 @@ def decode_checkpoint(
         "psnr_vs_gt": float(psnr_nhw3(on["rgb"], on["gt"]).mean()),
         "decode_seconds_per_view": round(per_view, 2),
     }
+    if image_cameras is not None:
+        out.update(image_readings(pipeline, ref_key, ref, image_cameras, image_attacks, threshold))
+    return out
 
 
 def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
@@ -222,6 +274,13 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
     heads_params = (
         sum(t.numel() for t in key.heads_state.values() if t.is_floating_point()) if pipeline.trains_heads else 0
     )
+    image_cameras = (
+        novel_cameras(
+            pipeline.datamanager.train_dataset.cameras, cfg.image_views, torch.Generator().manual_seed(cfg.camera_seed)
+        )
+        if cfg.image_views > 0
+        else None
+    )
     points = []
     for ckpt in sorted((run / "nerfstudio_models").glob("step-*.ckpt")):
         n = int(ckpt.stem.split("-")[1])
@@ -231,12 +290,23 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
         step_key = OwnerKey.load(step_key_path(key_path, n))  # the sticker as it was at this checkpoint
         pipeline.restore_owner(step_key, heads=False)
         pipeline.model.eval()
-        pt = decode_checkpoint(pipeline, step_key, base_config, data, cfg.num_views, cfg.psnr_views, threshold)
+        pt = decode_checkpoint(
+            pipeline,
+            step_key,
+            base_config,
+            data,
+            cfg.num_views,
+            cfg.psnr_views,
+            threshold,
+            image_cameras,
+            cfg.image_attacks,
+        )
         secs = step_s.get(step, step_s.get(n + 1))
         pt.update(step=step, train_seconds=None if secs is None or pool_s is None else pool_s + secs)
         print(
             f"    {name} step {step}: bit acc {pt['bit_acc']:.3f} ({pt['views_passing']}/{cfg.num_views} views), "
-            f"PSNR vs unwm {pt['psnr_vs_unwm']:.2f} dB, t {pt['train_seconds']} s",
+            f"PSNR vs unwm {pt['psnr_vs_unwm']:.2f} dB, t {pt['train_seconds']} s"
+            + "".join(f", image {a}: {v['matches']}" for a, v in pt.get("image", {}).items()),
             flush=True,
         )
         points.append(pt)
@@ -324,7 +394,14 @@ def markdown(cfg: SweepConfig, rows: List[Dict[str, Any]], when: str, machine: s
         + (f" --data {cfg.data}" if cfg.data else "")
         + f" --variants {' '.join(cfg.variants)} --steps {cfg.steps} "
         f"--save-every {cfg.save_every} --warmup-steps {cfg.warmup_steps} --pool-views {cfg.pool_views} "
-        f"--work-dir {cfg.work_dir} --output {cfg.output}`",
+        f"--work-dir {cfg.work_dir}"
+        + (
+            f" --image-views {cfg.image_views} --image-attacks {' '.join(cfg.image_attacks)}"
+            + ("" if cfg.camera_seed == 12345 else f" --camera-seed {cfg.camera_seed}")
+            if cfg.image_views
+            else ""
+        )
+        + f" --output {cfg.output}`",
         f"Machine: {machine}. Date: {when}.",
         "",
         f"Each variant: `ns-train geometrysticker` for {cfg.steps} steps ({cfg.pool_views}+{cfg.pool_views} pool views, "
@@ -346,6 +423,7 @@ def markdown(cfg: SweepConfig, rows: List[Dict[str, Any]], when: str, machine: s
                 f"{p['views_passing']}/{len(p['matches'])} | {p['psnr_vs_unwm']:.2f} | {p['psnr_vs_gt']:.2f} | "
                 f"{p['decode_seconds_per_view']} |"
             )
+    lines += image_lines(rows, cfg)
     best = smallest_meeting(rows, cfg.target_bit_acc, cfg.target_psnr)
     lines += [
         "",
@@ -366,30 +444,85 @@ def markdown(cfg: SweepConfig, rows: List[Dict[str, Any]], when: str, machine: s
     return "\n".join(lines)
 
 
+def image_lines(rows: List[Dict[str, Any]], cfg: SweepConfig) -> List[str]:
+    """The image decoder's table (a row per checkpoint that has its readings), or nothing when no point has them."""
+    attacks = list(dict.fromkeys(a for r in rows for p in r["points"] for a in p.get("image", {})))
+    if not attacks:
+        return []
+    lines = [
+        "",
+        "From images: the informed image decoder at every checkpoint, on 8-bit renders of held-out orbit views "
+        f"(bench.unposed's cameras, seed {cfg.camera_seed}: never used in training) read at their true cameras; "
+        "cells give bit accuracy % and views at or above the verdict threshold. PSNR: those renders, watermarked vs "
+        "unwatermarked. Images alone (no camera) add the camera search to this reading: the final model's numbers "
+        "are on the images-alone pages.",
+        "",
+        "| variant | step | train s | held-out PSNR (dB) | "
+        + " | ".join(f"image {a}" for a in attacks)
+        + " | image decode s/view |",
+        "|---|---|---|---|" + "---|" * len(attacks) + "---|",
+    ]
+    for r in rows:
+        for p in r["points"]:
+            if "image" not in p:
+                continue
+            cells = [
+                f"{100 * p['image'][a]['bit_acc']:.1f} ({p['image'][a]['views_passing']}/{len(p['image'][a]['matches'])})"
+                if a in p["image"]
+                else "-"
+                for a in attacks
+            ]
+            lines.append(
+                f"| {r['name']} | {p['step']} | {p['train_seconds'] if p['train_seconds'] is not None else '-'} | "
+                f"{p['image_psnr_db']:.2f} | " + " | ".join(cells) + f" | {p['image_decode_seconds_per_view']} |"
+            )
+    return lines
+
+
 def chart(rows: List[Dict[str, Any]], path: Path) -> None:
+    """Bit accuracy and PSNR against training time, and bit accuracy against PSNR: solid the geometric decoder (test
+    views' PSNR), dashed the image decoder per attack (held-out renders' PSNR) where the points have its readings."""
     # deferred: only charts need it, slow to import
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.8))
+    fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(14, 3.9))
+    marks = "sv^Dx+"
     for r in rows:
         pts = [p for p in r["points"] if p["train_seconds"] is not None]
         if not pts:
             continue
         t = [p["train_seconds"] / 60 for p in pts]
-        (line,) = a1.plot(t, [100 * p["bit_acc"] for p in pts], "o-", label=r["name"])
-        a2.plot(t, [p["psnr_vs_unwm"] for p in pts], "o-", color=line.get_color(), label=r["name"])
-    a1.axhline(99, color="gray", ls=":", lw=0.8)
-    a1.axhline(50, color="red", ls=":", lw=0.8)
+        acc = [100 * p["bit_acc"] for p in pts]
+        (line,) = a1.plot(t, acc, "o-", label=f"{r['name']} geometric")
+        c = line.get_color()
+        a2.plot(t, [p["psnr_vs_unwm"] for p in pts], "o-", color=c, label=f"{r['name']} test views")
+        a3.plot([p["psnr_vs_unwm"] for p in pts], acc, "o-", color=c, label=f"{r['name']} geometric")
+        img = [p for p in pts if "image" in p]
+        if img:
+            ti = [p["train_seconds"] / 60 for p in img]
+            a2.plot(ti, [p["image_psnr_db"] for p in img], "--", color=c, label=f"{r['name']} held-out 8-bit")
+            for k, a in enumerate(dict.fromkeys(x for p in img for x in p["image"])):
+                have = [p for p in img if a in p["image"]]
+                ya = [100 * p["image"][a]["bit_acc"] for p in have]
+                style = dict(color=c, ls="--", marker=marks[k % len(marks)], label=f"{r['name']} image {a}")
+                a1.plot([p["train_seconds"] / 60 for p in have], ya, **style)
+                a3.plot([p["image_psnr_db"] for p in have], ya, **style)
+    for ax in (a1, a3):
+        ax.axhline(99, color="gray", ls=":", lw=0.8)
+        ax.axhline(50, color="red", ls=":", lw=0.8)
+        ax.set_ylabel("bit accuracy %")
+        ax.set_ylim(40, 101)
     a2.axhline(35, color="gray", ls=":", lw=0.8)
+    a3.axvline(35, color="gray", ls=":", lw=0.8)
     a1.set_xlabel("training time (min)")
     a2.set_xlabel("training time (min)")
-    a1.set_ylabel("geometric bit accuracy %")
+    a3.set_xlabel("PSNR watermarked vs unwatermarked (dB)")
     a2.set_ylabel("PSNR watermarked vs unwatermarked (dB)")
-    a1.set_ylim(40, 101)
-    a1.legend(fontsize=7)
+    a1.legend(fontsize=6)
+    a2.legend(fontsize=6)
     fig.suptitle("sticker variants: accuracy and invisibility against training time (dotted: targets)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
