@@ -510,11 +510,12 @@ def chart(rows: List[Dict[str, Any]], path: Path) -> None:
                 style = dict(color=c, ls="--", marker=marks[k % len(marks)], label=f"{r['name']} image {a}")
                 a1.plot([p["train_seconds"] / 60 for p in have], ya, **style)
                 a3.plot([p["image_psnr_db"] for p in have], ya, **style)
+    low = min([y for ax in (a1, a3) for ln in ax.get_lines() for y in ln.get_ydata()] or [40.0])
     for ax in (a1, a3):
         ax.axhline(99, color="gray", ls=":", lw=0.8)
         ax.axhline(50, color="red", ls=":", lw=0.8)
         ax.set_ylabel("bit accuracy %")
-        ax.set_ylim(40, 101)
+        ax.set_ylim(max(40.0, low - 5), 101)  # chance (50 %) drawn when a curve comes near it
     a2.axhline(35, color="gray", ls=":", lw=0.8)
     a3.axvline(35, color="gray", ls=":", lw=0.8)
     a1.set_xlabel("training time (min)")
