@@ -9,10 +9,12 @@ For each variant (sticker width, message length, share of samples under the gate
 every checkpoint: the informed geometric decoder's bit accuracy (``ns-verify-owner --decode geometry``, with that
 checkpoint's own sticker as the reference: what the owner key would hold had training stopped there) and the PSNR
 of the watermarked vs the unwatermarked render (sticker on / off, test views). Training time at a checkpoint is the
-pool build plus the step time the trainer logs (``[gsticker] step N: ... S s``, printed at every checkpoint).
+pool build plus the step time the trainer logs (``[gsticker] step N: ... S s``, printed at every checkpoint). With ``--image-views N``,
+also the informed image decoder on 8-bit renders of N held-out orbit views at their true cameras, clean and under
+``--image-attacks`` (:func:`image_readings`).
 
 Writes ``--output`` (Markdown table), the same name with ``.json`` and ``.png`` (bit accuracy and PSNR against
-training time per variant), and names the smallest variant (sticker parameters) that reaches the targets.
+training time, and bit accuracy against PSNR, per variant), and names the smallest variant (sticker parameters) that reaches the targets.
 The heads variants change the extractor and classifier that train beside the sticker (none, 8 wide, the paper's
 VGG16 shape): what they cost per step and whether the informed decoders' numbers depend on them. The blind
 extractor's own accuracy stays at chance for every configuration this CPU can train (docs/bench-sticker.md).
