@@ -14,7 +14,8 @@ also the informed image decoder on 8-bit renders of N held-out orbit views at th
 ``--image-attacks`` (:func:`image_readings`).
 
 Writes ``--output`` (Markdown table), the same name with ``.json`` and ``.png`` (bit accuracy and PSNR against
-training time, and bit accuracy against PSNR, per variant), and names the smallest variant (sticker parameters) that reaches the targets.
+training time, and bit accuracy against PSNR, per variant), and names the smallest variant (sticker parameters) that
+reaches the targets.
 The heads variants change the extractor and classifier that train beside the sticker (none, 8 wide, the paper's
 VGG16 shape): what they cost per step and whether the informed decoders' numbers depend on them. The blind
 extractor's own accuracy stays at chance for every configuration this CPU can train (docs/bench-sticker.md).
