@@ -24,7 +24,7 @@ import torch
 import tyro
 
 from gsticker_plugin import compat, metrics
-from gsticker_plugin.bench.unposed import attacked, drawn_spec, renders_8_bit
+from gsticker_plugin.bench.unposed import renders_8_bit, view_attack
 from gsticker_plugin.decoders.image import decode_posed_images, image_change_jacobian, image_reference
 from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker, load_base_reference
 from gsticker_plugin.fastpath import novel_cameras
@@ -102,9 +102,7 @@ def bench_run(cfg: BenchConditioningConfig, run: Path) -> Dict[str, Any]:
             "posed_matches": {},
         }
         for spec in cfg.attacks:
-            g = torch.Generator().manual_seed(i)  # bench.unposed's draw for view i (its seed 0)
-            drawn = drawn_spec(spec, g)
-            img = attacked(marked, drawn, g, clean)
+            img, _ = view_attack(marked, spec, i, clean)  # bench.unposed's draw for view i (its seed 0)
             d = decode_posed_images(key, ref, [img], [(f"view{i}", cam)], 0)
             row["posed_matches"][spec] = int(d["matches"][0])
         out["views"].append(row)

@@ -38,7 +38,7 @@ import tyro
 
 from gsticker_plugin import metrics, runs
 from gsticker_plugin.bench.geometry import _run
-from gsticker_plugin.bench.unposed import attacked, drawn_spec, held_out_renders
+from gsticker_plugin.bench.unposed import BenchUnposedConfig, held_out_renders, view_attack
 from gsticker_plugin.decoders.geometric import decode_suspect
 from gsticker_plugin.decoders.image import decode_posed_images
 from gsticker_plugin.decoders.reference import load_base_reference
@@ -123,7 +123,7 @@ class SweepConfig:
     their true cameras, 8-bit, clean and under each of ``--image-attacks``; 0: none."""
     image_attacks: Tuple[str, ...] = ("clean", "noise=0.1", "jpeg=50")
     """Attack specs for ``--image-views`` (``clean``: none), drawn per view as bench.unposed draws them."""
-    camera_seed: int = 12345
+    camera_seed: int = BenchUnposedConfig.camera_seed
     """Seed of the held-out orbit cameras (bench.unposed's default: the same views as its pages)."""
     fpr: float = 1e-6
     """Per-view false-positive rate of the verdict threshold."""
@@ -163,10 +163,7 @@ def image_readings(pipeline, key, ref, cameras, attacks: Sequence[str], threshol
     }
     t0 = time.time()
     for spec in attacks:
-        images = []
-        for i in range(n):
-            g = torch.Generator().manual_seed(i)
-            images.append(attacked(marked[i], drawn_spec("" if spec == "clean" else spec, g), g, clean[i]))
+        images = [view_attack(marked[i], "" if spec == "clean" else spec, i, clean[i])[0] for i in range(n)]
         with contextlib.redirect_stdout(sys.stderr):
             d = decode_posed_images(key, ref, images, names, 0, ref_cache=cache)
         m = d["matches"]
@@ -277,10 +274,13 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
     heads_params = (
         sum(t.numel() for t in key.heads_state.values() if t.is_floating_point()) if pipeline.trains_heads else 0
     )
+    # drawn as bench.unposed draws its views (its count at least), so view i is its page's view i
     image_cameras = (
         novel_cameras(
-            pipeline.datamanager.train_dataset.cameras, cfg.image_views, torch.Generator().manual_seed(cfg.camera_seed)
-        )
+            pipeline.datamanager.train_dataset.cameras,
+            max(cfg.image_views, BenchUnposedConfig.num_views),
+            torch.Generator().manual_seed(cfg.camera_seed),
+        )[: cfg.image_views]
         if cfg.image_views > 0
         else None
     )
@@ -400,7 +400,7 @@ def markdown(cfg: SweepConfig, rows: List[Dict[str, Any]], when: str, machine: s
         f"--work-dir {cfg.work_dir}"
         + (
             f" --image-views {cfg.image_views} --image-attacks {' '.join(cfg.image_attacks)}"
-            + ("" if cfg.camera_seed == 12345 else f" --camera-seed {cfg.camera_seed}")
+            + ("" if cfg.camera_seed == BenchUnposedConfig.camera_seed else f" --camera-seed {cfg.camera_seed}")
             if cfg.image_views
             else ""
         )

@@ -256,6 +256,16 @@ def attacked(
     return as_8_bit(out[0].clamp(0, 1).permute(1, 2, 0))
 
 
+def view_attack(
+    image: Float[Tensor, "H W 3"], spec: str, view: int, cover: Optional[Float[Tensor, "H W 3"]], seed: int = 0
+) -> Tuple[Float[Tensor, "H W 3"], str]:
+    """``image`` (held-out view ``view``) after ``spec`` drawn as this bench draws it for that view (a generator
+    seeded ``seed * 1000 + view``): (the attacked 8-bit image, the drawn spec)."""
+    g = torch.Generator().manual_seed(seed * 1000 + view)
+    drawn = drawn_spec(spec, g)
+    return attacked(image, drawn, g, cover), drawn
+
+
 def held_out_renders(pipe, cameras) -> Tuple[torch.Tensor, torch.Tensor]:
     """8-bit renders of the watermarked run with its sticker on and off at ``cameras``: ``[N H W 3]`` each."""
     out = {}
@@ -344,9 +354,7 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
             img = src[i].float()
             drawn = ""
             if spec:
-                g = torch.Generator().manual_seed(cfg.seed * 1000 + i)
-                drawn = drawn_spec(spec, g)
-                img = attacked(img, drawn, g, clean[i] if at_cameras and cfg.crop_cover else None)
+                img, drawn = view_attack(img, spec, i, clean[i] if at_cameras and cfg.crop_cover else None, cfg.seed)
             jobs.append((row, i, img, drawn))
     for i, v in enumerate(random_noise(cfg.random_images, int(marked.shape[1]), cfg.seed)):
         jobs.append(("random:", i, as_8_bit(v.image.permute(1, 2, 0)), ""))
