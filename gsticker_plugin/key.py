@@ -1,8 +1,14 @@
 """The owner key: the secret half of a GeometrySticker watermark, stored apart from the shareable model.
 
 Holds the message, the extractor and classifier, the base run's reference, the geometry reference (sticker and
-gates) for the informed decoders, how the message was drawn, and (version 3) a secret, a commitment salt and an
-HMAC over the rest (an integrity check, not a signature). Written atomically. docs/verify.md has the threat model.
+gates) for the informed decoders, how the message was drawn, a secret, a commitment salt and an HMAC over the rest
+(an integrity check, version 3), and (version 4) the owner's Ed25519 public key with a signature over the key's
+commitment (authorship: only the holder of the owner identity can sign). Written atomically. docs/verify.md has the
+threat model.
+
+The owner *identity* is an Ed25519 private key in its own file (``$GSTICKER_IDENTITY``, else ``owner.ed25519`` in
+the keys folder), created on first use with mode 0600 and reused for every key of that owner; it never enters a key
+or a run.
 """
 
 from __future__ import annotations
@@ -17,20 +23,28 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 from torch import Tensor
 
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.heads import HeadConfig, Heads
 
 KEY_FORMAT = "gsticker-owner-key"
-KEY_VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
+KEY_VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)
+LEGACY_VERSIONS = (1, 2)
+"""Versions without integrity (an unkeyed fingerprint anyone can recompute): read only when asked
+(``--allow-legacy``)."""
 KEY_SUFFIX = ".gskey"
 KEYS_DIR_ENV = "GSTICKER_KEYS_DIR"
+IDENTITY_ENV = "GSTICKER_IDENTITY"
+IDENTITY_NAME = "owner.ed25519"
 MESSAGE_SOURCES = ("random", "owner-id", "given")
 """How a key's message was drawn: ``random`` (``secrets``, the only source whose binomial null is exact), derived
 from the owner ID (anyone who knows the name knows the bits), or given on the command line."""
@@ -56,6 +70,65 @@ def default_key_path(experiment_name: str, method_name: str, timestamp: str) -> 
     """Where ``ns-train geometrysticker`` writes a run's key unless ``--pipeline.key-path`` is given."""
     safe = "-".join(str(x).replace("/", "_").replace(os.sep, "_") for x in (experiment_name, method_name, timestamp))
     return keys_dir() / (safe + KEY_SUFFIX)
+
+
+def identity_path() -> Path:
+    """The owner identity file: ``$GSTICKER_IDENTITY``, else ``owner.ed25519`` in :func:`keys_dir`."""
+    env = os.environ.get(IDENTITY_ENV)
+    return Path(env).expanduser() if env else keys_dir() / IDENTITY_NAME
+
+
+def owner_identity(path: Optional[Path] = None) -> Ed25519PrivateKey:
+    """The owner's Ed25519 signing key from ``path`` (default :func:`identity_path`), created there (mode 0600,
+    atomically) when the file does not exist yet."""
+    path = Path(path) if path is not None else identity_path()
+    if path.is_file():
+        try:
+            key = serialization.load_pem_private_key(path.read_bytes(), password=None)
+        except (ValueError, TypeError, OSError) as e:
+            raise GStickerError(
+                f"owner identity {path} is not readable ({type(e).__name__}); restore it from your backup, or point "
+                f"${IDENTITY_ENV} at your identity file"
+            ) from None
+        if not isinstance(key, Ed25519PrivateKey):
+            raise GStickerError(f"owner identity {path} is not an Ed25519 private key; point ${IDENTITY_ENV} at yours")
+        return key
+    if path.exists():
+        raise GStickerError(f"owner identity {path} is not a file; point ${IDENTITY_ENV} at a file path")
+    key = Ed25519PrivateKey.generate()
+    pem = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+        with os.fdopen(fd, "wb") as f:
+            f.write(pem)
+        os.chmod(tmp, 0o600)
+        os.replace(tmp, path)
+    except OSError as e:
+        raise GStickerError(
+            f"cannot write the owner identity {path} ({e.strerror or e}); set ${IDENTITY_ENV} to a writable file path"
+        ) from None
+    return key
+
+
+def public_key_hex(identity: Ed25519PrivateKey) -> str:
+    """The raw 32-byte public key of an identity, as 64 hex digits (what an owner publishes)."""
+    return identity.public_key().public_bytes(serialization.Encoding.Raw, serialization.PublicFormat.Raw).hex()
+
+
+def signed_bytes(commitment_hex: str) -> bytes:
+    """What a key's signature covers: a domain tag and the commitment."""
+    return b"gsticker-key-signature-v1:" + bytes.fromhex(commitment_hex)
+
+
+def signature_valid(public_hex: str, signature_hex: str, commitment_hex: str) -> bool:
+    """Whether ``signature_hex`` is the Ed25519 signature of ``commitment_hex`` under ``public_hex``."""
+    try:
+        public = Ed25519PublicKey.from_public_bytes(bytes.fromhex(public_hex))
+        public.verify(bytes.fromhex(signature_hex), signed_bytes(commitment_hex))
+        return True
+    except (ValueError, TypeError, InvalidSignature):
+        return False
 
 
 def message_from_owner_id(owner_id: str, num_bits: int = 48) -> Tensor:
@@ -167,6 +240,48 @@ def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+KEY_FIELDS: Dict[str, Tuple[type, ...]] = {
+    "owner_id": (str,),
+    "message": (Tensor,),
+    "heads_config": (dict,),
+    "heads_state": (dict,),
+    "base": (dict,),
+    "model_run": (str,),
+    "null": (dict, type(None)),
+    "created": (float, int),
+}
+"""Fields every readable key holds, with their types (later versions add ``KEY_FIELDS_SINCE``)."""
+KEY_FIELDS_SINCE: Dict[int, Dict[str, Tuple[type, ...]]] = {
+    2: {"geometry": (dict, type(None))},
+    3: {"message_source": (str,), "secret": (str,), "salt": (str,), "training_state": (dict,)},
+    4: {"public_key": (str,), "signature": (str,)},
+}
+
+
+def _check_fields(p: Dict[str, Any], version: int, path: Path) -> None:
+    """One-line error for a key whose fields are missing or of the wrong type (an integrity check passes on a key
+    written by a forger with its own secret)."""
+    wanted = dict(KEY_FIELDS)
+    for since, more in KEY_FIELDS_SINCE.items():
+        if version >= since:
+            wanted.update(more)
+    for name, types in wanted.items():
+        if name not in p:
+            raise GStickerError(f"{path} has no {name!r} field; use your original copy of the owner key")
+        if not isinstance(p[name], types) or isinstance(p[name], bool):
+            raise GStickerError(
+                f"{path} holds a malformed {name!r} ({type(p[name]).__name__}); use your original copy of the owner key"
+            )
+    message = p["message"]
+    if message.ndim != 1 or not message.numel() or not bool(((message == 0) | (message == 1)).all()):
+        raise GStickerError(
+            f"{path} holds a malformed message (not a vector of 0/1 bits); use your original copy of the owner key"
+        )
+    geometry = p.get("geometry") if version >= 2 else None
+    if geometry is not None and not isinstance(geometry.get("sticker_state"), dict):
+        raise GStickerError(f"{path} holds a malformed geometry reference; use your original copy of the owner key")
+
+
 @dataclass
 class OwnerKey:
     """Everything the owner needs to verify a suspect model or images; keep it secret."""
@@ -191,12 +306,25 @@ class OwnerKey:
     """HMAC secret of the key file (hex); empty in keys written before version 3."""
     salt: str = field(default_factory=lambda: secrets.token_hex(16))
     """Salt of the key's commitment (hex); empty in keys written before version 3."""
+    public_key: str = ""
+    """The owner's Ed25519 public key (hex) that signed the commitment; empty in keys written before version 4."""
+    signature: str = ""
+    """Ed25519 signature of the key's commitment (hex, :func:`signed_bytes`); empty before version 4."""
     version: int = KEY_VERSION
     """The version the key was read as (saving always writes the current version)."""
 
     @property
     def num_bits(self) -> int:
         return int(self.message.numel())
+
+    def sign(self, identity: Ed25519PrivateKey) -> None:
+        """Sign this key's commitment with the owner identity (records the public key beside the signature)."""
+        self.public_key = public_key_hex(identity)
+        self.signature = identity.sign(signed_bytes(commitment(self))).hex()
+
+    def signed(self) -> bool:
+        """Whether the key carries a signature of its own commitment under its own public key."""
+        return bool(self.signature) and signature_valid(self.public_key, self.signature, commitment(self))
 
     def null_caveats(self) -> List[str]:
         """Why the binomial null of this key is not exact (empty: exact): a message that is not uniformly random and
@@ -236,6 +364,8 @@ class OwnerKey:
             "geometry": plain(self.geometry),
             "secret": self.secret,
             "salt": self.salt,
+            "public_key": self.public_key,
+            "signature": self.signature,
         }
         p["hmac"] = payload_hmac(p, bytes.fromhex(self.secret))
         return p
@@ -260,7 +390,9 @@ class OwnerKey:
         return path
 
     @classmethod
-    def load(cls, path: Path) -> "OwnerKey":
+    def load(cls, path: Path, allow_legacy: bool = False) -> "OwnerKey":
+        """Read a key, checking its integrity (HMAC), its fields and (version 4) its signature; versions 1 and 2 (no
+        integrity) only with ``allow_legacy``. Every problem is a one-line :class:`GStickerError`."""
         path = Path(path)
         if not path.is_file():
             raise GStickerError(f"owner key {path} does not exist; pass --key with the .gskey file ns-train wrote")
@@ -282,6 +414,11 @@ class OwnerKey:
                 f"versions {', '.join(map(str, READABLE_VERSIONS))}; use the gsticker release that wrote it"
             )
         version = int(p["version"])
+        if version in LEGACY_VERSIONS and not allow_legacy:
+            raise GStickerError(
+                f"{path} is a version-{version} owner key, which has no integrity check (anyone can rewrite it); "
+                "pass --allow-legacy to read it anyway, or retrain to get a signed key"
+            )
         if version >= 3:
             secret = p.get("secret")
             try:
@@ -299,28 +436,32 @@ class OwnerKey:
             raise GStickerError(
                 f"{path} failed its fingerprint check (tampered or corrupted); use your original copy of the owner key"
             )
-        message = p["message"]
-        if not isinstance(message, Tensor) or message.ndim != 1 or not bool(((message == 0) | (message == 1)).all()):
-            raise GStickerError(
-                f"{path} holds a malformed message (not a vector of 0/1 bits); use your original copy of the owner key"
-            )
-        return cls(
+        _check_fields(p, version, path)
+        key = cls(
             owner_id=p["owner_id"],
-            message=message,
+            message=p["message"],
             heads_config=p["heads_config"],
             heads_state=p["heads_state"],
             base=p["base"],
             model_run=p["model_run"],
             null=p["null"],
             training_state=p.get("training_state") or {},
-            created=p["created"],
+            created=float(p["created"]),
             geometry=p.get("geometry") if version >= 2 else None,
             message_source=p.get("message_source", "unknown") if version >= 3 else "unknown",
             owner_message_prob=float(p.get("owner_message_prob", 0.0)),
             secret=p.get("secret", "") if version >= 3 else "",
             salt=p.get("salt", "") if version >= 3 else "",
+            public_key=p.get("public_key", "") if version >= 4 else "",
+            signature=p.get("signature", "") if version >= 4 else "",
             version=version,
         )
+        if version >= 4 and (key.signature or key.public_key) and not key.signed():
+            raise GStickerError(
+                f"{path} carries a signature that does not match its commitment and public key (edited or "
+                "corrupted); use your original copy of the owner key"
+            )
+        return key
 
     def build_heads(self):
         heads = Heads(HeadConfig(**self.heads_config), self.num_bits)

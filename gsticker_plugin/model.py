@@ -7,6 +7,7 @@ as ``self.base`` (frozen, always in eval mode). Rendering, metrics and images ar
 
 from __future__ import annotations
 
+import secrets
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Dict, Iterator, List, Literal, Optional, Tuple, Type
@@ -88,14 +89,19 @@ class GeometryStickerModel(Model):
             self.base.update_to_step(int(self.config.base_step))  # e.g. TensoRF's grid resolution at that step
         self.base.requires_grad_(False)
         self.base.eval()
-        self.sticker = Sticker(
-            self.config.num_bits,
-            self.config.num_frequencies,
-            self.config.sticker_hidden_dim,
-            self.config.sticker_num_layers,
-            self.config.sticker_init_scale,
-            self.config.sticker_kind,
-        )
+        # the sticker's initial weights come from a secret seed, never from machine.seed: what the fold mixes with
+        # the message (the per-bit patterns) cannot be regenerated from a shared run's config
+        self.sticker_seed = secrets.randbits(63)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(self.sticker_seed)
+            self.sticker = Sticker(
+                self.config.num_bits,
+                self.config.num_frequencies,
+                self.config.sticker_hidden_dim,
+                self.config.sticker_num_layers,
+                self.config.sticker_init_scale,
+                self.config.sticker_kind,
+            )
         self.register_buffer("message", torch.zeros(self.config.num_bits, dtype=torch.long))
         # the shared form: the sticker of the owner's message, folded (no bits, no per-bit patterns)
         self.folded_sticker = FoldedSticker(
@@ -189,9 +195,10 @@ class GeometryStickerModel(Model):
             state[prefix + "folded"] = torch.tensor(True)
         return {k: v for k, v in state.items() if not any(k[len(prefix) :].startswith(s) for s in self.SECRET_PREFIXES)}
 
-    def unfold(self, sticker_state: Dict[str, Tensor], message: Tensor) -> None:
+    def unfold(self, sticker_state: Dict[str, Tensor], message: Tensor, sticker_seed: int = -1) -> None:
         """Back from the shared form to the trainable sticker (resuming a run): the key's sticker and message."""
         self.sticker.load_state_dict(sticker_state, strict=True)
+        self.sticker_seed = sticker_seed
         self.set_message(message)
         self.folded.fill_(False)
 
@@ -370,9 +377,40 @@ def geometry_reference(model: "GeometryStickerModel") -> Dict[str, Any]:
         "wrap_proposal_networks": bool(cfg.wrap_proposal_networks),
         "mark_sampling_passes": bool(cfg.mark_sampling_passes),
         "sticker_state": {k: v.detach().cpu().clone() for k, v in model.sticker.state_dict().items()},
+        "sticker_seed": int(getattr(model, "sticker_seed", -1)),
         "gates_state": {k: v.detach().cpu().clone() for k, v in model.gates.state_dict().items()},
         "fields": [w.name for w in model.wraps],
         "final_field": model.final_wrap.name,
         "aabb": {w.name: w.aabb.detach().cpu().float().clone() for w in model.wraps},
         "null": None,
     }
+
+
+def folds_to(
+    geometry: Dict[str, Any], message: Tensor, pipeline_state: Dict[str, Any], prefix: str = "_model."
+) -> bool:
+    """Whether a key's sticker (its geometry reference) with ``message`` folds to the shared sticker of a run's
+    checkpoint ``pipeline_state``: the key belongs to that run."""
+    shared = {
+        k[len(prefix + "folded_sticker.") :]: v
+        for k, v in pipeline_state.items()
+        if k.startswith(prefix + "folded_sticker.")
+    }
+    sc = geometry.get("sticker_config") or {}
+    try:
+        sticker = Sticker(
+            int(sc["num_bits"]),
+            int(sc["num_frequencies"]),
+            int(sc["hidden_dim"]),
+            int(sc["num_layers"]),
+            0.0,
+            sc["kind"],
+        )
+        sticker.load_state_dict(geometry["sticker_state"], strict=True)
+        folded = sticker.fold(message)
+    except (KeyError, TypeError, ValueError, RuntimeError):
+        return False
+    return set(folded) == set(shared) and all(
+        folded[k].shape == shared[k].shape and torch.allclose(folded[k].float(), shared[k].float(), atol=1e-6)
+        for k in folded
+    )

@@ -201,7 +201,7 @@ class GeometryStickerPipeline(VanillaPipeline):
         """Take the owner's side from ``key`` after loading a shared run: the trainable sticker (unfolded), the message
         and how it was drawn, and (``heads``) the heads when this pipeline has them."""
         if key.geometry and bool(self.model.folded):
-            self.model.unfold(key.geometry["sticker_state"], key.message)
+            self.model.unfold(key.geometry["sticker_state"], key.message, int(key.geometry.get("sticker_seed", -1)))
         if heads and self.heads is not None:
             self.heads.load_state_dict(key.heads_state, strict=True)
         self.set_owner(key.message, key.message_source, key.owner_id, key)

@@ -22,6 +22,7 @@ from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConf
 from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManager
 from nerfstudio.engine.trainer import TrainerConfig
 
+from gsticker_plugin import config_check
 from gsticker_plugin.compat import allow_numpy_checkpoint_types
 from gsticker_plugin.errors import GStickerError
 
@@ -160,7 +161,7 @@ def load_run_config(config_path: Path):
     for anything but config classes, gives a one-line error."""
     loader = type("Loader", (RunConfigLoader,), {"packages": method_packages()})
     try:
-        return yaml.load(Path(config_path).read_text(), Loader=loader)
+        config = yaml.load(Path(config_path).read_text(), Loader=loader)
     except (ModuleNotFoundError, ImportError, AttributeError) as e:
         name = getattr(e, "name", None) or str(e)
         raise GStickerError(
@@ -178,6 +179,8 @@ def load_run_config(config_path: Path):
         ) from None
     except (OSError, UnicodeDecodeError) as e:
         raise GStickerError(f"{config_path} cannot be read ({type(e).__name__}); pass RUN/config.yml") from None
+    config_check.check(config, str(config_path))
+    return config
 
 
 def checkpoint_step(checkpoint: Path) -> int:
@@ -188,8 +191,8 @@ def checkpoint_step(checkpoint: Path) -> int:
 
 def load_checkpoint_state(checkpoint: Path) -> Dict[str, Any]:
     allow_numpy_checkpoint_types()  # numpy 2 scalars in the optimizer state; not only after the plugin's host fixes ran
-    try:
-        state = torch.load(checkpoint, map_location="cpu")
+    try:  # tensors, containers and numpy's scalar types only: a suspect checkpoint is never unpickled
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
     except Exception as e:
         raise GStickerError(
             f"checkpoint {checkpoint} is truncated or corrupt ({type(e).__name__}); "

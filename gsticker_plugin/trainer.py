@@ -5,10 +5,11 @@
   the frozen base, and training starts at step 0 of our own schedule.
 * The same flags pointing at one of *our* runs resume it (sticker, gates and optimizers from the
   checkpoint, heads and their optimizer from the owner key).
-* Checkpoints are written atomically and hold what a recipient may see: the folded sticker, no message, no
-  extractor/classifier, no optimizer state of the sticker; the owner key (default: the per-user keys folder,
-  :func:`gsticker_plugin.key.default_key_path`) is written at every save. The saved config.yml records no owner
-  ID, message or key path.
+* At every save the owner key (default: the per-user keys folder, :func:`gsticker_plugin.key.default_key_path`;
+  signed with the owner identity) is written and read back first, then the checkpoint, which holds what a
+  recipient may see: the folded sticker, no message, no extractor/classifier, no optimizer state of the sticker.
+  config.yml never keeps an owner ID, message or key path, not even when setup fails. A key path that cannot be
+  written, or lies inside the run folder, is refused before training; a resume takes only the run's own key.
 * Several processes (``--machine.num-devices N``): rank 0 draws the message and the others take it; the optimizers
   average the gradients over the ranks before each step; only rank 0 writes config.yml, checkpoints and the key.
 """
@@ -17,10 +18,12 @@ from __future__ import annotations
 
 import copy
 import os
+import shutil
 import sys
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, List, Literal, Optional, Type
+from typing import Callable, Dict, List, Literal, Optional, Tuple, Type
 
 import torch
 from nerfstudio.engine.optimizers import Optimizers
@@ -32,7 +35,16 @@ from torch.nn import Parameter
 
 from gsticker_plugin import runs
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.key import OwnerKey, bits_to_str, default_key_path, file_sha256
+from gsticker_plugin.key import (
+    KEY_SUFFIX,
+    OwnerKey,
+    bits_to_str,
+    commitment,
+    default_key_path,
+    file_sha256,
+    owner_identity,
+)
+from gsticker_plugin.model import folds_to
 from gsticker_plugin.pipeline import (
     GeometryStickerPipeline,
     GeometryStickerPipelineConfig,
@@ -51,6 +63,73 @@ class GeometryStickerTrainerConfig(TrainerConfig):
 def step_key_path(key_path: Path, step: int) -> Path:
     """The owner key of checkpoint ``step`` (written beside the key with --save-only-latest-checkpoint False)."""
     return Path(key_path).with_name(f"{Path(key_path).stem}.step-{step:09d}{Path(key_path).suffix}")
+
+
+def check_key_path(path: Path, run_dir: Path) -> None:
+    """Refuse, before any training, an owner key path that cannot be written or that lies inside the run folder (what
+    is shared)."""
+    path = Path(path)
+    if path.is_dir():
+        raise GStickerError(
+            f"--pipeline.key-path {path} is a folder; pass a file path such as {path / ('owner' + KEY_SUFFIX)}"
+        )
+    resolved = path.expanduser().resolve()
+    if resolved == Path(run_dir).resolve() or Path(run_dir).resolve() in resolved.parents:
+        raise GStickerError(
+            f"--pipeline.key-path {path} lies inside the run folder {run_dir}, which is what you share; "
+            "pass a path outside it (default: the per-user keys folder)"
+        )
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        probe = tempfile.NamedTemporaryFile(dir=path.parent, prefix=path.name + ".", suffix=".probe", delete=True)
+        probe.close()
+    except OSError as e:
+        raise GStickerError(
+            f"cannot write the owner key at {path} ({e.strerror or type(e).__name__}); pass --pipeline.key-path "
+            "with a writable file path"
+        ) from None
+
+
+def write_key(key: OwnerKey, path: Path, backup: bool = True) -> None:
+    """Write ``key`` atomically (the previous file kept as ``KEY.gskey.bak`` with ``backup``), read it back and check
+    it is the same key (message and commitment)."""
+    path = Path(path)
+    if backup and path.is_file():
+        shutil.copy2(path, path.with_name(path.name + ".bak"))
+    key.save(path)
+    back = OwnerKey.load(path)
+    if not torch.equal(back.message, key.message.cpu().long()) or commitment(back) != commitment(key):
+        raise GStickerError(f"the owner key written to {path} does not read back; check the disk and retry")
+
+
+def resume_key(ckpt: Path, run_cfg, key_path: Optional[Path]) -> Tuple[Path, OwnerKey]:
+    """The owner key of the run being resumed: ``key_path``, else the key's default place for that run, else (runs
+    written before the keys folder) beside the run folder; each with its ``.bak``. A key is taken only when its
+    sticker and message fold to the run's shared sticker (it belongs to this run)."""
+    run_dir = ckpt.resolve().parent.parent
+    places = (
+        [Path(key_path)]
+        if key_path is not None
+        else [
+            default_key_path(run_cfg.experiment_name, run_cfg.method_name, run_cfg.timestamp),
+            run_dir.with_name(run_dir.name + KEY_SUFFIX),
+        ]
+    )
+    existing = [p for place in places for p in (place, place.with_name(place.name + ".bak")) if p.is_file()]
+    if not existing:
+        raise GStickerError(
+            f"resuming {run_dir} needs its owner key (looked at {', '.join(map(str, places))}); "
+            "pass --pipeline.key-path OWNER.gskey"
+        )
+    pipeline_state = runs.load_checkpoint_state(ckpt)["pipeline"]
+    for p in existing:
+        key = OwnerKey.load(p)
+        if key.geometry and folds_to(key.geometry, key.message, pipeline_state):
+            return p, key
+    raise GStickerError(
+        f"the owner key {existing[0]} does not belong to {run_dir} (its sticker and message do not fold to the "
+        "run's shared sticker); pass --pipeline.key-path with this run's own key"
+    )
 
 
 def exit_with_error(error: GStickerError) -> None:
@@ -100,14 +179,14 @@ class GeometryStickerTrainer(Trainer):
         self._resume = False
         self._key_path: Optional[Path] = None
         self._resume_key: Optional[OwnerKey] = None
+        self._identity = None
 
     @property
     def key_path(self) -> Path:
-        if self._key_path is not None:
-            return self._key_path
-        p = self.config.pipeline.key_path
-        cfg = self.config
-        return Path(p) if p is not None else default_key_path(cfg.experiment_name, cfg.method_name, cfg.timestamp)
+        """Where the owner key is written (set by :meth:`setup`)."""
+        if self._key_path is None:
+            raise GStickerError("the owner key path is set by setup(); call it before saving")
+        return self._key_path
 
     def save_shared_config(self) -> None:
         """config.yml as a recipient sees it: no owner ID, message or key path (they live in the key)."""
@@ -129,13 +208,19 @@ class GeometryStickerTrainer(Trainer):
     def _setup(self, test_mode: Literal["test", "val", "inference"]) -> None:
         cfg = self.config
         pcfg = cfg.pipeline
+        # the owner's inputs leave the config first: Nerfstudio wrote config.yml with them before this ran, and a
+        # failure below must not leave them in the run folder
+        owner = copy.copy(pcfg)
+        pcfg.owner_id, pcfg.message, pcfg.key_path = "", None, None
+        if comms.is_main_process():
+            self.save_shared_config()
         ckpt = runs.resolve_checkpoint(cfg.load_checkpoint, cfg.load_dir, cfg.load_step)
         if ckpt is None and pcfg.model.base_model is None:
             raise GStickerError(
                 "geometrysticker needs a trained base: pass --load-checkpoint "
                 "BASE_RUN/nerfstudio_models/step-N.ckpt (any nerfacto, vanilla-nerf or tensorf run)"
             )
-        GeometryStickerPipeline.resolve_message(pcfg)  # a malformed message stops here, before any work
+        GeometryStickerPipeline.resolve_message(owner)  # a malformed message stops here, before any work
         if ckpt is not None:
             run_cfg = runs.load_run_config(runs.run_config_path(ckpt))
             if isinstance(run_cfg.pipeline, GeometryStickerPipelineConfig):
@@ -147,28 +232,12 @@ class GeometryStickerTrainer(Trainer):
                 pcfg.datamanager = run_cfg.pipeline.datamanager
                 if cfg.data is not None:
                     pcfg.datamanager.data = pcfg.datamanager.dataparser.data = Path(cfg.data)
-                # the message, label and sticker come from the run's key: --pipeline.key-path, else the key's
-                # default place for that run, else (runs written before the keys folder) beside the run folder
-                run_dir = ckpt.resolve().parent.parent
-                candidates = (
-                    [Path(pcfg.key_path)]
-                    if pcfg.key_path is not None
-                    else [
-                        default_key_path(run_cfg.experiment_name, run_cfg.method_name, run_cfg.timestamp),
-                        run_dir.with_name(run_dir.name + ".gskey"),
-                    ]
-                )
-                found = next((c for c in candidates if c.is_file()), None)
-                if found is None:
-                    raise GStickerError(
-                        f"resuming {run_dir} needs its owner key (looked at "
-                        f"{', '.join(map(str, candidates))}); pass --pipeline.key-path OWNER.gskey"
-                    )
-                self._resume_key = OwnerKey.load(found)
-                pcfg.key_path = found
-                pcfg.message = bits_to_str(self._resume_key.message)
+                found, self._resume_key = resume_key(ckpt, run_cfg, owner.key_path)
+                owner.key_path = found
+                owner.message = bits_to_str(self._resume_key.message)
+                owner.message_from_owner_id = False
+                owner.owner_id = self._resume_key.owner_id
                 pcfg.message_source = self._resume_key.message_source
-                pcfg.owner_id = self._resume_key.owner_id
             else:
                 pcfg.model.base_model = run_cfg.pipeline.model
                 pcfg.model.base_step = runs.checkpoint_step(ckpt)
@@ -181,17 +250,21 @@ class GeometryStickerTrainer(Trainer):
                     "checkpoint_sha256": file_sha256(ckpt),
                 }
             self._checkpoint = ckpt
-        # the secrets leave the config before anything writes it (config.yml, the event files' config dump)
-        self._key_path = self.key_path
-        message = GeometryStickerPipeline.resolve_message(pcfg)
-        source = GeometryStickerPipeline.source_of_message(pcfg)
-        label = pcfg.owner_id
-        pcfg.owner_id, pcfg.message, pcfg.key_path, pcfg.message_source = "", None, None, source
+        self._key_path = (
+            Path(owner.key_path)
+            if owner.key_path is not None
+            else default_key_path(cfg.experiment_name, cfg.method_name, cfg.timestamp)
+        )
+        check_key_path(self._key_path, self.base_dir)
+        self._identity = owner_identity() if comms.is_main_process() else None
+        message = GeometryStickerPipeline.resolve_message(owner)
+        source = pcfg.message_source or GeometryStickerPipeline.source_of_message(owner)
+        pcfg.message_source = source
         if comms.is_main_process():
             self.save_shared_config()  # again, now with the base filled in: stock ns-viewer/ns-render rebuild from it
         super().setup(test_mode)
         message = self.pipeline.from_rank0(message)  # several ranks: rank 0's draw
-        self.pipeline.set_owner(message, source, label, self._resume_key)
+        self.pipeline.set_owner(message, source, owner.owner_id, self._resume_key)
         CONSOLE.print(f"\\[gsticker] {self.pipeline.describe()}; message source {source}; owner key {self._key_path}")
 
     def setup_optimizers(self) -> Optimizers:
@@ -234,8 +307,8 @@ class GeometryStickerTrainer(Trainer):
 
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:
-        """Shareable checkpoint (atomic): the folded sticker, no heads, message or sticker optimizer state; then the
-        owner key (atomic) with what was left out. Rank 0 only."""
+        """The owner key (signed, atomic, read back, the previous one kept as ``.bak``), then the shareable checkpoint
+        (atomic): the folded sticker, no heads, message or sticker optimizer state. Rank 0 only."""
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         ckpt_path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
         opts = self.optimizers
@@ -251,9 +324,6 @@ class GeometryStickerTrainer(Trainer):
         assert not any(k.split(".")[0] == "heads" for k in state["pipeline"]), (
             "the heads must never enter the shareable model"
         )
-        tmp = ckpt_path.with_suffix(".ckpt.tmp")
-        torch.save(state, tmp)
-        os.replace(tmp, ckpt_path)
         training_state = {"step": step}
         for group in secret_groups:
             if group in opts.optimizers:
@@ -261,9 +331,15 @@ class GeometryStickerTrainer(Trainer):
             if group in opts.schedulers:
                 training_state[f"{group}_scheduler"] = opts.schedulers[group].state_dict()
         key = self.pipeline.owner_key(training_state, model_run=str(self.base_dir))
-        key.save(self.key_path)
+        key.sign(self._identity if self._identity is not None else owner_identity())
+        # the key first, read back and checked, the previous one kept as .bak: a crash never leaves a shared
+        # checkpoint whose key is lost
+        write_key(key, self.key_path)
         if not self.config.save_only_latest_checkpoint:  # every kept checkpoint keeps its own key (step_key_path)
-            key.save(step_key_path(self.key_path, step))
+            write_key(key, step_key_path(self.key_path, step), backup=False)
+        tmp = ckpt_path.with_suffix(".ckpt.tmp")
+        torch.save(state, tmp)
+        os.replace(tmp, ckpt_path)
         if self.config.save_only_latest_checkpoint:
             for f in self.checkpoint_dir.glob("*.ckpt"):
                 if f != ckpt_path:

@@ -31,7 +31,7 @@ from gsticker_plugin.views import Views, images_views, model_views, random_views
 def calibrate(config: CalibrateConfig) -> Dict[str, Any]:
     """Run ``calibrate``: decode unmarked views with the key and store their match counts in the key."""
     key_path = Path(config.key)
-    key = OwnerKey.load(key_path)
+    key = OwnerKey.load(key_path, allow_legacy=config.allow_legacy)
     device = pick_device(config.device)
     if config.decode == "geometry":
         return _calibrate_geometry(config, key_path, key, device)
@@ -125,7 +125,7 @@ def _store_null(
         backup = key_path.with_name(key_path.name + ".bak")
         shutil.copy2(key_path, backup)
     key.save(key_path)
-    OwnerKey.load(key_path)  # the rewritten key passes its own fingerprint check
+    OwnerKey.load(key_path)  # the rewritten key passes its own integrity check
     k = key.num_bits
     return {
         "key": str(key_path),

@@ -26,7 +26,7 @@ from gsticker_plugin.decoders.reference import (
 )
 from gsticker_plugin.decoders.unposed import decode_unposed_images
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.key import KEY_SUFFIX, OwnerKey, commitment
+from gsticker_plugin.key import KEY_SUFFIX, OwnerKey, commitment, signature_valid
 from gsticker_plugin.runs import load_run, pick_device
 from gsticker_plugin.verify.configs import EXIT_NOT_SHOWN, EXIT_OWNED, VerifyConfig
 from gsticker_plugin.verify.report import write_figure, write_json
@@ -70,7 +70,7 @@ from gsticker_plugin.views import (
 # ================================================================================================================
 
 
-def _load_keys(key: Optional[Path], keys: Optional[Path]) -> List[Tuple[Path, OwnerKey]]:
+def _load_keys(key: Optional[Path], keys: Optional[Path], allow_legacy: bool = False) -> List[Tuple[Path, OwnerKey]]:
     if key is not None and keys is not None:
         raise GStickerError("pass either --key KEY.gskey or --keys DIR, not both")
     if key is None and keys is None:
@@ -84,7 +84,7 @@ def _load_keys(key: Optional[Path], keys: Optional[Path]) -> List[Tuple[Path, Ow
         paths = sorted(d.glob(f"*{KEY_SUFFIX}"))
         if not paths:
             raise GStickerError(f"--keys {d} holds no *{KEY_SUFFIX} files; pass the folder of owner keys")
-    return [(p, OwnerKey.load(p)) for p in paths]
+    return [(p, OwnerKey.load(p, allow_legacy=allow_legacy)) for p in paths]
 
 
 def _check_stats(fpr: float, min_share: float) -> None:
@@ -258,8 +258,8 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
             parse_attack_spec(config.attack)
         except ValueError as e:
             raise GStickerError(f"--attack: {e}") from None
-    keys = _load_keys(config.key, config.keys)
-    committed = check_commitment(config.commitment, keys)
+    keys = _load_keys(config.key, config.keys, config.allow_legacy)
+    committed = check_commitment(config.commitment, keys, config.public_key)
     device = pick_device(config.device)
     decoder, notes = choose_decoder(config, keys)
     if decoder == "extractor":
@@ -379,28 +379,48 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
     return report["exit_status"], report
 
 
-def check_commitment(given: Optional[str], keys: List[Tuple[Path, OwnerKey]]) -> Optional[Dict[str, Any]]:
-    """``--commitment HEX`` against the one key given: None without it; a mismatch is an error."""
-    if given is None:
-        return None
+def _hex_arg(given: str, option: str, what: str) -> str:
     hex_ = given.strip().lower()
-    if len(keys) != 1:
-        raise GStickerError("--commitment checks one key: pass it with --key KEY.gskey, not --keys")
-    path, key = keys[0]
     if len(hex_) != 64 or set(hex_) - set("0123456789abcdef"):
-        raise GStickerError(
-            f"--commitment must be the 64 hex digits printed by `ns-verify-owner commit`, got {given!r}"
-        )
+        raise GStickerError(f"{option} must be the 64 hex digits of the {what} printed by `ns-verify-owner commit`")
+    return hex_
+
+
+def check_commitment(
+    given: Optional[str], keys: List[Tuple[Path, OwnerKey]], public_key: Optional[str] = None
+) -> Optional[Dict[str, Any]]:
+    """``--commitment HEX`` (and ``--public-key HEX``) against the one key given: None without them; a mismatch is an
+    error. The public key must have signed the key's commitment."""
+    if given is None and public_key is None:
+        return None
+    if len(keys) != 1:
+        raise GStickerError("--commitment and --public-key check one key: pass it with --key KEY.gskey, not --keys")
+    path, key = keys[0]
     own = commitment(key)
-    if own != hex_:
-        raise GStickerError(
-            f"{path} does not match the commitment {hex_[:16]}... (its own is {own[:16]}...): this is "
-            "not the key that was committed to; pass the committed key"
+    out: Dict[str, Any] = {"key": str(path), "matches": True}
+    if given is not None:
+        hex_ = _hex_arg(given, "--commitment", "commitment")
+        if own != hex_:
+            raise GStickerError(
+                f"{path} does not match the commitment {hex_[:16]}... (its own is {own[:16]}...): this is "
+                "not the key that was committed to; pass the committed key"
+            )
+        out.update(
+            given=hex_,
+            meaning="sha256 over a secret salt and the key's message, sticker, heads and base checksum: the key "
+            "existed when this value was published or timestamped",
         )
-    return {
-        "given": hex_,
-        "matches": True,
-        "key": str(path),
-        "meaning": "sha256 over a secret salt and the key's message, sticker, heads and base checksum: the key "
-        "existed when this value was published or timestamped",
-    }
+    if public_key is not None:
+        pub = _hex_arg(public_key, "--public-key", "public key")
+        if not key.signature:
+            raise GStickerError(
+                f"{path} carries no signature (written before version 4): --public-key cannot be checked; "
+                "verify with --commitment alone"
+            )
+        if not signature_valid(pub, key.signature, own):
+            raise GStickerError(
+                f"{path} was not signed by the public key {pub[:16]}...: its commitment's signature does not verify; "
+                "this is not that owner's key"
+            )
+        out.update(public_key=pub, signed=True)
+    return out

@@ -5,7 +5,8 @@ Four subcommands (``verify`` is the default and may be left out)::
     ns-verify-owner [verify] (--load-config RUN/config.yml | --images DIR) (--key KEY.gskey | --keys DIR) [...]
     ns-verify-owner calibrate --key KEY.gskey [--load-config RUN/config.yml ...] [--images DIR ...] [...]
     ns-verify-owner export-key --load-config WATERMARKED_RUN/config.yml --key KEY.gskey [--output NEW.gskey]
-    ns-verify-owner commit --key KEY.gskey      (prints the key's commitment; verify --commitment HEX checks it)
+    ns-verify-owner commit --key KEY.gskey      (prints the key's commitment and public key; verify --commitment HEX
+                                                --public-key HEX checks them)
 
 ``verify`` renders N views of a run (its own cameras and sampled orbit poses) or reads the images of a folder,
 decodes each view with the owner key's extractor, tests each view on its own against the binomial null
@@ -92,9 +93,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if sub == "commit":
             res = commit(cfg)
             print(res["commitment"])
+            if res["public_key"]:
+                print(res["public_key"])
             print(
-                f"commitment of {res['key']}: publish or timestamp it when you release the model; later "
-                f"`ns-verify-owner --key {res['key']} --commitment HEX ...` shows this key existed then",
+                f"commitment of {res['key']}"
+                + (" (first line) and the owner's public key (second line)" if res["public_key"] else "")
+                + ": publish or timestamp them when you release the model; later `ns-verify-owner --key "
+                f"{res['key']} --commitment HEX"
+                + (" --public-key HEX" if res["public_key"] else "")
+                + " ...` shows this key existed then"
+                + (" and was signed by that identity" if res["public_key"] else ""),
                 file=sys.stderr,
             )
             for c in res["null_caveats"]:

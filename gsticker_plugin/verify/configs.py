@@ -80,6 +80,11 @@ class VerifyConfig:
     commitment: Optional[str] = None
     """The commitment (hex) printed by `ns-verify-owner commit` and published when the model was released: checked
     against --key (a mismatch is an error, exit 2); the report says it matched, i.e. this key existed then."""
+    public_key: Optional[str] = None
+    """The owner's Ed25519 public key (hex) printed by `ns-verify-owner commit` and published with the commitment:
+    the key's signature of its commitment must verify under it (else an error, exit 2)."""
+    allow_legacy: bool = False
+    """Read version-1 and version-2 keys, which have no integrity check (anyone can rewrite them)."""
 
 
 @dataclass
@@ -133,6 +138,8 @@ class CalibrateConfig:
     """Device for rendering and decoding."""
     progress: bool = True
     """Show tqdm progress bars (on stderr)."""
+    allow_legacy: bool = False
+    """Read a version-1 or version-2 key, which has no integrity check (it is rewritten as a current key)."""
 
 
 @dataclass
@@ -151,12 +158,15 @@ class ExportKeyConfig:
     """Dataset folder of the run, when the path recorded in its config.yml does not exist from here."""
     backup: bool = True
     """Keep the previous key file as KEY.gskey.bak when rewriting it in place."""
+    allow_legacy: bool = False
+    """Read a version-1 or version-2 key, which has no integrity check (the export rewrites it as a current key)."""
 
 
 @dataclass
 class CommitConfig:
-    """Print the commitment of an owner key: 64 hex digits to publish or timestamp when the model is released.
-    Later, `ns-verify-owner --commitment HEX --key KEY` shows this key existed then (see docs/verify.md)."""
+    """Print the commitment of an owner key and the owner's public key (64 hex digits each, one a line) to publish or
+    timestamp together when the model is released. Later, `ns-verify-owner --commitment HEX --public-key HEX --key
+    KEY` shows this key existed then and was signed by the holder of that public key's identity (docs/verify.md)."""
 
     key: Path
     """The owner key (.gskey) to commit to."""

@@ -20,7 +20,7 @@ from gsticker_plugin.verify.configs import CommitConfig, ExportKeyConfig
 def export_key(config: ExportKeyConfig) -> Dict[str, Any]:
 
     key_path = Path(config.key)
-    key = OwnerKey.load(key_path)
+    key = OwnerKey.load(key_path, allow_legacy=config.allow_legacy)
     with contextlib.redirect_stdout(sys.stderr):
         run_cfg, pipeline, ckpt = load_run(config.load_config, data=config.data, device=torch.device("cpu"))
     model = pipeline.model
@@ -52,6 +52,7 @@ def export_key(config: ExportKeyConfig) -> Dict[str, Any]:
         "null": old.get("null"),
         **({"image_null": old["image_null"]} if old.get("image_null") else {}),
     }
+    key.signature = key.public_key = ""  # the commitment changed with the geometry: an older signature no longer holds
     out = Path(config.output) if config.output is not None else key_path
     backup = None
     if out.resolve() == key_path.resolve() and config.backup:
@@ -73,6 +74,7 @@ def commit(config: CommitConfig) -> Dict[str, Any]:
     return {
         "key": str(config.key),
         "commitment": commitment(key),
+        "public_key": key.public_key if key.signed() else "",
         "message_source": key.message_source,
         "null_caveats": key.null_caveats(),
     }

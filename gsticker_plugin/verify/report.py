@@ -105,9 +105,12 @@ def summary_text(report: Dict[str, Any]) -> str:
         lines.append(line)
     if report.get("commitment"):
         c = report["commitment"]
-        lines.append(
-            f"  commitment {c['given'][:16]}... matches the key: it existed when this commitment was published"
-        )
+        if c.get("given"):
+            lines.append(
+                f"  commitment {c['given'][:16]}... matches the key: it existed when this commitment was published"
+            )
+        if c.get("signed"):
+            lines.append(f"  signed by the public key {c['public_key'][:16]}...: its identity's holder made this key")
     if report.get("multiple_testing"):
         mt = report["multiple_testing"]
         lines.append(
