@@ -92,16 +92,7 @@ class GeometryStickerModel(Model):
         # the sticker's initial weights come from a secret seed, never from machine.seed: what the fold mixes with
         # the message (the per-bit patterns) cannot be regenerated from a shared run's config
         self.sticker_seed = secrets.randbits(63)
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(self.sticker_seed)
-            self.sticker = Sticker(
-                self.config.num_bits,
-                self.config.num_frequencies,
-                self.config.sticker_hidden_dim,
-                self.config.sticker_num_layers,
-                self.config.sticker_init_scale,
-                self.config.sticker_kind,
-            )
+        self.sticker = seeded_sticker(sticker_config(self.config), self.sticker_seed)
         self.register_buffer("message", torch.zeros(self.config.num_bits, dtype=torch.long))
         # the shared form: the sticker of the owner's message, folded (no bits, no per-bit patterns)
         self.folded_sticker = FoldedSticker(
@@ -361,18 +352,45 @@ def shareable_state(model: nn.Module) -> Dict[str, Tensor]:
     return state
 
 
+def sticker_config(cfg: GeometryStickerModelConfig) -> Dict[str, Any]:
+    """The sticker's shape as the key's geometry reference records it."""
+    return {
+        "kind": cfg.sticker_kind,
+        "num_bits": int(cfg.num_bits),
+        "num_frequencies": int(cfg.num_frequencies),
+        "hidden_dim": int(cfg.sticker_hidden_dim),
+        "num_layers": int(cfg.sticker_num_layers),
+        "init_scale": float(cfg.sticker_init_scale),
+    }
+
+
+def seeded_sticker(sc: Dict[str, Any], seed: Optional[int] = None) -> Sticker:
+    """A :class:`Sticker` of shape ``sc`` (:func:`sticker_config`) initialised from ``seed`` alone (the global
+    generators are left as they were); ``seed`` None: the global generator's next draws."""
+
+    def build() -> Sticker:
+        return Sticker(
+            int(sc["num_bits"]),
+            int(sc["num_frequencies"]),
+            int(sc["hidden_dim"]),
+            int(sc["num_layers"]),
+            float(sc.get("init_scale", 0.5)),
+            sc["kind"],
+        )
+
+    if seed is None:
+        return build()
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return build()
+
+
 def geometry_reference(model: "GeometryStickerModel") -> Dict[str, Any]:
     """The key's geometry reference: the sticker and gates the informed decoders rebuild on the owner's base."""
     cfg = model.config
     return {
         "version": GEOMETRY_REFERENCE_VERSION,
-        "sticker_config": {
-            "kind": cfg.sticker_kind,
-            "num_bits": int(cfg.num_bits),
-            "num_frequencies": int(cfg.num_frequencies),
-            "hidden_dim": int(cfg.sticker_hidden_dim),
-            "num_layers": int(cfg.sticker_num_layers),
-        },
+        "sticker_config": sticker_config(cfg),
         "gate_threshold": float(cfg.gate_threshold),
         "wrap_proposal_networks": bool(cfg.wrap_proposal_networks),
         "mark_sampling_passes": bool(cfg.mark_sampling_passes),
@@ -396,16 +414,8 @@ def folds_to(
         for k, v in pipeline_state.items()
         if k.startswith(prefix + "folded_sticker.")
     }
-    sc = geometry.get("sticker_config") or {}
     try:
-        sticker = Sticker(
-            int(sc["num_bits"]),
-            int(sc["num_frequencies"]),
-            int(sc["hidden_dim"]),
-            int(sc["num_layers"]),
-            0.0,
-            sc["kind"],
-        )
+        sticker = seeded_sticker(geometry["sticker_config"], 0)
         sticker.load_state_dict(geometry["sticker_state"], strict=True)
         folded = sticker.fold(message)
     except (KeyError, TypeError, ValueError, RuntimeError):

@@ -29,6 +29,7 @@ from gsticker_plugin import views as VW
 from gsticker_plugin.decoders import fit as FIT
 from gsticker_plugin.decoders import geometric as G
 from gsticker_plugin.decoders import reference as R
+from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import OwnerKey, fingerprint, parse_message, payload_hmac
 from gsticker_plugin.sticker import Sticker, message_to_signs
 from gsticker_plugin.verify import cli as V
@@ -278,7 +279,8 @@ def _geo(runs, ws, capsys, suspect: Path, name: str, *extra: str):
 
 def test_key_holds_the_geometry_reference_and_loads_weights_only(runs):
     key = OwnerKey.load(runs["key"])
-    assert key.version == 3 and key.geometry["fields"] == ["field"] and key.geometry["final_field"] == "field"
+    assert key.version == 4 and key.geometry["fields"] == ["field"] and key.geometry["final_field"] == "field"
+    assert key.signed()  # signed with the owner identity of the test session
     assert key.geometry["sticker_config"]["kind"] == "bilinear" and key.geometry["sticker_config"]["num_bits"] == 48
     assert set(key.geometry["gates_state"]) == {"field.mu", "field.scale", "field.calibrated", "field.log_beta"}
     n = sum(v.numel() for v in key.geometry["sticker_state"].values())
@@ -286,7 +288,7 @@ def test_key_holds_the_geometry_reference_and_loads_weights_only(runs):
     code = "import torch,sys; p=torch.load(sys.argv[1], weights_only=True); print(p['version'], sorted(p['geometry']))"
     proc = subprocess.run([sys.executable, "-c", code, str(runs["key"])], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-1000:]
-    assert proc.stdout.startswith("3 ") and "'sticker_state'" in proc.stdout
+    assert proc.stdout.startswith("4 ") and "'sticker_state'" in proc.stdout
 
 
 def test_watermarked_run_is_owned_48_of_48(runs, ws, capsys):
@@ -415,10 +417,27 @@ def test_v1_key_loads_says_how_to_add_geometry_and_export_key_upgrades_it(runs, 
     v1["fingerprint"] = fingerprint(v1)
     path = ws / "v1.gskey"
     torch.save(v1, path)
-    key = OwnerKey.load(path)
+    with pytest.raises(GStickerError, match="allow-legacy"):  # no integrity: refused unless asked
+        OwnerKey.load(path)
+    key = OwnerKey.load(path, allow_legacy=True)
     assert key.version == 1 and key.geometry is None and torch.equal(key.message, parse_message(MESSAGE))
     status, _, err = run_cli(
         ["--load-config", str(runs["run"]), "--key", str(path), "--output", str(ws / "r"), "--decode", "geometry"],
+        capsys,
+    )
+    assert status == 2 and "--allow-legacy" in one_error_line(err)
+    status, _, err = run_cli(
+        [
+            "--load-config",
+            str(runs["run"]),
+            "--key",
+            str(path),
+            "--output",
+            str(ws / "r"),
+            "--decode",
+            "geometry",
+            "--allow-legacy",
+        ],
         capsys,
     )
     line = one_error_line(err)
@@ -426,22 +445,39 @@ def test_v1_key_loads_says_how_to_add_geometry_and_export_key_upgrades_it(runs, 
     # auto with a v1 key: the extractor, with the reason
     out = ws / "rep-v1-auto"
     status, _, _ = run_cli(
-        ["--load-config", str(runs["run"]), "--key", str(path), "--output", str(out), "--num-views", "2"], capsys
+        [
+            "--load-config",
+            str(runs["run"]),
+            "--key",
+            str(path),
+            "--output",
+            str(out),
+            "--num-views",
+            "2",
+            "--allow-legacy",
+        ],
+        capsys,
     )
     assert status == 1 and report_of(out)["decoder"]["kind"] == "extractor"
     # a shared (folded) run holds no message: nothing to export from it
-    status, _, err = run_cli(["export-key", "--load-config", str(runs["run"]), "--key", str(path)], capsys)
+    status, _, err = run_cli(
+        ["export-key", "--load-config", str(runs["run"]), "--key", str(path), "--allow-legacy"], capsys
+    )
     assert status == 2 and "nothing to export" in one_error_line(err)
     # runs written before the shared form still load, and export-key upgrades their keys: it refuses a run carrying
     # another message, then upgrades the key from the right run
     legacy = legacy_run(runs["run"], runs["key"], MESSAGE, ws / "legacy" / "run")
     legacy_other = legacy_run(runs["run"], runs["key"], OTHER_MESSAGE, ws / "legacy-other" / "run")
-    status, _, err = run_cli(["export-key", "--load-config", str(legacy_other), "--key", str(path)], capsys)
+    status, _, err = run_cli(
+        ["export-key", "--load-config", str(legacy_other), "--key", str(path), "--allow-legacy"], capsys
+    )
     assert status == 2 and "different message" in one_error_line(err)
-    status, stdout, err = run_cli(["export-key", "--load-config", str(legacy), "--key", str(path)], capsys)
+    status, stdout, err = run_cli(
+        ["export-key", "--load-config", str(legacy), "--key", str(path), "--allow-legacy"], capsys
+    )
     assert status == 0, err
     up = OwnerKey.load(path)
-    assert up.version == 3 and up.geometry["fields"] == ["field"] and Path(str(path) + ".bak").is_file()
+    assert up.version == 4 and up.geometry["fields"] == ["field"] and Path(str(path) + ".bak").is_file()
     for k, v in OwnerKey.load(runs["key"]).geometry["sticker_state"].items():
         assert torch.equal(up.geometry["sticker_state"][k], v)
     for suspect, name in ((runs["run"], "shared"), (legacy, "legacy")):

@@ -10,6 +10,7 @@ from conftest import CPU_ARGS, TINY_POOL_ARGS
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.heads import HeadConfig, Heads
 from gsticker_plugin.key import (
+    KEY_VERSION,
     OwnerKey,
     commitment,
     default_key_path,
@@ -69,7 +70,7 @@ def test_key_round_trip_keeps_the_source_secret_salt_and_commitment(tmp_path):
     key = small_key(message_source="random")
     path = key.save(tmp_path / "k.gskey")
     back = OwnerKey.load(path)
-    assert back.version == 3 and back.message_source == "random" and back.null_caveats() == []
+    assert back.version == KEY_VERSION and back.message_source == "random" and back.null_caveats() == []
     assert back.secret == key.secret and back.salt == key.salt and len(back.salt) == 32
     assert commitment(back) == commitment(key)
     # calibrating rewrites the key (a null is stored): the commitment to its secret parts stays
