@@ -1,4 +1,12 @@
-"""One exception type for bad user input: commands print its one-line message and exit with status 2."""
+"""One exception type for bad user input, and the runner that turns it into one ``error:`` line and exit status 2."""
+
+from __future__ import annotations
+
+import sys
+from typing import Callable
+
+EXIT_ERROR = 2
+"""Every gsticker command's exit status for bad input or a failure (never a result)."""
 
 
 class GStickerError(Exception):
@@ -6,3 +14,24 @@ class GStickerError(Exception):
 
     def __init__(self, message: str) -> None:
         super().__init__(" ".join(message.split()))
+
+
+def print_error(message: str) -> int:
+    """Print ``error: <message>`` on one line to stderr; returns :data:`EXIT_ERROR`."""
+    sys.stderr.write("error: " + " ".join(str(message).split()) + "\n")
+    sys.stderr.flush()
+    return EXIT_ERROR
+
+
+def run_command(body: Callable[[], int]) -> int:
+    """Run a command's body and return its exit status; bad input (:class:`GStickerError`) and a path that cannot be
+    read or written (``OSError``) give one ``error:`` line and exit status 2 instead of a traceback."""
+    try:
+        return body()
+    except GStickerError as e:
+        return print_error(str(e))
+    except OSError as e:
+        where = f" ({e.filename})" if getattr(e, "filename", None) else ""
+        return print_error(f"{e.strerror or type(e).__name__}{where}; check the paths given and retry")
+    except KeyboardInterrupt:
+        return print_error("interrupted")

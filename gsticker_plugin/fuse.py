@@ -51,7 +51,7 @@ from torch import Tensor
 
 from gsticker_plugin import compat, runs
 from gsticker_plugin.background import Background
-from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.errors import GStickerError, run_command
 from gsticker_plugin.fastpath import novel_cameras
 from gsticker_plugin.runs import final_rgb, load_run, relocate
 from gsticker_plugin.sticker import render_weights
@@ -588,12 +588,12 @@ def main(cfg: FuseConfig) -> int:
     compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
 
     warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
-    try:
+
+    def body() -> int:
         fuse(cfg)
-    except GStickerError as e:
-        sys.stderr.write(f"error: {e}\n")
-        return 2
-    return 0
+        return 0
+
+    return run_command(body)
 
 
 def entrypoint() -> None:

@@ -339,13 +339,13 @@ def load_run(config_path: Path, data: Optional[Path] = None, device: Optional[to
             "here; install its package and retry"
         )
     config.pipeline.datamanager._target = all_methods[config.method_name].pipeline.datamanager._target
-    # checkpoint: where the config says, else beside the config (a run folder that was moved)
-    candidates = [config.get_checkpoint_dir(), config_path.parent / config.relative_model_dir]
-    ckpt = next((c for c in map(latest_checkpoint, candidates) if c is not None), None)
+    # checkpoint: beside the config only (the run folder judged, wherever it was moved); a suspect config's own
+    # output_dir could point anywhere on this disk
+    ckpt = latest_checkpoint(config_path.parent / "nerfstudio_models")
     if ckpt is None:
         raise GStickerError(
             f"the run {config_path.parent} has no checkpoint (no step-*.ckpt in "
-            f"{config_path.parent / config.relative_model_dir}); copy its nerfstudio_models folder"
+            f"{config_path.parent / 'nerfstudio_models'}); copy its nerfstudio_models folder beside its config.yml"
         )
     dm = config.pipeline.datamanager
     recorded = getattr(dm, "data", None) or getattr(dm.dataparser, "data", None)

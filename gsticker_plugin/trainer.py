@@ -19,7 +19,6 @@ from __future__ import annotations
 import copy
 import os
 import shutil
-import sys
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,7 +33,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
 from gsticker_plugin import runs
-from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.errors import GStickerError, print_error
 from gsticker_plugin.key import (
     KEY_SUFFIX,
     OwnerKey,
@@ -134,9 +133,7 @@ def resume_key(ckpt: Path, run_cfg, key_path: Optional[Path]) -> Tuple[Path, Own
 
 def exit_with_error(error: GStickerError) -> None:
     """One line ``error: <message>`` on stderr, exit status 2 (the plugin's convention for bad input)."""
-    sys.stderr.write(f"error: {error}\n")
-    sys.stderr.flush()
-    raise SystemExit(2)
+    raise SystemExit(print_error(str(error)))
 
 
 class GradientAveragingOptimizers(Optimizers):

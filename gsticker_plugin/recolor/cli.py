@@ -14,14 +14,13 @@ never changed; an existing ``--output-dir`` is refused unless ``--overwrite``. S
 
 from __future__ import annotations
 
-import sys
 from typing import List, Optional, Union
 
 import tyro
 from typing_extensions import Annotated
 
 from gsticker_plugin import compat
-from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.errors import run_command
 from gsticker_plugin.recolor.configs import FinetuneArgs, HueArgs, PaletteArgs
 
 Args = Union[
@@ -32,18 +31,13 @@ Args = Union[
 
 
 def run(argv: Optional[List[str]] = None) -> int:
-    """Parse ``argv`` and run; GStickerError -> one line ``error: ...`` on stderr, exit status 2."""
+    """Parse ``argv`` and run; bad input -> one line ``error: ...`` on stderr, exit status 2."""
     compat.apply()  # the plugin's host fixes (offline LPIPS, checkpoint types)
     args = tyro.cli(Args, args=argv, description=__doc__.split("\n\n")[0])
     # deferred: the edits pull in Nerfstudio (seconds): parse the arguments first
     from gsticker_plugin.recolor.edits import apply_edit
 
-    try:
-        return apply_edit(args)
-    except GStickerError as e:
-        sys.stderr.write(f"error: {e}\n")
-        sys.stderr.flush()
-        raise SystemExit(2)
+    return run_command(lambda: apply_edit(args))
 
 
 def entrypoint() -> None:

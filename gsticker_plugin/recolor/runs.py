@@ -77,6 +77,11 @@ def check_output_dir(output_dir: Optional[Path], run_dir: Path, overwrite: bool)
             f"--output-dir {output_dir} contains the input run {run_dir}; the input run is never "
             "overwritten: pass another --output-dir"
         )
+    blocker = next((p for p in (out, *out.parents) if p.exists() and not p.is_dir()), None)
+    if blocker is not None:
+        raise GStickerError(
+            f"--output-dir {output_dir} cannot be a folder: {blocker} is a file; pass another --output-dir"
+        )
     if out.exists() and not overwrite:
         raise GStickerError(f"output folder {out} exists; pass --overwrite to replace it, or another --output-dir")
     return out
