@@ -11,6 +11,7 @@ import copy
 import dataclasses
 import enum
 import importlib.util
+import pickle
 import re
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -193,6 +194,11 @@ def load_checkpoint_state(checkpoint: Path) -> Dict[str, Any]:
     allow_numpy_checkpoint_types()  # numpy 2 scalars in the optimizer state; not only after the plugin's host fixes ran
     try:  # tensors, containers and numpy's scalar types only: a suspect checkpoint is never unpickled
         state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        raise GStickerError(
+            f"checkpoint {checkpoint} holds Python objects beyond tensors and is refused (a checkpoint is never "
+            "unpickled); point at a checkpoint written by Nerfstudio"
+        ) from None
     except Exception as e:
         raise GStickerError(
             f"checkpoint {checkpoint} is truncated or corrupt ({type(e).__name__}); "
