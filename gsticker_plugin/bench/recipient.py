@@ -76,8 +76,6 @@ def page(res: Dict[str, Any], args: Args) -> str:
             args.output.with_suffix(".json").name,
             res["command"],
         ),
-        f"{res['machine']['cpu']}, {res['seconds']:.0f} s in all.",
-        "",
         "A recipient holds the shared run (config.yml and checkpoint). The folded sticker's output weights are the "
         "owner's message mixed with the per-bit patterns; the recipient regenerates the patterns as the sticker was "
         f"initialised from the run's `machine.seed` and from seeds 0-{args.seeds - 1}, and keeps the least-squares "

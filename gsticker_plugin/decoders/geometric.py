@@ -125,6 +125,19 @@ def suspect_signal(outputs: Dict[str, Tensor], ref: ReferenceView) -> Float[Tens
     return out
 
 
+SCENE_AGREEMENT_TOLERANCE = 0.25
+"""Accumulation difference under which the suspect and the base agree at a ray (:func:`scene_agreement`)."""
+
+
+def scene_agreement(suspect: Float[Tensor, "C R"], ref: ReferenceView) -> float:
+    """Share of the base's surface rays (those the sticker can change) where the suspect's accumulation is within
+    :data:`SCENE_AGREEMENT_TOLERANCE` of the base's: near 1 for any model of the base's scene (marked, recoloured or
+    retrained), low for another scene. NaN for a view with no such ray."""
+    if suspect.shape[1] == 0:
+        return float("nan")
+    return float(((suspect[0] - ref.base_signal[0]).abs() < SCENE_AGREEMENT_TOLERANCE).float().mean())
+
+
 def decode_view(
     ref_view: ReferenceView,
     sticker: Sticker,
@@ -206,7 +219,9 @@ def decode_suspect(
     ):
         use_depth = has_expected_depth(out)
         ref_view = cached_reference_view(reference, name, cam, use_depth, ref_cache)
-        d = decode_view(ref_view, st, suspect_signal(out, ref_view), gen, iterations)
+        signal = suspect_signal(out, ref_view)
+        d = decode_view(ref_view, st, signal, gen, iterations)
+        agreement = scene_agreement(signal, ref_view)
         rounds = relinearize if reference.samples_follow_sticker else 0
         for _ in range(rounds):
             first = d["bits"]
@@ -216,6 +231,7 @@ def decode_suspect(
             d = decode_view(rv, st, suspect_signal(out, rv), gen, iterations)
             d["bits_changed_by_relinearizing"] = int((d["bits"] != first).sum())
         d["relinearized"] = rounds
+        d["scene_agreement"] = agreement
         bits.append(d.pop("bits"))
         d["signs_abs_mean"] = float(d.pop("signs").abs().mean())
         d["signals"] = list(ref_view.signals)

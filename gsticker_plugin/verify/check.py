@@ -154,6 +154,18 @@ def _informed_result(
     return r
 
 
+OTHER_SCENE_AGREEMENT = 0.5
+"""Below this median :func:`gsticker_plugin.decoders.geometric.scene_agreement` the report says the key was made for
+another scene."""
+
+
+def median_agreement(dec: Dict[str, Any]) -> float:
+    """The median over views of the geometric decoder's scene agreement (views with no surface ray left out; NaN when
+    none has one)."""
+    vals = sorted(g["scene_agreement"] for g in dec["geometry"] if g.get("scene_agreement") == g.get("scene_agreement"))
+    return float(vals[len(vals) // 2]) if vals else float("nan")
+
+
 def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device):
     """Geometric decoding of the suspect run for every key (each against its own base run)."""
 
@@ -181,7 +193,16 @@ def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], de
                 "cameras_of": f"the owner's base run {ref.config_path}",
             },
         )
-        results.append(_informed_result(key, path, dec, kv, config, "geometry", ref, notes, bases))
+        result = _informed_result(key, path, dec, kv, config, "geometry", ref, notes, bases)
+        agreement = median_agreement(dec)
+        result["scene_agreement"] = agreement
+        if agreement < OTHER_SCENE_AGREEMENT:
+            notes.append(
+                f"{path} was made for another scene: the suspect's geometry agrees with the key's base at "
+                f"{agreement:.0%} of the base's surface pixels (median over views; a model of the same scene "
+                f"agrees at most of them); pass the key made for this scene"
+            )
+        results.append(result)
         views = views or kv
         del ref
     signals = sorted({tuple(g["signals"]) for r in results for g in (v["geometry"] for v in r["per_view"])})
