@@ -11,8 +11,10 @@ import copy
 import dataclasses
 import enum
 import importlib.util
+import io
 import pickle
 import re
+import sys
 from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple
@@ -371,20 +373,35 @@ def load_run(config_path: Path, data: Optional[Path] = None, device: Optional[to
         # its __del__ printed a traceback at exit: the same dataparser in nerfstudio's in-process data manager
         config.pipeline.datamanager = copy_datamanager(config, None)
     device = device or torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        pipeline = config.pipeline.setup(device=device, test_mode="test")
-    except GStickerError:
-        raise
-    except (FileNotFoundError, OSError) as e:
-        raise GStickerError(
-            f"could not load the dataset of {config_path} ({type(e).__name__}: {e}); "
-            "pass --data with the run's dataset folder"
-        ) from None
+    pipeline = setup_pipeline(config, device, "test", config_path)
     pipeline.eval()
     state = load_checkpoint_state(ckpt)
     load_pipeline_strictly(pipeline, state, ckpt)
     pipeline.eval()
     return config, pipeline, ckpt
+
+
+def setup_pipeline(config, device, test_mode: str, source: Path):
+    """``config.pipeline.setup`` for a run read from ``source``, with no one to answer a prompt: a dataparser that asks
+    (COLMAP's "downscale the images now?") reads "no" and its exit becomes a one-line error, as does a dataset that
+    cannot be read."""
+    old_stdin = sys.stdin
+    sys.stdin = io.StringIO("n\n" * 8)
+    try:
+        return config.pipeline.setup(device=device, test_mode=test_mode)
+    except GStickerError:
+        raise
+    except SystemExit:
+        raise GStickerError(
+            f"the dataparser of {source} stopped while reading its dataset (it asked a question, e.g. to downscale "
+            "images, and was told no); prepare the dataset with nerfstudio first, or pass --data"
+        ) from None
+    except (FileNotFoundError, OSError) as e:
+        raise GStickerError(
+            f"could not load the dataset of {source} ({type(e).__name__}: {e}); pass --data with the run's dataset folder"
+        ) from None
+    finally:
+        sys.stdin = old_stdin
 
 
 def copy_datamanager(base_config, data_override: Optional[Path]) -> VanillaDataManagerConfig:

@@ -347,6 +347,11 @@ class GeometryStickerTrainer(Trainer):
             super().train()
         except GStickerError as e:  # e.g. a base whose samples the fast path cannot capture
             exit_with_error(e)
+        except OSError as e:  # a disk that fills up or a folder that went away while saving
+            where = f" ({e.filename})" if e.filename else ""
+            exit_with_error(
+                GStickerError(f"{e.strerror or type(e).__name__}{where} while training; free the disk and resume")
+            )
         if not comms.is_main_process():
             return
         CONSOLE.rule("\\[gsticker] done")

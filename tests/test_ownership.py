@@ -279,8 +279,9 @@ def test_decoded_bits_do_not_depend_on_the_key_message_and_a_commitment_is_check
     assert sum(decoded["own-matches"]) > sum(decoded["other-matches"])  # the run carries the key's own message
     # commit, then verify against the commitment
     status, stdout, err = run_cli(["commit", "--key", str(key_path)], capsys)
-    hex_ = stdout.strip()
+    hex_, public = stdout.split()
     assert status == 0 and len(hex_) == 64 and hex_ == commitment(OwnerKey.load(key_path))
+    assert public == OwnerKey.load(key_path).public_key  # the key is signed: its public key is printed too
     out = ws / "rep-committed"
     status, stdout, err = run_cli(
         [
@@ -296,11 +297,13 @@ def test_decoded_bits_do_not_depend_on_the_key_message_and_a_commitment_is_check
             "geometry",
             "--commitment",
             hex_,
+            "--public-key",
+            public,
         ],
         capsys,
     )
     rep = json.loads((out / "report.json").read_text())
-    assert rep["commitment"]["matches"] is True and "commitment" in stdout
+    assert rep["commitment"]["matches"] is True and rep["commitment"]["signed"] and "signed by" in stdout
     status, _, err = run_cli(
         [
             "--load-config",

@@ -347,3 +347,38 @@ def test_a_resume_with_another_runs_key_is_refused_and_the_key_is_not_overwritte
     status, out, err = ns_train_status(args, tmp_path)
     assert status == 2 and "does not belong" in one_line(err)
     assert other_path.read_bytes() == before
+
+
+def test_the_recipient_page_shows_each_runs_recovery_beside_the_owners_control():
+    from pathlib import Path as P
+
+    from gsticker_plugin.bench.recipient import Args, page
+
+    rows = [
+        {"label": f"r{i}", "at_machine_seed": 20 + i, "best": 22 + i, "best_seed": i, "best_residual": 0.4}
+        | {"owner_control": 48, "owner_control_residual": 0.01}
+        for i in range(3)
+    ]
+    res = {"rows": rows, "date": "d", "command": "python -m gsticker_plugin.bench.recipient", "machine": {}}
+    text = page(res, Args(output=P("docs/x.md")))
+    assert "| r2 | 22/48 | 24/48 (seed 2, residual 0.40) | 48/48 (residual 0.010) |" in text
+    assert "mean 23.0/48, min 22, max 24, 0 at 36 or more" in text
+
+
+def test_a_dataparser_that_asks_a_question_gets_no_and_its_exit_is_one_error_line(tmp_path):
+    """COLMAP's dataparser asks whether to downscale (and write) images into the data folder; a suspect run is never
+    allowed to: the question reads "no" and the dataparser's exit becomes a GStickerError, nothing is written."""
+    from types import SimpleNamespace
+
+    answers = []
+
+    def setup(device, test_mode):
+        answers.append(input("downscale the images now? "))
+        if answers[-1] != "y":
+            raise SystemExit(1)
+        (tmp_path / "images_2").mkdir()
+
+    config = SimpleNamespace(pipeline=SimpleNamespace(setup=setup))
+    with pytest.raises(GStickerError, match="asked a question"):
+        runs.setup_pipeline(config, "cpu", "test", tmp_path / "config.yml")
+    assert answers == ["n"] and not (tmp_path / "images_2").exists()

@@ -1,6 +1,6 @@
 """The recipient's message recovery on shared runs (``python -m gsticker_plugin.bench.recipient``).
 
-For each shared run (its ``config.yml``) and its owner key, the recipient's best least-squares recovery
+For each shared run (its ``config.yml``; ``--work-dir`` trains them first with ``ns-train``) and its owner key, the recipient's best least-squares recovery
 (:mod:`gsticker_plugin.attacks.recipient`) of the owner's bits from the folded sticker, with per-bit patterns
 regenerated from the run's ``machine.seed`` and from each of ``--seeds`` other seeds (the fit with the smallest
 residual is kept), beside the owner's control: the same fit with the patterns of the key's secret sticker seed.
@@ -14,28 +14,100 @@ import json
 import os
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import tyro
 
 from gsticker_plugin.bench import command_lines
-from gsticker_plugin.machine import machine_info
+from gsticker_plugin.machine import machine_info, run_logged
+from gsticker_plugin.runs import latest_checkpoint
 
 
 @dataclass
 class Args:
-    runs: Tuple[Path, ...]
-    """Shared runs: their config.yml."""
-    keys: Tuple[Path, ...]
-    """The owner key of each run, in the same order."""
+    runs: Tuple[Path, ...] = ()
+    """Shared runs: their config.yml (besides those of --work-dir)."""
+    keys: Tuple[Path, ...] = ()
+    """The owner key of each --runs entry, in the same order."""
+    work_dir: Optional[Path] = None
+    """Train the runs here first (missing ones only): --tiny sticker runs of 10 steps on a generated 32 px scene and
+    --lego runs of 300 steps on --lego-checkpoint, each with its own secret sticker seed and message."""
+    tiny: int = 10
+    lego: int = 2
+    lego_checkpoint: Optional[Path] = None
+    """The base checkpoint of the lego runs (e.g. the shared lego100 nerfacto-small base's step-000002999.ckpt)."""
+    lego_data: Optional[Path] = None
+    """Its dataset folder."""
     seeds: int = 8
     """Seeds 0..N-1 tried beside each run's machine.seed."""
     output: Path = Path("docs/bench-recipient.md")
     """The page (its JSON is written beside it)."""
-    labels: Tuple[str, ...] = field(default_factory=tuple)
-    """A label per run (default: the run folder's experiment name)."""
+
+
+TINY_STICKER = [
+    "--max-num-iterations",
+    "10",
+    "--pipeline.pool-train-views",
+    "2",
+    "--pipeline.pool-novel-views",
+    "2",
+    "--pipeline.monitor-views",
+    "1",
+    "--pipeline.steps-per-monitor",
+    "5",
+    "--pipeline.views-per-step",
+    "2",
+    "--pipeline.heads.width",
+    "8",
+]
+HEADS_OFF = ["--pipeline.msg-weight", "0", "--pipeline.negative-weight", "0", "--pipeline.cls-weight", "0"]
+CPU = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
+
+
+def make_runs(args: Args) -> List[Tuple[str, Path, Path]]:
+    """Train the missing runs under ``args.work_dir`` with ``ns-train``; (label, config.yml, key) of each."""
+    work = Path(args.work_dir)
+    keys = work / "keys"
+    keys.mkdir(parents=True, exist_ok=True)
+    os.environ["GSTICKER_KEYS_DIR"] = str(keys)  # the owner identity of these runs lives beside their keys
+    train = str(Path(sys.executable).parent / "ns-train")
+    out: List[Tuple[str, Path, Path]] = []
+
+    def sticker(label: str, ckpt: Path, extra: List[str]) -> None:
+        config = work / "runs" / label / "geometrysticker" / "run" / "config.yml"
+        key = keys / f"{label}.gskey"
+        if not key.is_file():
+            cmd = [train, "geometrysticker", "--load-checkpoint", str(ckpt), *CPU, "--output-dir", str(work / "runs")]
+            cmd += ["--experiment-name", label, "--timestamp", "run", "--pipeline.key-path", str(key), *extra]
+            run_logged(cmd, work / f"{label}.log", what=f"sticker run {label}")
+        out.append((label, config, key))
+
+    if args.tiny:
+        scene = work / "scene"
+        if not (scene / "transforms_train.json").is_file():
+            cmd = [sys.executable, "-m", "gsticker_plugin.scene", "--output-dir", str(scene), "--resolution", "32"]
+            cmd += ["--num-train", "6", "--num-val", "2", "--num-test", "2", "--seed", "0"]
+            run_logged(cmd, work / "scene.log", what="scene")
+        base_models = work / "base" / "nerfacto" / "gsticker-nerfacto-small" / "base" / "nerfstudio_models"
+        if latest_checkpoint(base_models) is None:
+            cmd = [train, "gsticker-nerfacto-small", "--pipeline.model.num-nerf-samples-per-ray", "16"]
+            cmd += ["--pipeline.model.num-proposal-samples-per-ray", "32", "16"]
+            cmd += ["--pipeline.datamanager.train-num-rays-per-batch", "256", *CPU, "--output-dir", str(work / "base")]
+            cmd += ["--experiment-name", "nerfacto", "--timestamp", "base", "--max-num-iterations", "2"]
+            cmd += ["--steps-per-save", "2", "blender-data", "--data", str(scene)]
+            run_logged(cmd, work / "base.log", what="tiny base")
+        base = latest_checkpoint(base_models)
+        for i in range(args.tiny):
+            sticker(f"tiny{i}", base, TINY_STICKER)
+    if args.lego:
+        if args.lego_checkpoint is None or args.lego_data is None:
+            raise SystemExit("error: --lego runs need --lego-checkpoint and --lego-data")
+        for i in range(args.lego):
+            extra = ["--data", str(args.lego_data), "--max-num-iterations", "300", *HEADS_OFF]
+            sticker(f"lego{i}", Path(args.lego_checkpoint), extra)
+    return out
 
 
 def attack_run(config: Path, key_path: Path, seeds: int) -> Dict[str, Any]:
@@ -83,6 +155,10 @@ def page(res: Dict[str, Any], args: Args) -> str:
         "same fit with the patterns of the key's secret sticker seed: what the recipient would read if that seed "
         "leaked.",
         "",
+        "The runs (`--work-dir`): 10 tiny runs, `ns-train geometrysticker` for 10 steps on a 2-step nerfacto base of "
+        "a generated 32 px scene, and lego100 runs of 300 steps on the shared nerfacto-small base (heads off); each "
+        "draws its own message and sticker seed with `secrets`; `machine.seed` is the default, 42, in every one.",
+        "",
         "| run | recipient at machine.seed | recipient, best fit (seed) | owner's control (secret seed) |",
         "|---|---|---|---|",
     ]
@@ -106,9 +182,10 @@ def main(args: Args) -> None:
         raise SystemExit("error: pass one --keys entry per --runs entry")
     os.environ.setdefault("GSTICKER_NO_DOWNLOAD", "1")
     t0 = time.time()
+    todo = make_runs(args) if args.work_dir is not None else []
+    todo += [(Path(c).parents[2].name, Path(c), Path(k)) for c, k in zip(args.runs, args.keys)]
     rows = []
-    for i, (cfg, key) in enumerate(zip(args.runs, args.keys)):
-        label = args.labels[i] if i < len(args.labels) else Path(cfg).parents[2].name
+    for label, cfg, key in todo:
         rows.append({"label": label, "config": str(cfg), **attack_run(cfg, key, args.seeds)})
         print(f"{label}: {rows[-1]}", file=sys.stderr)
     res = {

@@ -146,7 +146,7 @@ def load_run(load_config: Path, data: Optional[Path], device: str = "cpu") -> Lo
     run_cfg, run_dir, ckpt = check_input_config(load_config)
     cfg = copy.deepcopy(run_cfg)
     cfg.pipeline.datamanager = data_override(run_cfg, data)
-    pipeline = cfg.pipeline.setup(device=device, test_mode="inference")
+    pipeline = runs.setup_pipeline(cfg, device, "inference", Path(load_config))
     pipeline.eval()
     step = strict_load_model(pipeline.model, ckpt, len(pipeline.datamanager.train_dataset))
     cfg.pipeline.datamanager = _with_data(run_cfg.pipeline.datamanager, cfg.pipeline.datamanager.data)
@@ -193,7 +193,7 @@ def build_recolor_run(load_config: Path, data: Optional[Path], method_name: str,
             "checkpoint_sha256": file_sha256(ckpt),
         },
     )
-    pipeline = config.pipeline.setup(device=device, test_mode="inference")
+    pipeline = runs.setup_pipeline(config, device, "inference", Path(load_config))
     pipeline.eval()
     step = strict_load_model(pipeline.model.inner, ckpt, len(pipeline.datamanager.train_dataset))
     return config, pipeline, run_dir, ckpt, step
