@@ -64,14 +64,22 @@ def seed_everything(seed: int) -> None:
 
 
 def regenerated_patterns(config_path: Path, seed: int) -> Tensor:
-    """The per-bit patterns [K hidden] of a sticker built from a shared run's ``config.yml`` after seeding every
-    generator with ``seed``: what a recipient gets when the sticker's initialisation follows ``machine.seed``."""
+    """The per-bit patterns [K hidden] of a sticker built from a shared run's ``config.yml`` the way ``ns-train`` builds
+    it after seeding every generator with ``seed``, with the sticker drawn from the global generator at its place in
+    the build (as it was before the sticker had a secret seed of its own): what a recipient gets if the sticker's
+    initialisation follows ``machine.seed``. Deterministic in ``seed``."""
     # deferred: building a pipeline pulls in Nerfstudio
+    from gsticker_plugin import model as M
     from gsticker_plugin.runs import load_run_config
 
     config = load_run_config(config_path)
-    seed_everything(seed)
-    pipeline = config.pipeline.setup(device="cpu", test_mode="val")
+    secret_seeded = M.seeded_sticker
+    M.seeded_sticker = lambda sc, seed=None: secret_seeded(sc, None)  # the global generator's next draws
+    try:
+        seed_everything(seed)
+        pipeline = config.pipeline.setup(device="cpu", test_mode="val")
+    finally:
+        M.seeded_sticker = secret_seeded
     return pipeline.model.sticker.mlp[-1].weight.detach().clone()
 
 

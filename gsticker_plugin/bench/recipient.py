@@ -149,11 +149,12 @@ def page(res: Dict[str, Any], args: Args) -> str:
             res["command"],
         ),
         "A recipient holds the shared run (config.yml and checkpoint). The folded sticker's output weights are the "
-        "owner's message mixed with the per-bit patterns; the recipient regenerates the patterns as the sticker was "
-        f"initialised from the run's `machine.seed` and from seeds 0-{args.seeds - 1}, and keeps the least-squares "
-        "fit with the smallest residual (`gsticker_plugin.attacks.recipient`). The owner's control column is the "
-        "same fit with the patterns of the key's secret sticker seed: what the recipient would read if that seed "
-        "leaked.",
+        "owner's message mixed with the per-bit patterns. The recipient rebuilds the pipeline from the shared "
+        "config as `ns-train` does after seeding every generator, with the sticker drawn from the global generator "
+        "at its place in the build (how it was initialised before it had a secret seed of its own), at the run's "
+        f"`machine.seed` and at seeds 0-{args.seeds - 1}, and keeps the least-squares fit with the smallest "
+        "residual (`gsticker_plugin.attacks.recipient`). The owner's control column is the same fit with the "
+        "patterns of the key's secret sticker seed: what the recipient would read if that seed leaked.",
         "",
         "The runs (`--work-dir`): 10 tiny runs, `ns-train geometrysticker` for 10 steps on a 2-step nerfacto base of "
         "a generated 32 px scene, and lego100 runs of 300 steps on the shared nerfacto-small base (heads off); each "
