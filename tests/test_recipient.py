@@ -382,3 +382,37 @@ def test_a_dataparser_that_asks_a_question_gets_no_and_its_exit_is_one_error_lin
     with pytest.raises(GStickerError, match="asked a question"):
         runs.setup_pipeline(config, "cpu", "test", tmp_path / "config.yml")
     assert answers == ["n"] and not (tmp_path / "images_2").exists()
+
+
+def test_a_key_of_another_scene_says_so(tiny_sticker, shared_dir, tmp_path, capsys):
+    """The tiny scene's key on the lego100 base: "not shown", and the report says the key was made for another scene
+    (on lego100 the same-scene TensoRF base agrees at 97-99 % of the surface pixels, another scene at 0 %)."""
+    lego = shared_dir / "checkpoints" / "lego100-nerfacto-small" / "nerfacto" / "base" / "config.yml"
+    out = tmp_path / "rep"
+    args = [
+        "--load-config",
+        str(lego),
+        "--data",
+        str(shared_dir / "data" / "lego100"),
+        "--key",
+        str(tiny_sticker["key"]),
+    ]
+    status = V.main([*args, "--num-views", "2", "--output", str(out), "--no-progress"])
+    stdout = capsys.readouterr().out
+    assert status == 1 and "was made for another scene" in stdout
+    import json
+
+    assert json.loads((out / "report.json").read_text())["keys"][0]["scene_agreement"] < 0.5
+
+
+def test_scene_agreement_is_the_share_of_surface_rays_whose_accumulation_agrees():
+    from types import SimpleNamespace
+
+    from gsticker_plugin.decoders.geometric import scene_agreement
+    from gsticker_plugin.verify.check import median_agreement
+
+    ref = SimpleNamespace(base_signal=torch.tensor([[1.0, 1.0, 1.0, 0.9]]))
+    assert scene_agreement(torch.tensor([[1.0, 0.9, 0.2, 0.0]]), ref) == 0.5
+    assert scene_agreement(torch.zeros(1, 0), ref) != scene_agreement(torch.zeros(1, 0), ref)  # NaN: no surface ray
+    dec = {"geometry": [{"scene_agreement": v} for v in (0.9, float("nan"), 0.1, 0.95)]}
+    assert median_agreement(dec) == 0.9
