@@ -1,0 +1,194 @@
+"""The field mark: the owner's message in a nerfacto base's *own* hash table, so the shared run is a stock nerfacto.
+
+With ``T`` the base field's hash table (every level stacked, ``[L * 2^H, F]``), ``P_k`` secret per-bit tables
+(Gaussian on the chosen levels, zero on the others, drawn from a secret seed), ``M`` the message and ``a`` the
+amplitude::
+
+    T~ = T + a * sum_k (2 M_k - 1) P_k / sqrt(K)
+
+The marked field is the base's own module with another table: same method, same state-dict keys, nothing to switch
+off. The hash encoding is linear in its table, so at a sample ``x`` the density logit ``pre(x)`` changes to first
+order by::
+
+    d pre / d s_k = a * g(x) . e_k(x) / sqrt(K)       g = d pre / d enc   (the density MLP's input gradient)
+                                                       e_k = enc(x; P_k)   (the encoding with table P_k)
+
+and the density by ``sigma~ = sigma * exp(sum_k s_k d pre / d s_k)`` (nerfacto's exponential activation), which the
+informed decoders fit to a suspect's geometry like the sticker's. Functions here take the field's hash encoder and
+density MLP (:func:`parts`), so they work on any nerfacto-style field with the torch implementation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Dict, List, Sequence, Tuple
+
+import torch
+from jaxtyping import Float
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from torch import Tensor, nn
+
+from gsticker_plugin.decoders.fit import fit_and_decide
+from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.sticker import render_weights
+
+
+def parts(field: nn.Module) -> Tuple[nn.Module, nn.Module]:
+    """(hash encoder, density MLP) of a nerfacto field built with the torch implementation."""
+    seq = getattr(getattr(field, "mlp_base", None), "model", None)
+    if not isinstance(seq, nn.Sequential) or len(seq) != 2 or not hasattr(seq[0], "hash_table"):
+        raise GStickerError(
+            f"{type(field).__name__} has no torch hash encoder and density MLP (mlp_base.model); the field mark needs "
+            "a nerfacto base trained with --pipeline.model.implementation torch"
+        )
+    return seq[0], seq[1]
+
+
+def patterns(
+    table_shape: Sequence[int], table_size: int, levels: Sequence[int], num_bits: int, seed: int
+) -> Float[Tensor, "K N F"]:
+    """The per-bit tables: standard Gaussian on the rows of ``levels`` (level ``l`` holds rows ``l * table_size`` to
+    ``(l + 1) * table_size``), zero elsewhere, drawn from ``seed`` alone."""
+    n, f = int(table_shape[0]), int(table_shape[1])
+    if any(not 0 <= lv < n // table_size for lv in levels):
+        raise ValueError(f"levels {list(levels)} outside the table's {n // table_size} levels")
+    gen = torch.Generator().manual_seed(int(seed))
+    out = torch.zeros(num_bits, n, f)
+    for lv in sorted(set(levels)):
+        rows = slice(lv * table_size, (lv + 1) * table_size)
+        out[:, rows] = torch.randn(num_bits, table_size, f, generator=gen)
+    return out
+
+
+def marked_table(table: Tensor, pats: Float[Tensor, "K N F"], signs: Tensor, amplitude: float) -> Tensor:
+    """``T + a * sum_k s_k P_k / sqrt(K)`` for signs ``s`` in [-1, 1] (``2M - 1`` for a message)."""
+    k = pats.shape[0]
+    return table + amplitude * torch.einsum("k,knf->nf", signs.to(pats), pats).to(table) / math.sqrt(k)
+
+
+def signs_of(message: Tensor) -> Tensor:
+    """0/1 bits -> -1/+1 signs."""
+    return message.float() * 2.0 - 1.0
+
+
+def sample_features(
+    encoder: nn.Module, mlp: nn.Module, positions: Float[Tensor, "N 3"], pats: Float[Tensor, "K N F"]
+) -> Float[Tensor, "N K"]:
+    """``d pre / d s_k`` per unit amplitude at encoder-space ``positions``: ``g(x) . enc(x; P_k) / sqrt(K)``. The
+    encoder's table is restored afterwards."""
+    k = pats.shape[0]
+    table = encoder.hash_table
+    with torch.enable_grad():
+        enc = encoder(positions).detach().requires_grad_(True)
+        (g,) = torch.autograd.grad(mlp(enc)[..., 0].sum(), enc)
+    out = torch.empty(positions.shape[0], k)
+    saved = table.data
+    try:
+        with torch.no_grad():
+            for i in range(k):
+                table.data = pats[i].to(saved)
+                out[:, i] = (g * encoder(positions)).sum(-1)
+    finally:
+        table.data = saved
+    return out / math.sqrt(k)
+
+
+# ---------------------------------------------------------------------------------------------- one view
+
+
+@dataclass
+class FieldView:
+    """One camera of the base: its final field's samples on the rays the mark can change, their per-bit features and
+    the base's own geometry there (accumulation, accumulation x expected depth)."""
+
+    rays: Tensor  # [R] flat pixel indices
+    density: Tensor  # [R S 1] base density
+    deltas: Tensor  # [R S 1]
+    steps: Tensor  # [R S 1] sample distance along the ray
+    features: Tensor  # [R S K] d pre / d s per unit amplitude (0 where the sample cannot change a render)
+    base_signal: Tensor  # [2 R]
+    depth_scale: float
+
+
+def capture_samples(model, camera) -> Tuple[Dict[str, Tensor], Dict[str, Tensor]]:
+    """Render ``camera`` with a nerfacto model, recording its final field's samples: encoder-space positions, density,
+    deltas and distances. Returns (outputs, samples)."""
+    field = model.field
+    encoder, _ = parts(field)
+    rec: Dict[str, List[Tensor]] = {}
+    original = field.forward
+
+    def forward(ray_samples, *args, **kwargs):
+        out = original(ray_samples, *args, **kwargs)
+        fr = ray_samples.frustums
+        rec.setdefault("deltas", []).append(ray_samples.deltas.detach())
+        rec.setdefault("steps", []).append(((fr.starts + fr.ends) / 2).detach())
+        rec.setdefault("density", []).append(out[FieldHeadNames.DENSITY].detach())
+        return out
+
+    hook = encoder.register_forward_pre_hook(lambda m, inp: rec.setdefault("positions", []).append(inp[0].detach()))
+    object.__setattr__(field, "forward", forward)
+    try:
+        with torch.no_grad():
+            outputs = model.get_outputs_for_camera(camera)
+    finally:
+        hook.remove()
+        del field.__dict__["forward"]
+    samples = {k: torch.cat([x.reshape(-1, *x.shape[-2:]) for x in v]) for k, v in rec.items() if k != "positions"}
+    r, s = samples["density"].shape[:2]
+    samples["positions"] = torch.cat([x.reshape(-1, 3) for x in rec["positions"]]).reshape(r, s, 3)
+    return outputs, samples
+
+
+def geometry_of(outputs: Dict[str, Tensor]) -> Float[Tensor, "2 P"]:
+    """A render's accumulation and accumulation x expected depth per pixel (``depth`` for models without an expected
+    depth output, e.g. TensoRF)."""
+    acc = outputs["accumulation"].reshape(-1)
+    depth = outputs.get("expected_depth", outputs.get("depth"))
+    return torch.stack([acc, depth.reshape(-1) * acc])
+
+
+def field_view(model, camera, pats: Tensor, min_transmittance: float = 1e-3, min_alpha: float = 1e-4) -> FieldView:
+    """Capture the base's view at ``camera`` and the per-bit features of the samples that light reaches and that hold
+    some density (the others cannot change the render)."""
+    outputs, smp = capture_samples(model, camera)
+    dens, deltas = smp["density"], smp["deltas"]
+    tau = dens * deltas
+    trans = torch.exp(-(torch.cumsum(tau, dim=-2) - tau))[..., 0]
+    live = (trans > min_transmittance) & (tau[..., 0] > min_alpha)
+    rays = live.any(-1).nonzero().squeeze(-1)
+    encoder, mlp = parts(model.field)
+    feats = torch.zeros(rays.numel(), dens.shape[1], pats.shape[0])
+    kept = live[rays]
+    if kept.any():
+        feats[kept] = sample_features(encoder, mlp, smp["positions"][rays][kept], pats)
+    base = geometry_of(outputs)[:, rays]
+    return FieldView(
+        rays=rays,
+        density=dens[rays],
+        deltas=deltas[rays],
+        steps=smp["steps"][rays],
+        features=feats,
+        base_signal=base,
+        depth_scale=float(base[1].mean().clamp_min(1e-6)) if rays.numel() else 1.0,
+    )
+
+
+def predict(view: FieldView, signs: Tensor, amplitude: float) -> Float[Tensor, " M"]:
+    """The view's geometry (accumulation, scaled accumulation x depth) with the mark of ``signs`` at ``amplitude``."""
+    dens = view.density * torch.exp(amplitude * (view.features @ signs.to(view.features)))[..., None]
+    w = render_weights(dens, view.deltas)
+    return torch.cat([w.sum(-2)[..., 0], (w * view.steps).sum(-2)[..., 0] / view.depth_scale])
+
+
+def decode_view(view: FieldView, suspect_outputs: Dict[str, Tensor], amplitude: float, generator: torch.Generator):
+    """Fit the signs to a suspect's geometry at the view's rays (against the base's own) and decide the bits; returns
+    (bits, fit)."""
+    sig = geometry_of(suspect_outputs)[:, view.rays]
+    target = torch.cat([sig[0] - view.base_signal[0], (sig[1] - view.base_signal[1]) / view.depth_scale])
+    k = view.features.shape[-1]
+    fit, bits, _ = fit_and_decide(
+        lambda s: predict(view, s, amplitude), lambda s: None, target, k, view.rays.numel() > 0, generator
+    )
+    return bits, fit
