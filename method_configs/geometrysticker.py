@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from nerfstudio.configs.base_config import ViewerConfig
+from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.plugins.types import MethodSpecification
@@ -11,6 +11,7 @@ from gsticker_plugin import compat
 from gsticker_plugin.model import GeometryStickerModelConfig
 from gsticker_plugin.pipeline import GeometryStickerPipelineConfig
 from gsticker_plugin.trainer import GeometryStickerTrainerConfig
+from method_configs.presets import default_device_type
 
 # ns-train imports this entry point before it builds or loads a model: the plugin's host fixes go first
 compat.apply()
@@ -41,6 +42,7 @@ def geometrysticker_config(max_num_iterations: int = 1500) -> GeometryStickerTra
         },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 13),
         vis="tensorboard",
+        machine=MachineConfig(device_type=default_device_type()),
     )
 
 

@@ -8,7 +8,7 @@ Measured numbers: docs/presets.md (``python -m gsticker_plugin.bench.presets``).
 from __future__ import annotations
 
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
-from nerfstudio.configs.base_config import ViewerConfig
+from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
 from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
@@ -27,11 +27,20 @@ from gsticker_plugin.small_nerf import SmallNeRFModelConfig
 compat.apply()
 
 
+def default_device_type() -> str:
+    """``cuda`` when a CUDA device is present, else ``cpu``: what the presets train on unless
+    ``--machine.device-type`` says otherwise."""
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
 def _small_trainer(
     method_name: str, max_num_iterations: int, model, optimizers, viewer_chunk: int, dataparser=None
 ) -> TrainerConfig:
     """The trainer every preset shares: Blender data (or ``dataparser``), 1024 training rays, checkpoints every 500
-    steps (latest only), an eval image every 1000, no mixed precision (CPU), tensorboard."""
+    steps (latest only), an eval image every 1000, no mixed precision (CPU), tensorboard, CUDA when present else
+    the CPU."""
     return TrainerConfig(
         method_name=method_name,
         steps_per_eval_batch=500,
@@ -52,6 +61,7 @@ def _small_trainer(
         optimizers=optimizers,
         viewer=ViewerConfig(num_rays_per_chunk=viewer_chunk),
         vis="tensorboard",
+        machine=MachineConfig(device_type=default_device_type()),
     )
 
 

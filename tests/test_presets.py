@@ -296,3 +296,17 @@ def test_final_rgb_takes_vanilla_nerfs_fine_image_and_names_the_fix_otherwise():
     assert final_rgb({"rgb_coarse": a, "rgb_fine": b}) is b
     with pytest.raises(GStickerError, match="NeRF-style"):
         final_rgb({"depth": a})
+
+
+def test_presets_train_on_the_cpu_when_there_is_no_cuda_device(monkeypatch):
+    """A preset copied from the README must not stop on "Found no NVIDIA driver" on a CPU-only machine."""
+    import torch
+
+    from method_configs import geometrysticker, presets
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for make in (presets.nerfacto_small_config, presets.nerfacto_capture_config, presets.tensorf_small_config):
+        assert make().machine.device_type == "cpu"
+    assert geometrysticker.geometrysticker_config().machine.device_type == "cpu"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert presets.nerfacto_small_config().machine.device_type == "cuda"
