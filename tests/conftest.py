@@ -42,20 +42,9 @@ NERFACTO_TINY = [
     "256",
 ]
 CPU_ARGS = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
-TINY_POOL_ARGS = [
-    "--pipeline.pool-train-views",
-    "2",
-    "--pipeline.pool-novel-views",
-    "2",
-    "--pipeline.monitor-views",
-    "1",
-    "--pipeline.steps-per-monitor",
-    "5",
-    "--pipeline.views-per-step",
-    "2",
-    "--pipeline.heads.width",
-    "8",
-]
+from gsticker_plugin.bench import TINY_POOL  # noqa: E402  (light: no torch, after the triton import above)
+
+TINY_POOL_ARGS = list(TINY_POOL)
 TINY_STICKER_ARGS = ["--max-num-iterations", "10", *TINY_POOL_ARGS]
 
 

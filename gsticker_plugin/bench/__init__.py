@@ -1,6 +1,26 @@
 """Benchmark commands: each measures and writes a docs page with its JSON beside it."""
 
-from typing import List
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Dict, List
+
+TINY_POOL = [
+    "--pipeline.pool-train-views",
+    "2",
+    "--pipeline.pool-novel-views",
+    "2",
+    "--pipeline.monitor-views",
+    "1",
+    "--pipeline.steps-per-monitor",
+    "5",
+    "--pipeline.views-per-step",
+    "2",
+    "--pipeline.heads.width",
+    "8",
+]
+"""The smallest sticker pool and heads: the tests' tiny runs and bench.recipient's."""
 
 
 def command_lines(title: str, when: str, json_name: str, command: str) -> List[str]:
@@ -15,3 +35,24 @@ def command_lines(title: str, when: str, json_name: str, command: str) -> List[s
         "```",
         "",
     ]
+
+
+def provenance(module: str) -> Dict[str, Any]:
+    """What a page records of its run: the command (``python -m MODULE`` with this process's arguments), the date and
+    the machine."""
+    from gsticker_plugin.machine import machine_info  # deferred: imports torch
+
+    return {
+        "command": f"python -m {module} " + " ".join(sys.argv[1:]),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "machine": machine_info(),
+    }
+
+
+def write_page(output: Path, res: Dict[str, Any], page: Callable[[Dict[str, Any]], str]) -> None:
+    """Write ``res`` as ``OUTPUT.json`` and the page ``page(res)`` as ``OUTPUT`` (folders created)."""
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.with_suffix(".json").write_text(json.dumps(res, indent=1) + "\n")
+    output.write_text(page(res))
+    print(f"wrote {output}")

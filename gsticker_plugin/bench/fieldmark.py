@@ -11,7 +11,6 @@ models given with ``--null`` are read the same way. Writes a Markdown page and i
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import sys
 import time
@@ -23,8 +22,7 @@ import torch
 import tyro
 import yaml
 
-from gsticker_plugin.bench import command_lines
-from gsticker_plugin.machine import machine_info
+from gsticker_plugin.bench import command_lines, provenance, write_page
 
 TABLE_KEY = "_model.field.mlp_base.model.0.hash_table"
 
@@ -169,16 +167,8 @@ def main(args: Args) -> None:
     from gsticker_plugin import compat
 
     compat.apply()
-    res = measure(args)
-    res.update(
-        command="python -m gsticker_plugin.bench.fieldmark " + " ".join(sys.argv[1:]),
-        date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        machine=machine_info(),
-    )
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.with_suffix(".json").write_text(json.dumps(res, indent=1) + "\n")
-    args.output.write_text(page(res, args))
-    print(f"wrote {args.output}")
+    res = {**measure(args), **provenance("gsticker_plugin.bench.fieldmark")}
+    write_page(args.output, res, lambda r: page(r, args))
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ Writes a Markdown page and its JSON.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import sys
 import time
@@ -20,8 +19,8 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import tyro
 
-from gsticker_plugin.bench import command_lines
-from gsticker_plugin.machine import machine_info, run_logged
+from gsticker_plugin.bench import TINY_POOL, command_lines, provenance, write_page
+from gsticker_plugin.machine import run_logged
 from gsticker_plugin.runs import latest_checkpoint
 
 
@@ -46,22 +45,7 @@ class Args:
     """The page (its JSON is written beside it)."""
 
 
-TINY_STICKER = [
-    "--max-num-iterations",
-    "10",
-    "--pipeline.pool-train-views",
-    "2",
-    "--pipeline.pool-novel-views",
-    "2",
-    "--pipeline.monitor-views",
-    "1",
-    "--pipeline.steps-per-monitor",
-    "5",
-    "--pipeline.views-per-step",
-    "2",
-    "--pipeline.heads.width",
-    "8",
-]
+TINY_STICKER = ["--max-num-iterations", "10", *TINY_POOL]
 HEADS_OFF = ["--pipeline.msg-weight", "0", "--pipeline.negative-weight", "0", "--pipeline.cls-weight", "0"]
 CPU = ["--machine.device-type", "cpu", "--vis", "tensorboard"]
 
@@ -189,17 +173,8 @@ def main(args: Args) -> None:
     for label, cfg, key in todo:
         rows.append({"label": label, "config": str(cfg), **attack_run(cfg, key, args.seeds)})
         print(f"{label}: {rows[-1]}", file=sys.stderr)
-    res = {
-        "command": "python -m gsticker_plugin.bench.recipient " + " ".join(sys.argv[1:]),
-        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "machine": machine_info(),
-        "seconds": time.time() - t0,
-        "rows": rows,
-    }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.with_suffix(".json").write_text(json.dumps(res, indent=1) + "\n")
-    args.output.write_text(page(res, args))
-    print(f"wrote {args.output}")
+    res = {**provenance("gsticker_plugin.bench.recipient"), "seconds": time.time() - t0, "rows": rows}
+    write_page(args.output, res, lambda r: page(r, args))
 
 
 if __name__ == "__main__":
