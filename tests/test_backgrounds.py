@@ -133,7 +133,7 @@ def test_fast_path_renders_what_the_model_renders_on_its_background(runs, bg):
             clean = model.get_outputs_for_camera(camera)
     assert float((real["accumulation"] - clean["accumulation"]).abs().max()) > 1e-4  # the sticker marks these rays
     assert float((fast - real["rgb"]).abs().max()) < 2e-3, float((fast - real["rgb"]).abs().max())
-    assert float((on_white - real["rgb"]).abs().max()) > 1e-2  # the background matters in this view
+    assert float((on_white - real["rgb"]).abs().max()) > 5e-3  # the background matters in this view
 
 
 @pytest.mark.parametrize("bg", BACKGROUNDS)

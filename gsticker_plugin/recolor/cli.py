@@ -37,7 +37,10 @@ def run(argv: Optional[List[str]] = None) -> int:
     # deferred: the edits pull in Nerfstudio (seconds): parse the arguments first
     from gsticker_plugin.recolor.edits import apply_edit
 
-    return run_command(lambda: apply_edit(args))
+    status = run_command(lambda: apply_edit(args))
+    if status:
+        raise SystemExit(status)
+    return status
 
 
 def entrypoint() -> None:
