@@ -169,6 +169,14 @@ class GeometryStickerModel(Model):
     def calibrated(self) -> bool:
         return all(bool(g.calibrated) for g in self.gates.values())
 
+    @torch.no_grad()
+    def reseed_sticker(self, seed: int) -> None:
+        """Re-initialise the sticker from ``seed`` in place (its parameters stay the ones the optimizers hold)."""
+        fresh = seeded_sticker(sticker_config(self.config), seed)
+        for mine, new in zip(self.sticker.parameters(), fresh.parameters()):
+            mine.copy_(new.to(mine))
+        self.sticker_seed = int(seed)
+
     def set_message(self, message: Tensor) -> None:
         self.message.copy_(message.to(self.message))
 

@@ -66,6 +66,9 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     knows the bits; the key and the verification report say so."""
     message_source: tyro.conf.Suppress[str] = ""
     """How the message was drawn (random, owner-id, given); set by the trainer."""
+    sticker_seed: Optional[int] = None
+    """Seed of the sticker's initial weights (default: drawn with `secrets`). Kept in the owner key only, never in
+    config.yml; give one only to reproduce a run, and keep it as secret as the message."""
     key_path: Optional[Path] = None
     """Where the owner key is written (default: the per-user keys folder, $GSTICKER_KEYS_DIR or
     ~/.local/share/gsticker/keys/EXPERIMENT-METHOD-TIMESTAMP.gskey; never inside the run's output folder). Keep it

@@ -186,9 +186,10 @@ class GeometryStickerTrainer(Trainer):
         return self._key_path
 
     def save_shared_config(self) -> None:
-        """config.yml as a recipient sees it: no owner ID, message or key path (they live in the key)."""
+        """config.yml as a recipient sees it: no owner ID, message, sticker seed or key path (they live in the key)."""
         shared = copy.deepcopy(self.config)
         shared.pipeline.owner_id, shared.pipeline.message, shared.pipeline.key_path = "", None, None
+        shared.pipeline.sticker_seed = None
         shared.save_config()
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
@@ -208,7 +209,7 @@ class GeometryStickerTrainer(Trainer):
         # the owner's inputs leave the config first: Nerfstudio wrote config.yml with them before this ran, and a
         # failure below must not leave them in the run folder
         owner = copy.copy(pcfg)
-        pcfg.owner_id, pcfg.message, pcfg.key_path = "", None, None
+        pcfg.owner_id, pcfg.message, pcfg.key_path, pcfg.sticker_seed = "", None, None, None
         if comms.is_main_process():
             self.save_shared_config()
         ckpt = runs.resolve_checkpoint(cfg.load_checkpoint, cfg.load_dir, cfg.load_step)
@@ -262,6 +263,8 @@ class GeometryStickerTrainer(Trainer):
         super().setup(test_mode)
         message = self.pipeline.from_rank0(message)  # several ranks: rank 0's draw
         self.pipeline.set_owner(message, source, owner.owner_id, self._resume_key)
+        if owner.sticker_seed is not None and not self._resume:  # a resumed sticker comes from the key
+            self.pipeline.model.reseed_sticker(int(owner.sticker_seed))
         CONSOLE.print(f"\\[gsticker] {self.pipeline.describe()}; message source {source}; owner key {self._key_path}")
 
     def setup_optimizers(self) -> Optimizers:

@@ -15,7 +15,7 @@ from typing import Dict
 import numpy as np
 import pytest
 import torch
-from conftest import CPU_ARGS, TINY_MESSAGE, console_script, run_parallel, subprocess_env
+from conftest import CPU_ARGS, STICKER_SEED_ARGS, TINY_MESSAGE, console_script, run_parallel, subprocess_env
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
@@ -173,6 +173,7 @@ def capture(tmp_path_factory) -> Dict[str, Path]:
         "cap",
         "--timestamp",
         "wm",
+        *STICKER_SEED_ARGS,
         "--max-num-iterations",
         "40",
         "--pipeline.pool-train-views",

@@ -117,6 +117,8 @@ def test_recovery_from_a_real_shared_run_reads_at_chance_and_the_owners_control_
     seed = int(runs.load_run_config(config).machine.seed)
     recipient = R.recover_bits(folded, R.regenerated_patterns(config, seed))
     assert R.matches(recipient.bits, key.message) < 36
+    assert key.geometry["sticker_seed"] == 0  # the tests' given seed, in the key and nowhere in the shared config
+    assert "sticker_seed: null" in config.read_text()
     secret = seeded_sticker(key.geometry["sticker_config"], key.geometry["sticker_seed"]).mlp[-1].weight.detach()
     assert R.matches(R.recover_bits(folded, secret).bits, key.message) >= 44  # what a leaked seed would give
 
@@ -320,11 +322,13 @@ def sticker_args(tiny_base: Path, out: Path, *extra: str):
 
 def test_a_failed_sticker_run_leaves_no_secret_in_its_config(tiny_base, tmp_path):
     args = sticker_args(tiny_base, tmp_path, "--pipeline.message", TINY_MESSAGE, "--pipeline.owner-id", "alice-secret")
+    args += ["--pipeline.sticker-seed", "918273645"]
     args += ["--pipeline.key-path", str(tmp_path / "k.gskey"), "--data", str(tmp_path / "no-such-data")]
     status, out, err = ns_train_status(args, tmp_path)
     assert status == 2 and "does not exist" in one_line(err)
     text = (tmp_path / "gs" / "geometrysticker" / "run" / "config.yml").read_text()
     assert TINY_MESSAGE not in text and "alice-secret" not in text and "k.gskey" not in text
+    assert "918273645" not in text and "sticker_seed: null" in text
 
 
 def test_a_key_path_that_is_a_folder_stops_before_training(tiny_base, tmp_path):
