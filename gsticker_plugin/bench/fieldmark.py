@@ -23,6 +23,7 @@ import tyro
 import yaml
 
 from gsticker_plugin.bench import command_lines, provenance, write_page
+from gsticker_plugin.machine import config_under, recolor_into
 
 TABLE_KEY = "_model.field.mlp_base.model.0.hash_table"
 
@@ -44,6 +45,9 @@ class Args:
     """Patterns and message (a bench draws them from a seed; ns-train would draw them with `secrets`)."""
     null: Tuple[Path, ...] = ()
     """Unmarked runs of the same scene (config.yml) read with the same key."""
+    recolor: Tuple[str, ...] = ()
+    """ns-recolor edits of the first amplitude's marked run, read like it: each `SUBCOMMAND:ARG ARG`, e.g.
+    'palette:--set 0=blue' 'hue:--shift 0.25'."""
     output: Path = Path("docs/bench-fieldmark.md")
 
 
@@ -82,12 +86,23 @@ def measure(args: Args) -> Dict[str, Any]:
     pats = FM.patterns(table.shape, encoder.hash_table_size, args.levels, 48, args.seed)
     message = torch.randint(0, 2, (48,), generator=torch.Generator().manual_seed(args.seed + 1))
     suspects: List[Tuple[str, Any]] = []
+    marked_runs = {}
     for a in args.amplitudes:
         cfg = write_marked_run(args.base, FM.marked_table(table, pats, FM.signs_of(message), a), args.work_dir, f"a{a}")
+        marked_runs[a] = cfg
         with contextlib.redirect_stdout(sys.stderr):
             _, pipe, _ = load_run(cfg, data=args.data, device=dev)
         assert type(pipe.model) is type(base)  # a stock model of the base's method
         suspects.append((f"marked a={a}", pipe.model, a))
+    for i, edit in enumerate(args.recolor):
+        sub, _, rest = edit.partition(":")
+        dest = args.work_dir / f"recolor{i}"
+        recolor_into(
+            [sub, *rest.split()], marked_runs[args.amplitudes[0]], dest, args.work_dir / f"recolor{i}.log", what=edit
+        )
+        with contextlib.redirect_stdout(sys.stderr):
+            _, pipe, _ = load_run(config_under(dest), data=args.data, device=dev)
+        suspects.append((f"marked a={args.amplitudes[0]}, ns-recolor {sub} {rest}", pipe.model, args.amplitudes[0]))
     for n in args.null:
         with contextlib.redirect_stdout(sys.stderr):
             run_cfg, pipe, _ = load_run(n, data=args.data, device=dev)
