@@ -403,7 +403,7 @@ def geometry_reference(model: "GeometryStickerModel") -> Dict[str, Any]:
         "wrap_proposal_networks": bool(cfg.wrap_proposal_networks),
         "mark_sampling_passes": bool(cfg.mark_sampling_passes),
         "sticker_state": {k: v.detach().cpu().clone() for k, v in model.sticker.state_dict().items()},
-        "sticker_seed": int(getattr(model, "sticker_seed", -1)),
+        "sticker_seed": int(model.sticker_seed),
         "gates_state": {k: v.detach().cpu().clone() for k, v in model.gates.state_dict().items()},
         "fields": [w.name for w in model.wraps],
         "final_field": model.final_wrap.name,

@@ -64,6 +64,16 @@ def step_key_path(key_path: Path, step: int) -> Path:
     return Path(key_path).with_name(f"{Path(key_path).stem}.step-{step:09d}{Path(key_path).suffix}")
 
 
+OWNER_INPUTS = {"owner_id": "", "message": None, "key_path": None, "sticker_seed": None}
+"""The pipeline-config fields that hold the owner's secrets, with the values a shared config.yml holds instead."""
+
+
+def strip_owner_inputs(pipeline_config) -> None:
+    """Replace the owner's secrets in a pipeline config by :data:`OWNER_INPUTS` (what config.yml may record)."""
+    for name, value in OWNER_INPUTS.items():
+        setattr(pipeline_config, name, value)
+
+
 def check_key_path(path: Path, run_dir: Path) -> None:
     """Refuse, before any training, an owner key path that cannot be written or that lies inside the run folder (what
     is shared)."""
@@ -188,8 +198,7 @@ class GeometryStickerTrainer(Trainer):
     def save_shared_config(self) -> None:
         """config.yml as a recipient sees it: no owner ID, message, sticker seed or key path (they live in the key)."""
         shared = copy.deepcopy(self.config)
-        shared.pipeline.owner_id, shared.pipeline.message, shared.pipeline.key_path = "", None, None
-        shared.pipeline.sticker_seed = None
+        strip_owner_inputs(shared.pipeline)
         shared.save_config()
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
@@ -209,7 +218,7 @@ class GeometryStickerTrainer(Trainer):
         # the owner's inputs leave the config first: Nerfstudio wrote config.yml with them before this ran, and a
         # failure below must not leave them in the run folder
         owner = copy.copy(pcfg)
-        pcfg.owner_id, pcfg.message, pcfg.key_path, pcfg.sticker_seed = "", None, None, None
+        strip_owner_inputs(pcfg)
         if comms.is_main_process():
             self.save_shared_config()
         ckpt = runs.resolve_checkpoint(cfg.load_checkpoint, cfg.load_dir, cfg.load_step)
@@ -331,7 +340,7 @@ class GeometryStickerTrainer(Trainer):
             if group in opts.schedulers:
                 training_state[f"{group}_scheduler"] = opts.schedulers[group].state_dict()
         key = self.pipeline.owner_key(training_state, model_run=str(self.base_dir))
-        key.sign(self._identity if self._identity is not None else owner_identity())
+        key.sign(self._identity or owner_identity())
         # the key first, read back and checked, the previous one kept as .bak: a crash never leaves a shared
         # checkpoint whose key is lost
         write_key(key, self.key_path)

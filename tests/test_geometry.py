@@ -421,25 +421,19 @@ def test_v1_key_loads_says_how_to_add_geometry_and_export_key_upgrades_it(runs, 
         OwnerKey.load(path)
     key = OwnerKey.load(path, allow_legacy=True)
     assert key.version == 1 and key.geometry is None and torch.equal(key.message, parse_message(MESSAGE))
-    status, _, err = run_cli(
-        ["--load-config", str(runs["run"]), "--key", str(path), "--output", str(ws / "r"), "--decode", "geometry"],
-        capsys,
-    )
+    geometry = [
+        "--load-config",
+        str(runs["run"]),
+        "--key",
+        str(path),
+        "--output",
+        str(ws / "r"),
+        "--decode",
+        "geometry",
+    ]
+    status, _, err = run_cli(geometry, capsys)
     assert status == 2 and "--allow-legacy" in one_error_line(err)
-    status, _, err = run_cli(
-        [
-            "--load-config",
-            str(runs["run"]),
-            "--key",
-            str(path),
-            "--output",
-            str(ws / "r"),
-            "--decode",
-            "geometry",
-            "--allow-legacy",
-        ],
-        capsys,
-    )
+    status, _, err = run_cli([*geometry, "--allow-legacy"], capsys)
     line = one_error_line(err)
     assert status == 2 and "no geometry reference" in line and "export-key" in line
     # auto with a v1 key: the extractor, with the reason

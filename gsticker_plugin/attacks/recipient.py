@@ -13,12 +13,10 @@ processes), :func:`best_recovery` over several seeds (the fit with the smallest 
 
 from __future__ import annotations
 
-import random
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, Iterable, List, Optional
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -56,19 +54,14 @@ def recover_bits(folded: Tensor, patterns: Tensor) -> Recovery:
     return Recovery(bits=(sol > 0).long(), residual=resid, seed=None)
 
 
-def seed_everything(seed: int) -> None:
-    """Seed the random generators the way ``ns-train`` seeds a process (``machine.seed``)."""
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-
-
 def regenerated_patterns(config_path: Path, seed: int) -> Tensor:
     """The per-bit patterns [K hidden] of a sticker built from a shared run's ``config.yml`` the way ``ns-train`` builds
     it after seeding every generator with ``seed``, with the sticker drawn from the global generator at its place in
     the build (as it was before the sticker had a secret seed of its own): what a recipient gets if the sticker's
     initialisation follows ``machine.seed``. Deterministic in ``seed``."""
     # deferred: building a pipeline pulls in Nerfstudio
+    from nerfstudio.scripts.train import _set_random_seed  # how ns-train seeds a process
+
     from gsticker_plugin import model as M
     from gsticker_plugin.runs import load_run_config
 
@@ -76,7 +69,7 @@ def regenerated_patterns(config_path: Path, seed: int) -> Tensor:
     secret_seeded = M.seeded_sticker
     M.seeded_sticker = lambda sc, seed=None: secret_seeded(sc, None)  # the global generator's next draws
     try:
-        seed_everything(seed)
+        _set_random_seed(seed)
         pipeline = config.pipeline.setup(device="cpu", test_mode="val")
     finally:
         M.seeded_sticker = secret_seeded
@@ -108,5 +101,4 @@ __all__: List[str] = [
     "matches",
     "recover_bits",
     "regenerated_patterns",
-    "seed_everything",
 ]

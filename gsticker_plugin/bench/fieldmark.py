@@ -11,7 +11,6 @@ models given with ``--null`` are read the same way. Writes a Markdown page and i
 from __future__ import annotations
 
 import contextlib
-import math
 import sys
 import time
 from dataclasses import dataclass
@@ -67,13 +66,9 @@ def write_marked_run(base_cfg: Path, table, work: Path, name: str) -> Path:
     return run_dir / "config.yml"
 
 
-def psnr(a, b) -> float:
-    mse = float((a.float() - b.float()).pow(2).mean())
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
-
-
 def measure(args: Args) -> Dict[str, Any]:
     from gsticker_plugin import fieldmark as FM
+    from gsticker_plugin import metrics
     from gsticker_plugin.decoders.fit import tie_generator
     from gsticker_plugin.runs import load_run
 
@@ -129,7 +124,7 @@ def measure(args: Args) -> Dict[str, Any]:
                     "suspect": label,
                     "matches": int((bits == message).sum()),
                     "explained": fit.explained,
-                    "psnr_vs_base": psnr(out["rgb"], base_rgb),
+                    "psnr_vs_base": float(metrics.psnr(out["rgb"].permute(2, 0, 1), base_rgb.permute(2, 0, 1))),
                     "seconds_features": t_view,
                     "seconds_decode": time.time() - t1,
                 }

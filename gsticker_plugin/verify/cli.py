@@ -35,7 +35,7 @@ from typing import Optional, Sequence
 import tyro
 
 from gsticker_plugin import compat
-from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.errors import GStickerError, print_error
 from gsticker_plugin.verify.configs import (  # noqa: F401 (the exit statuses are part of the command)
     EXIT_ERROR,
     EXIT_NOT_SHOWN,
@@ -45,11 +45,6 @@ from gsticker_plugin.verify.configs import (  # noqa: F401 (the exit statuses ar
     ExportKeyConfig,
     VerifyConfig,
 )
-
-
-def _error(message: str) -> int:
-    print("error: " + " ".join(str(message).split()), file=sys.stderr)
-    return EXIT_ERROR
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -119,15 +114,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(summary_text(report))
         return status
     except GStickerError as e:
-        return _error(str(e))
+        return print_error(str(e))
     except KeyboardInterrupt:
-        return _error("interrupted; no verdict")
+        return print_error("interrupted; no verdict")
     except MemoryError:
-        return _error("out of memory while decoding; lower --max-side or --num-views")
+        return print_error("out of memory while decoding; lower --max-side or --num-views")
     except Exception as e:  # a crash is never a verdict: one line, exit 2
         frames = traceback.extract_tb(e.__traceback__)
         where = f" at {Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else ""
-        return _error(
+        return print_error(
             f"no verdict: {type(e).__name__}: {e}{where} (a failure inside ns-verify-owner, not a "
             "negative verdict; rerun with the same inputs to reproduce and report it)"
         )

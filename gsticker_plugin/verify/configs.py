@@ -91,7 +91,7 @@ class VerifyConfig:
 class CalibrateConfig:
     """Decode unmarked renders/images with a key and store the observed null in the key.
 
-    The key is rewritten atomically (fingerprint recomputed); the previous file is kept as KEY.gskey.bak.
+    The key is rewritten atomically (HMAC recomputed, its commitment and signature unchanged); the previous file is kept as KEY.gskey.bak.
     """
 
     key: Path
