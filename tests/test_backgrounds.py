@@ -9,7 +9,7 @@ from typing import Dict
 
 import pytest
 import torch
-from conftest import CPU_ARGS, NERFACTO_TINY, TINY_POOL_ARGS, run_parallel
+from conftest import CPU_ARGS, NERFACTO_TINY, TINY_MESSAGE, TINY_POOL_ARGS, run_parallel
 from nerfstudio.model_components.renderers import RGBRenderer
 
 from gsticker_plugin.background import Background, background_of
@@ -91,6 +91,8 @@ def runs(tiny_scene: Path, tmp_path_factory) -> Dict[str, Dict[str, Path]]:
             "--max-num-iterations",
             "10",
             *TINY_POOL_ARGS,
+            "--pipeline.message",
+            TINY_MESSAGE,
             "--pipeline.key-path",
             str(ws / "keys" / f"{bg}.gskey"),
         ]
