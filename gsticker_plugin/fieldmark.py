@@ -73,24 +73,35 @@ def signs_of(message: Tensor) -> Tensor:
 
 
 def sample_features(
-    encoder: nn.Module, mlp: nn.Module, positions: Float[Tensor, "N 3"], pats: Float[Tensor, "K N F"]
+    encoder: nn.Module,
+    mlp: nn.Module,
+    positions: Float[Tensor, "N 3"],
+    pats: Float[Tensor, "K N F"],
+    chunk: int = 4096,
 ) -> Float[Tensor, "N K"]:
-    """``d pre / d s_k`` per unit amplitude at encoder-space ``positions``: ``g(x) . enc(x; P_k) / sqrt(K)``. The
+    """``d pre / d s_k`` per unit amplitude at encoder-space ``positions``: ``g(x) . enc(x; P_k) / sqrt(K)``.
+
+    The K tables are stacked side by side (``[N, K * F]``) and encoded in one pass: the encoding interpolates every
+    feature column with the same weights, so column block ``k`` of the stacked encoding is ``enc(x; P_k)``. The
     encoder's table is restored afterwards."""
-    k = pats.shape[0]
+    k, n, f = pats.shape
     table = encoder.hash_table
-    with torch.enable_grad():
-        enc = encoder(positions).detach().requires_grad_(True)
-        (g,) = torch.autograd.grad(mlp(enc)[..., 0].sum(), enc)
-    out = torch.empty(positions.shape[0], k)
     saved = table.data
-    try:
-        with torch.no_grad():
-            for i in range(k):
-                table.data = pats[i].to(saved)
-                out[:, i] = (g * encoder(positions)).sum(-1)
-    finally:
-        table.data = saved
+    stacked = pats.permute(1, 0, 2).reshape(n, k * f).to(saved)
+    out = torch.empty(positions.shape[0], k)
+    for i in range(0, positions.shape[0], chunk):
+        x = positions[i : i + chunk]
+        with torch.enable_grad():
+            enc = encoder(x).detach().requires_grad_(True)
+            (g,) = torch.autograd.grad(mlp(enc)[..., 0].sum(), enc)
+        levels = g.shape[-1] // f
+        try:
+            table.data = stacked
+            with torch.no_grad():
+                enc_k = encoder(x).reshape(-1, levels, k, f)
+        finally:
+            table.data = saved
+        out[i : i + chunk] = torch.einsum("nlkf,nlf->nk", enc_k, g.reshape(-1, levels, f)).float()
     return out / math.sqrt(k)
 
 
@@ -175,11 +186,30 @@ def field_view(model, camera, pats: Tensor, min_transmittance: float = 1e-3, min
     )
 
 
-def predict(view: FieldView, signs: Tensor, amplitude: float) -> Float[Tensor, " M"]:
-    """The view's geometry (accumulation, scaled accumulation x depth) with the mark of ``signs`` at ``amplitude``."""
-    dens = view.density * torch.exp(amplitude * (view.features @ signs.to(view.features)))[..., None]
-    w = render_weights(dens, view.deltas)
+def geometry_from_logits(view: FieldView, change: Float[Tensor, "R S"]) -> Float[Tensor, " M"]:
+    """The view's geometry (accumulation, scaled accumulation x depth) with the density logits changed by
+    ``change`` at every sample."""
+    w = render_weights(view.density * torch.exp(change)[..., None], view.deltas)
     return torch.cat([w.sum(-2)[..., 0], (w * view.steps).sum(-2)[..., 0] / view.depth_scale])
+
+
+def predict(view: FieldView, signs: Tensor, amplitude: float) -> Float[Tensor, " M"]:
+    """The view's geometry with the mark of ``signs`` at ``amplitude``."""
+    return geometry_from_logits(view, amplitude * (view.features @ signs.to(view.features)))
+
+
+def predict_jacobian(view: FieldView, signs: Tensor, amplitude: float) -> Float[Tensor, "M K"]:
+    """d :func:`predict` / d signs. Output ``r`` of each signal depends on ray ``r``'s samples alone, so one backward
+    pass per signal gives every sample's derivative, and the chain rule through the linear logits sums them per
+    ray."""
+    with torch.no_grad():
+        change = amplitude * (view.features @ signs.to(view.features))
+    change.requires_grad_(True)
+    r = view.rays.numel()
+    with torch.enable_grad():
+        out = geometry_from_logits(view, change)
+        grads = [torch.autograd.grad(out[c * r : (c + 1) * r].sum(), change, retain_graph=c == 0)[0] for c in range(2)]
+    return torch.cat([amplitude * torch.einsum("rs,rsk->rk", g, view.features) for g in grads])
 
 
 def decode_view(view: FieldView, suspect_outputs: Dict[str, Tensor], amplitude: float, generator: torch.Generator):
@@ -189,6 +219,11 @@ def decode_view(view: FieldView, suspect_outputs: Dict[str, Tensor], amplitude: 
     target = torch.cat([sig[0] - view.base_signal[0], (sig[1] - view.base_signal[1]) / view.depth_scale])
     k = view.features.shape[-1]
     fit, bits, _ = fit_and_decide(
-        lambda s: predict(view, s, amplitude), lambda s: None, target, k, view.rays.numel() > 0, generator
+        lambda s: predict(view, s, amplitude),
+        lambda s: predict_jacobian(view, s, amplitude),
+        target,
+        k,
+        view.rays.numel() > 0,
+        generator,
     )
     return bits, fit

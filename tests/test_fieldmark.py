@@ -64,3 +64,43 @@ def test_sample_features_are_the_first_order_change_of_the_density_logit():
 def test_a_field_without_a_torch_hash_encoder_is_refused():
     with pytest.raises(GStickerError, match="implementation torch"):
         FM.parts(nn.Linear(2, 2))
+
+
+def random_view(rays=30, samples=12, k=8):
+    g = torch.Generator().manual_seed(4)
+    return FM.FieldView(
+        rays=torch.arange(rays),
+        density=torch.rand(rays, samples, 1, generator=g) * 3,
+        deltas=torch.full((rays, samples, 1), 0.1),
+        steps=torch.linspace(2, 4, samples).expand(rays, samples)[..., None].contiguous(),
+        features=torch.randn(rays, samples, k, generator=g),
+        base_signal=torch.zeros(2, rays),
+        depth_scale=2.0,
+    )
+
+
+def test_the_closed_form_jacobian_is_forward_mode_autodiff_of_the_prediction():
+    from gsticker_plugin.decoders.fit import jacobian
+
+    view = random_view()
+    s = torch.rand(8, generator=torch.Generator().manual_seed(5)) * 2 - 1
+    got = FM.predict_jacobian(view, s, 0.3)
+    want = jacobian(lambda x: FM.predict(view, x, 0.3), s)
+    assert got.shape == (60, 8)
+    assert torch.allclose(got, want, atol=1e-5, rtol=1e-4)
+
+
+def test_a_view_marked_with_a_message_decodes_to_it_and_an_unmarked_one_to_nothing():
+    from gsticker_plugin.decoders.fit import UNDETERMINED, tie_generator
+
+    view = random_view(rays=200, k=8)
+    msg = torch.tensor([1, 0, 0, 1, 1, 0, 1, 0])
+    marked = FM.predict(view, FM.signs_of(msg), 0.05).reshape(2, -1)
+    outputs = {"accumulation": marked[0], "expected_depth": marked[1] * view.depth_scale / marked[0]}
+    view.base_signal = FM.predict(view, torch.zeros(8), 0.05).reshape(2, -1) * torch.tensor([[1.0], [2.0]])
+    bits, fit = FM.decode_view(view, outputs, 0.05, tie_generator(0))
+    assert torch.equal(bits, msg) and fit.explained > 0.999
+    base = view.base_signal
+    same = {"accumulation": base[0], "expected_depth": base[1] / base[0]}
+    bits, fit = FM.decode_view(view, same, 0.05, tie_generator(0))
+    assert (bits == UNDETERMINED).all()
