@@ -2,8 +2,9 @@
 
 Holds the message, the extractor and classifier, the base run's reference, the geometry reference (sticker and
 gates) for the informed decoders, how the message was drawn, a secret, a commitment salt and an HMAC over the rest
-(an integrity check, version 3), and (version 4) the owner's Ed25519 public key with a signature over the key's
-commitment (authorship: only the holder of the owner identity can sign). Written atomically. docs/verify.md has the
+(an integrity check, version 3), (version 4) the owner's Ed25519 public key with a signature over the key's
+commitment (authorship: only the holder of the owner identity can sign), and (version 5) the field mark's settings
+(levels, secret pattern seed, amplitude) when the shared run carries the mark in its own field. Written atomically. docs/verify.md has the
 threat model.
 
 The owner *identity* is an Ed25519 private key in its own file (``$GSTICKER_IDENTITY``, else ``owner.ed25519`` in
@@ -36,8 +37,8 @@ from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.heads import HeadConfig, Heads
 
 KEY_FORMAT = "gsticker-owner-key"
-KEY_VERSION = 4
-READABLE_VERSIONS = (1, 2, 3, 4)
+KEY_VERSION = 5
+READABLE_VERSIONS = (1, 2, 3, 4, 5)
 LEGACY_VERSIONS = (1, 2)
 """Versions without integrity (an unkeyed fingerprint anyone can recompute): read only when asked
 (``--allow-legacy``)."""
@@ -255,7 +256,16 @@ KEY_FIELDS_SINCE: Dict[int, Dict[str, Tuple[type, ...]]] = {
     2: {"geometry": (dict, type(None))},
     3: {"message_source": (str,), "secret": (str,), "salt": (str,), "training_state": (dict,)},
     4: {"public_key": (str,), "signature": (str,)},
+    5: {"field_mark": (dict, type(None))},
 }
+FIELD_MARK_FIELDS: Dict[str, Tuple[type, ...]] = {
+    "table": (str,),
+    "levels": (list,),
+    "pattern_seed": (int,),
+    "amplitude": (float,),
+}
+"""What a key's field mark holds (:mod:`gsticker_plugin.shared`): the state-dict name of the marked hash table, its
+levels, the secret seed of the per-bit patterns and the amplitude."""
 
 
 def _check_fields(p: Dict[str, Any], version: int, path: Path) -> None:
@@ -280,6 +290,12 @@ def _check_fields(p: Dict[str, Any], version: int, path: Path) -> None:
     geometry = p.get("geometry") if version >= 2 else None
     if geometry is not None and not isinstance(geometry.get("sticker_state"), dict):
         raise GStickerError(f"{path} holds a malformed geometry reference; use your original copy of the owner key")
+    mark = p.get("field_mark") if version >= 5 else None
+    if mark is not None and not all(
+        isinstance(mark.get(name), types) and not isinstance(mark.get(name), bool)
+        for name, types in FIELD_MARK_FIELDS.items()
+    ):
+        raise GStickerError(f"{path} holds a malformed field mark; use your original copy of the owner key")
 
 
 @dataclass
@@ -310,6 +326,9 @@ class OwnerKey:
     """The owner's Ed25519 public key (hex) that signed the commitment; empty in keys written before version 4."""
     signature: str = ""
     """Ed25519 signature of the key's commitment (hex, :func:`signed_bytes`); empty before version 4."""
+    field_mark: Optional[Dict[str, Any]] = None
+    """The field mark (:data:`FIELD_MARK_FIELDS`) when the shared run carries the message in its own hash table;
+    None for a sticker key."""
     version: int = KEY_VERSION
     """The version the key was read as (saving always writes the current version)."""
 
@@ -366,6 +385,7 @@ class OwnerKey:
             "salt": self.salt,
             "public_key": self.public_key,
             "signature": self.signature,
+            "field_mark": plain(self.field_mark),
         }
         p["hmac"] = payload_hmac(p, bytes.fromhex(self.secret))
         return p
@@ -454,6 +474,7 @@ class OwnerKey:
             salt=p.get("salt", "") if version >= 3 else "",
             public_key=p.get("public_key", "") if version >= 4 else "",
             signature=p.get("signature", "") if version >= 4 else "",
+            field_mark=p.get("field_mark") if version >= 5 else None,
             version=version,
         )
         if version >= 4 and (key.signature or key.public_key) and not key.signed():

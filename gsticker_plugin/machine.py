@@ -26,7 +26,7 @@ def console_script(name: str) -> str:
 def sticker_train_argv(
     output_dir: Path, experiment: str, max_steps: int, owner_id: str, key_path: Path, *options: str
 ) -> List[str]:
-    """``ns-train geometrysticker`` on the CPU into ``OUTPUT/EXPERIMENT/geometrysticker/watermarked`` with its owner
+    """``ns-train geometrysticker --pipeline.mark sticker`` on the CPU into ``OUTPUT/EXPERIMENT/geometrysticker/watermarked`` with its owner
     key at ``key_path``; ``options``: further flags (``--load-checkpoint`` among them)."""
     return [
         console_script("ns-train"),
@@ -47,6 +47,8 @@ def sticker_train_argv(
         owner_id,
         "--pipeline.key-path",
         str(key_path),
+        "--pipeline.mark",
+        "sticker",
         *options,
     ]
 

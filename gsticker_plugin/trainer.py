@@ -16,8 +16,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import os
+import secrets
 import shutil
 import tempfile
 from dataclasses import dataclass, field
@@ -49,6 +51,7 @@ from gsticker_plugin.pipeline import (
     GeometryStickerPipelineConfig,
 )
 from gsticker_plugin.runs import copy_datamanager
+from gsticker_plugin.shared import SharedRun, mark_base
 
 
 @dataclass
@@ -64,7 +67,7 @@ def step_key_path(key_path: Path, step: int) -> Path:
     return Path(key_path).with_name(f"{Path(key_path).stem}.step-{step:09d}{Path(key_path).suffix}")
 
 
-OWNER_INPUTS = {"owner_id": "", "message": None, "key_path": None, "sticker_seed": None}
+OWNER_INPUTS = {"owner_id": "", "message": None, "key_path": None, "sticker_seed": None, "pattern_seed": None}
 """The pipeline-config fields that hold the owner's secrets, with the values a shared config.yml holds instead."""
 
 
@@ -141,6 +144,25 @@ def resume_key(ckpt: Path, run_cfg, key_path: Optional[Path]) -> Tuple[Path, Own
     )
 
 
+def field_markable(model_config) -> bool:
+    """Whether a base's model config builds a density field with a torch hash table (the field mark's host)."""
+    from nerfstudio.models.nerfacto import NerfactoModelConfig
+
+    return isinstance(model_config, NerfactoModelConfig) and model_config.implementation == "torch"
+
+
+def chosen_mark(choice: str, model_config) -> str:
+    """``--pipeline.mark`` resolved for a base: field or sticker (one-line error for a field mark it cannot host)."""
+    if choice == "auto":
+        return "field" if field_markable(model_config) else "sticker"
+    if choice == "field" and not field_markable(model_config):
+        raise GStickerError(
+            f"the field mark needs a nerfacto base with the torch implementation, not {type(model_config).__name__}; "
+            "pass --pipeline.mark sticker"
+        )
+    return choice
+
+
 def exit_with_error(error: GStickerError) -> None:
     """One line ``error: <message>`` on stderr, exit status 2 (the plugin's convention for bad input)."""
     raise SystemExit(print_error(str(error)))
@@ -187,6 +209,7 @@ class GeometryStickerTrainer(Trainer):
         self._key_path: Optional[Path] = None
         self._resume_key: Optional[OwnerKey] = None
         self._identity = None
+        self._field: Optional[Dict] = None
 
     @property
     def key_path(self) -> Path:
@@ -245,6 +268,9 @@ class GeometryStickerTrainer(Trainer):
                 owner.message_from_owner_id = False
                 owner.owner_id = self._resume_key.owner_id
                 pcfg.message_source = self._resume_key.message_source
+            elif chosen_mark(pcfg.mark, run_cfg.pipeline.model) == "field":
+                self._setup_field_mark(owner, ckpt)
+                return
             else:
                 pcfg.model.base_model = run_cfg.pipeline.model
                 pcfg.model.base_step = runs.checkpoint_step(ckpt)
@@ -275,6 +301,70 @@ class GeometryStickerTrainer(Trainer):
         if owner.sticker_seed is not None and not self._resume:  # a resumed sticker comes from the key
             self.pipeline.model.reseed_sticker(int(owner.sticker_seed))
         CONSOLE.print(f"\\[gsticker] {self.pipeline.describe()}; message source {source}; owner key {self._key_path}")
+
+    def _setup_field_mark(self, owner, ckpt: Path) -> None:
+        """The field mark needs no training: check the inputs, then :meth:`train` writes the shared run."""
+        cfg, pcfg = self.config, self.config.pipeline
+        if pcfg.mark == "auto":
+            CONSOLE.print(
+                "\\[gsticker] the base has a torch hash table: the message goes into it (--pipeline.mark field)"
+            )
+        if self.world_size > 1:
+            raise GStickerError("the field mark is written by one process: drop --machine.num-devices")
+        self._key_path = (
+            Path(owner.key_path)
+            if owner.key_path is not None
+            else default_key_path(cfg.experiment_name, cfg.method_name, cfg.timestamp)
+        )
+        check_key_path(self._key_path, self.base_dir)
+        message = GeometryStickerPipeline.resolve_message(owner)
+        self._field = {
+            "checkpoint": ckpt,
+            "message": message,
+            "source": pcfg.message_source or GeometryStickerPipeline.source_of_message(owner),
+            "owner_id": owner.owner_id,
+            "pattern_seed": int(owner.pattern_seed) if owner.pattern_seed is not None else secrets.randbits(63),
+            "identity": owner_identity(),
+        }
+
+    def _write_field_mark(self) -> SharedRun:
+        """Mark the base's hash table, write the owner key (read back), then the shared stock run."""
+        cfg, pcfg, job = self.config, self.config.pipeline, self._field
+        assert job is not None
+        ckpt = job["checkpoint"]
+        with CONSOLE.status("[bold green]marking the base's field and measuring its renders..."):
+            shared = mark_base(
+                runs.run_config_path(ckpt),
+                ckpt,
+                job["message"],
+                job["pattern_seed"],
+                cfg.output_dir,
+                cfg.experiment_name,
+                cfg.timestamp,
+                amplitude=pcfg.field_amplitude,
+                levels=pcfg.field_levels,
+                data=cfg.data,
+                device=torch.device(cfg.machine.device_type),
+            )
+        check_key_path(self.key_path, shared.run_dir)
+        key = OwnerKey(
+            owner_id=job["owner_id"],
+            message=job["message"].cpu(),
+            heads_config={},
+            heads_state={},
+            base=shared.base,
+            model_run=str(shared.run_dir),
+            message_source=job["source"],
+            field_mark={**shared.field_mark, "psnr_vs_base": shared.psnr_vs_base},
+        )
+        key.sign(job["identity"])
+        write_key(key, self.key_path)  # the key first: a crash never leaves a shared run whose key is lost
+        shared.write()
+        (self.base_dir / "config.yml").unlink(missing_ok=True)  # the stripped geometrysticker config: nothing to load
+        with contextlib.suppress(OSError):
+            self.base_dir.rmdir()
+            self.base_dir.parent.rmdir()
+        return shared
 
     def setup_optimizers(self) -> Optimizers:
         """The host's optimizers; in a distributed run, ones that average the gradients over the ranks first."""
@@ -355,6 +445,21 @@ class GeometryStickerTrainer(Trainer):
                     f.unlink()
 
     def train(self) -> None:
+        if self._field is not None:
+            try:
+                shared = self._write_field_mark()
+            except GStickerError as e:
+                exit_with_error(e)
+            except OSError as e:
+                where = f" ({e.filename})" if e.filename else ""
+                exit_with_error(GStickerError(f"{e.strerror or type(e).__name__}{where} while writing; free the disk"))
+            CONSOLE.rule("\\[gsticker] done")
+            CONSOLE.print(
+                f"Shared run (a stock {shared.base['shared_method']} run, share this folder): {shared.run_dir}"
+            )
+            CONSOLE.print(f"Owner key (secret, keep it apart): {self.key_path}")
+            CONSOLE.print(f"Render PSNR vs the base: {shared.psnr_vs_base:.1f} dB")
+            return
         try:
             super().train()
         except GStickerError as e:  # e.g. a base whose samples the fast path cannot capture

@@ -164,6 +164,8 @@ def capture(tmp_path_factory) -> Dict[str, Path]:
     sticker = [
         train,
         "geometrysticker",
+        "--pipeline.mark",
+        "sticker",
         "--load-checkpoint",
         str(max((base_dir / "nerfstudio_models").glob("step-*.ckpt"))),
         *CPU_ARGS,

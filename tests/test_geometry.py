@@ -30,7 +30,7 @@ from gsticker_plugin.decoders import fit as FIT
 from gsticker_plugin.decoders import geometric as G
 from gsticker_plugin.decoders import reference as R
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.key import OwnerKey, fingerprint, parse_message, payload_hmac
+from gsticker_plugin.key import KEY_VERSION, OwnerKey, fingerprint, parse_message, payload_hmac
 from gsticker_plugin.sticker import Sticker, message_to_signs
 from gsticker_plugin.verify import cli as V
 
@@ -279,7 +279,7 @@ def _geo(runs, ws, capsys, suspect: Path, name: str, *extra: str):
 
 def test_key_holds_the_geometry_reference_and_loads_weights_only(runs):
     key = OwnerKey.load(runs["key"])
-    assert key.version == 4 and key.geometry["fields"] == ["field"] and key.geometry["final_field"] == "field"
+    assert key.version == KEY_VERSION and key.geometry["fields"] == ["field"] and key.geometry["final_field"] == "field"
     assert key.signed()  # signed with the owner identity of the test session
     assert key.geometry["sticker_config"]["kind"] == "bilinear" and key.geometry["sticker_config"]["num_bits"] == 48
     assert set(key.geometry["gates_state"]) == {"field.mu", "field.scale", "field.calibrated", "field.log_beta"}
@@ -471,7 +471,7 @@ def test_v1_key_loads_says_how_to_add_geometry_and_export_key_upgrades_it(runs, 
     )
     assert status == 0, err
     up = OwnerKey.load(path)
-    assert up.version == 4 and up.geometry["fields"] == ["field"] and Path(str(path) + ".bak").is_file()
+    assert up.version == KEY_VERSION and up.geometry["fields"] == ["field"] and Path(str(path) + ".bak").is_file()
     for k, v in OwnerKey.load(runs["key"]).geometry["sticker_state"].items():
         assert torch.equal(up.geometry["sticker_state"][k], v)
     for suspect, name in ((runs["run"], "shared"), (legacy, "legacy")):

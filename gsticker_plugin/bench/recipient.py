@@ -63,7 +63,8 @@ def make_runs(args: Args) -> List[Tuple[str, Path, Path]]:
         config = work / "runs" / label / "geometrysticker" / "run" / "config.yml"
         key = keys / f"{label}.gskey"
         if not key.is_file():
-            cmd = [train, "geometrysticker", "--load-checkpoint", str(ckpt), *CPU, "--output-dir", str(work / "runs")]
+            cmd = [train, "geometrysticker", "--pipeline.mark", "sticker", "--load-checkpoint", str(ckpt), *CPU]
+            cmd += ["--output-dir", str(work / "runs")]
             cmd += ["--experiment-name", label, "--timestamp", "run", "--pipeline.key-path", str(key), *extra]
             run_logged(cmd, work / f"{label}.log", what=f"sticker run {label}")
         out.append((label, config, key))

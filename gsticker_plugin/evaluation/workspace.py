@@ -332,6 +332,8 @@ class Workspace:
             [
                 console_script("ns-train"),
                 "geometrysticker",
+                "--pipeline.mark",
+                "sticker",
                 "--machine.device-type",
                 self.p.device,
                 "--vis",

@@ -32,6 +32,11 @@ def calibrate(config: CalibrateConfig) -> Dict[str, Any]:
     """Run ``calibrate``: decode unmarked views with the key and store their match counts in the key."""
     key_path = Path(config.key)
     key = OwnerKey.load(key_path, allow_legacy=config.allow_legacy)
+    if key.field_mark:
+        raise GStickerError(
+            f"{key_path} is a field-mark key: calibrate measures sticker keys' decoders; a field-mark key's null is "
+            "the binomial one of its secret uniform message (read unmarked models with ns-verify-owner to see it)"
+        )
     device = pick_device(config.device)
     if config.decode == "geometry":
         return _calibrate_geometry(config, key_path, key, device)

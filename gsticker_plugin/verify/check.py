@@ -12,6 +12,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import torch
 
 from gsticker_plugin.attacks import parse_attack_spec
+from gsticker_plugin.decoders import fieldmark as field_decoder
 from gsticker_plugin.decoders.blind import decode_views
 from gsticker_plugin.decoders.geometric import decode_suspect
 from gsticker_plugin.decoders.image import (
@@ -101,6 +102,9 @@ def choose_decoder(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]]) -> T
             "--cameras gives the cameras of --images; a model (--load-config) is rendered at its own "
             "cameras: drop --cameras"
         )
+    marked = [p for p, k in keys if k.field_mark]
+    if marked:
+        return choose_field_decoder(config, marked, len(keys))
     if config.decode in ("geometry", "image"):
         if config.decode == "geometry" and config.load_config is None:
             raise GStickerError(
@@ -134,6 +138,24 @@ def choose_decoder(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]]) -> T
     return kind, []
 
 
+def choose_field_decoder(config: VerifyConfig, marked: List[Path], num_keys: int) -> Tuple[str, List[str]]:
+    """Field-mark keys are read by the geometric decoder from a model; one-line errors for anything else."""
+    if len(marked) != num_keys:
+        raise GStickerError(
+            f"{marked[0]} is a field-mark key and the others are sticker keys; verify with each kind of key apart"
+        )
+    if config.load_config is None:
+        raise GStickerError(
+            f"{marked[0]} is a field-mark key, read from a model's geometry: pass --load-config SUSPECT/config.yml "
+            "(images are read with sticker keys only)"
+        )
+    if config.decode not in ("auto", "geometry"):
+        raise GStickerError(
+            f"{marked[0]} is a field-mark key, read by the geometric decoder: drop --decode {config.decode}"
+        )
+    return "geometry", []
+
+
 def _informed_result(
     key: OwnerKey,
     path: Path,
@@ -162,7 +184,11 @@ another scene."""
 def median_agreement(dec: Dict[str, Any]) -> float:
     """The median over views of the geometric decoder's scene agreement (views with no surface ray left out; NaN when
     none has one)."""
-    vals = sorted(g["scene_agreement"] for g in dec["geometry"] if g.get("scene_agreement") == g.get("scene_agreement"))
+    vals = sorted(
+        g["scene_agreement"]
+        for g in dec["geometry"]
+        if isinstance(g.get("scene_agreement"), float) and g["scene_agreement"] == g["scene_agreement"]
+    )
     return float(vals[len(vals) // 2]) if vals else float("nan")
 
 
@@ -175,10 +201,7 @@ def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], de
     model = pipeline.model
     results, views, bases, notes = [], None, [], []
     for path, key in keys:
-        ref = load_base_reference(key, path, config.base_config, config.base_data or config.data, device)
-        dec, vlist = decode_suspect(
-            key, ref, model, config.num_views, config.sampled_share, config.seed, progress=config.progress
-        )
+        dec, vlist, ref = _decode_geometry(config, path, key, model, device)
         kv = Views(
             kind="model",
             source=str(config.load_config),
@@ -195,7 +218,7 @@ def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], de
         )
         result = _informed_result(key, path, dec, kv, config, "geometry", ref, notes, bases)
         agreement = median_agreement(dec)
-        result["scene_agreement"] = agreement
+        result["scene_agreement"] = agreement if agreement == agreement else None  # NaN: no view had a surface
         if agreement < OTHER_SCENE_AGREEMENT:
             notes.append(
                 f"{path} was made for another scene: the suspect's geometry agrees with the key's base at "
@@ -207,6 +230,20 @@ def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], de
         del ref
     signals = sorted({tuple(g["signals"]) for r in results for g in (v["geometry"] for v in r["per_view"])})
     return results, views, {"bases": bases, "signals": [list(s) for s in signals], "notes": notes}
+
+
+def _decode_geometry(config: VerifyConfig, path: Path, key: OwnerKey, model, device: torch.device):
+    """One key's geometric decoding of the suspect ``model``: with its field mark, or its sticker. Returns
+    ``(dec, views, reference)``."""
+    data = config.base_data or config.data
+    if key.field_mark:
+        ref = field_decoder.load_field_reference(key, path, config.base_config, data, device)
+        decode = field_decoder.decode_suspect
+    else:
+        ref = load_base_reference(key, path, config.base_config, data, device)
+        decode = decode_suspect
+    dec, vlist = decode(key, ref, model, config.num_views, config.sampled_share, config.seed, progress=config.progress)
+    return dec, vlist, ref
 
 
 def _verify_images_informed(
@@ -303,7 +340,9 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
             "kind": "geometry",
             "informed": True,
             **info,
-            "description": "informed: fits the key's sticker to the suspect's geometry ("
+            "description": "informed: fits the key's "
+            + ("field mark" if any(k.field_mark for _, k in keys) else "sticker")
+            + " to the suspect's geometry ("
             + " + ".join(sorted({n.replace("_", " ") for sig in info["signals"] for n in sig}))
             + ") against the owner's unwatermarked base run; model-level only",
         }

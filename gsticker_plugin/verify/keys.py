@@ -21,6 +21,8 @@ def export_key(config: ExportKeyConfig) -> Dict[str, Any]:
 
     key_path = Path(config.key)
     key = OwnerKey.load(key_path, allow_legacy=config.allow_legacy)
+    if key.field_mark:
+        raise GStickerError(f"{key_path} is a field-mark key: it already holds everything its decoder needs")
     with contextlib.redirect_stdout(sys.stderr):
         run_cfg, pipeline, ckpt = load_run(config.load_config, data=config.data, device=torch.device("cpu"))
     model = pipeline.model

@@ -64,6 +64,8 @@ def summary_text(report: Dict[str, Any]) -> str:
         emp = (
             f"empirical {t['empirical']} from {r['empirical_null']['n']} null views"
             if r["empirical_null"]
+            else "the fit never reads the message, so with a random secret message the null is this binomial"
+            if r.get("mark") == "field"
             else f"no empirical null for this decoder (run {calib})"
         )
         lines.append(f"  key {r['owner_id']} ({r['key']}): {r['verdict'].upper()}")

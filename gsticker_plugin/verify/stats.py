@@ -128,6 +128,7 @@ def key_result(
         "mean_bit_accuracy": float(dec["bit_acc"].float().mean()),
         "mean_score": float(scores.float().mean()) if scores is not None else None,
         "decoder": decoder,
+        "mark": "field" if key.field_mark else "sticker",
         "null_exact": not key.null_caveats(),
         "null_caveats": key.null_caveats(),
         "message_source": key.message_source,
