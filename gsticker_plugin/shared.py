@@ -11,6 +11,7 @@ seed, the amplitude, the levels and the base's reference) goes into the owner ke
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import sys
 from dataclasses import dataclass
@@ -81,6 +82,24 @@ def stock_method_name(config) -> str:
     )
 
 
+def as_stock_method(config, method: str) -> None:
+    """Make ``config`` (a base's TrainerConfig) a run of Nerfstudio's ``method``: its name, and its data manager
+    config of the class that method uses (stock loaders set the data manager's target from the method's, so the
+    config must be of the class that target takes), every shared field kept."""
+    from nerfstudio.configs.method_configs import method_configs
+
+    config.method_name = method
+    want = type(method_configs[method].pipeline.datamanager)
+    old = config.pipeline.datamanager
+    if type(old) is not want:
+        new = want()
+        names = {f.name for f in dataclasses.fields(want)} - {"_target"}
+        for f in dataclasses.fields(old):
+            if f.name in names:
+                setattr(new, f.name, getattr(old, f.name))
+        config.pipeline.datamanager = new
+
+
 def marked_pipeline_state(
     pipeline_state: Dict[str, Tensor], name: str, pats: Tensor, message: Tensor, amplitude: float
 ) -> Dict[str, Tensor]:
@@ -129,6 +148,7 @@ def mark_base(
         shared.pipeline.datamanager.data = shared.pipeline.datamanager.dataparser.data = Path(data)
     method = stock_method_name(config)
     run_dir = runs.relocate(shared, output_dir, experiment_name, method, timestamp)
+    as_stock_method(shared, method)
     if (run_dir / "config.yml").exists():
         raise GStickerError(f"{run_dir} already holds a run; pass another --timestamp or --output-dir")
     model = pipeline.model

@@ -195,6 +195,34 @@ def tiny_base(tiny_scene, tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def tiny_trained_base(tiny_scene, tmp_path_factory) -> Path:
+    """config.yml of a 100-step nerfacto base on the tiny scene (some geometry for the field mark to ride on;
+    read-only)."""
+    ws = tmp_path_factory.mktemp("tiny_trained_base")
+    ns_train(
+        [
+            *NERFACTO_TINY,
+            *CPU_ARGS,
+            "--output-dir",
+            str(ws),
+            "--experiment-name",
+            "nerfacto",
+            "--timestamp",
+            "base",
+            "--max-num-iterations",
+            "100",
+            "--steps-per-save",
+            "100",
+            "blender-data",
+            "--data",
+            str(tiny_scene),
+        ],
+        ws,
+    )
+    return ws / "nerfacto" / "gsticker-nerfacto-small" / "base" / "config.yml"
+
+
+@pytest.fixture(scope="session")
 def tiny_sticker(tiny_base, tmp_path_factory) -> Dict[str, Path]:
     """A 10-step geometrysticker run on ``tiny_base`` carrying ``TINY_MESSAGE``: ``{base, run, key}`` (config.yml
     paths and the owner key; read-only: :func:`copy_key` before calibrating or exporting into a key)."""
@@ -226,7 +254,7 @@ def tiny_sticker(tiny_base, tmp_path_factory) -> Dict[str, Path]:
 
 # Fixtures that train with ns-train, render a scene or run an ns-* command: a test that uses one (directly or through
 # another fixture) is marked ``slow`` here, so ``make test-fast`` (``-m "not slow"``) trains nothing.
-SLOW_FIXTURES = {"tiny_scene", "tiny_base", "tiny_sticker", "shared_dir"}
+SLOW_FIXTURES = {"tiny_scene", "tiny_base", "tiny_trained_base", "tiny_sticker", "shared_dir"}
 
 
 def pytest_collection_modifyitems(config, items):

@@ -36,3 +36,31 @@ def test_key_with_numpy_state_loads_without_allow_list(tmp_path):
     loaded = OwnerKey.load(path)
     assert torch.equal(loaded.training_state["arr"], torch.arange(3))
     assert torch.equal(loaded.message, key.message)
+
+
+def field_mark_key(**mark) -> OwnerKey:
+    return OwnerKey(
+        owner_id="alice",
+        message=message_from_owner_id("alice"),
+        heads_config={},
+        heads_state={},
+        base={"checkpoint_sha256": "ab" * 32},
+        field_mark={"table": "_model.t", "levels": [0, 1], "pattern_seed": 7, "amplitude": 0.01, **mark},
+    )
+
+
+def test_a_field_mark_key_reads_back_with_its_mark(tmp_path):
+    back = OwnerKey.load(field_mark_key().save(tmp_path / "k.gskey"))
+    assert back.field_mark == {"table": "_model.t", "levels": [0, 1], "pattern_seed": 7, "amplitude": 0.01}
+    assert back.geometry is None and back.version == 5
+
+
+def test_a_key_whose_field_mark_lacks_a_setting_or_has_the_wrong_type_is_refused(tmp_path):
+    import pytest
+
+    from gsticker_plugin.errors import GStickerError
+
+    for bad in ({"pattern_seed": "7"}, {"amplitude": 1}, {"levels": (0, 1)}, {"pattern_seed": True}):
+        path = field_mark_key(**bad).save(tmp_path / "bad.gskey")
+        with pytest.raises(GStickerError, match="malformed field mark"):
+            OwnerKey.load(path)

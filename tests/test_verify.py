@@ -825,3 +825,24 @@ def test_load_run_keeps_stock_nerfacto_in_process(shared_dir):
     assert not multiprocessing.active_children()
     assert len(dm.train_dataset) == 100 and len(dm.eval_dataset) == 200  # test mode: the test split
     assert dm.eval_dataset[0]["image"].shape[:2] == (100, 100)
+
+
+def test_a_field_mark_key_is_read_from_a_model_by_the_geometric_decoder_and_refused_elsewhere(tmp_path):
+    from test_key import field_mark_key
+    from test_ownership import small_key
+
+    from gsticker_plugin.errors import GStickerError
+    from gsticker_plugin.verify.check import choose_decoder
+    from gsticker_plugin.verify.configs import VerifyConfig
+
+    field = [(tmp_path / "f.gskey", field_mark_key())]
+    model = VerifyConfig(load_config=tmp_path / "config.yml", key=tmp_path / "f.gskey")
+    assert choose_decoder(model, field) == ("geometry", [])
+    cases = [
+        (VerifyConfig(images=tmp_path, key=tmp_path / "f.gskey"), field, "pass --load-config"),
+        (VerifyConfig(load_config=tmp_path / "c.yml", decode="extractor"), field, "drop --decode extractor"),
+        (VerifyConfig(load_config=tmp_path / "c.yml"), field + [(tmp_path / "s.gskey", small_key())], "apart"),
+    ]
+    for config, keys, fix in cases:
+        with pytest.raises(GStickerError, match=fix):
+            choose_decoder(config, keys)
