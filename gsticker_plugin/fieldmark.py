@@ -61,6 +61,18 @@ def patterns(
     return out
 
 
+def trained_rows(table: Tensor, init_scale: float) -> Tensor:
+    """[N] bool: the table's rows that training moved, some entry outside the initialization's range
+    ``[-init_scale, init_scale]``. The others were never sampled: they keep their small initial values in every stock
+    run, so a pattern there would show, and it would change no render."""
+    return table.abs().amax(-1) > init_scale
+
+
+def on_rows(pats: Float[Tensor, "K N F"], rows: Tensor) -> Float[Tensor, "K N F"]:
+    """The patterns zeroed outside ``rows``."""
+    return pats * rows.to(pats)[None, :, None]
+
+
 def marked_table(table: Tensor, pats: Float[Tensor, "K N F"], signs: Tensor, amplitude: float) -> Tensor:
     """``T + a * sum_k s_k P_k / sqrt(K)`` for signs ``s`` in [-1, 1] (``2M - 1`` for a message)."""
     k = pats.shape[0]

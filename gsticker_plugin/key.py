@@ -263,9 +263,11 @@ FIELD_MARK_FIELDS: Dict[str, Tuple[type, ...]] = {
     "levels": (list,),
     "pattern_seed": (int,),
     "amplitude": (float,),
+    "init_scale": (float,),
 }
 """What a key's field mark holds (:mod:`gsticker_plugin.shared`): the state-dict name of the marked hash table, its
-levels, the secret seed of the per-bit patterns and the amplitude."""
+levels, the secret seed of the per-bit patterns, the amplitude and the table's initialization range (the patterns
+live on the rows training moved beyond it)."""
 
 
 def _check_fields(p: Dict[str, Any], version: int, path: Path) -> None:

@@ -162,6 +162,7 @@ def mark_base(
         runs.strict_load(model, runs.model_state_from_pipeline_state(state["pipeline"]), len(ds))
     table = state["pipeline"][name]
     pats = FM.patterns(table.shape, encoder.hash_table_size, levels, int(message.numel()), pattern_seed)
+    pats = FM.on_rows(pats, FM.trained_rows(table, encoder.hash_init_scale))
     # numpy scalars (the base's optimizer state) become Python ones: stock torch >= 2.6 loads the run as it is
     state = plain({**state, "pipeline": marked_pipeline_state(state["pipeline"], name, pats, message, amplitude)})
     cams = pipeline.datamanager.train_dataset.cameras
@@ -186,6 +187,7 @@ def mark_base(
             "levels": [int(lv) for lv in levels],
             "pattern_seed": int(pattern_seed),
             "amplitude": float(amplitude),
+            "init_scale": float(encoder.hash_init_scale),
         },
         base={
             "method": config.method_name,

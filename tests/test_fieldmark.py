@@ -104,3 +104,10 @@ def test_a_view_marked_with_a_message_decodes_to_it_and_an_unmarked_one_to_nothi
     same = {"accumulation": base[0], "expected_depth": base[1] / base[0]}
     bits, fit = FM.decode_view(view, same, 0.05, tie_generator(0))
     assert (bits == UNDETERMINED).all()
+
+
+def test_only_rows_training_moved_carry_the_patterns():
+    table = torch.tensor([[5e-4, -9e-4], [0.2, 0.0], [1e-4, -0.3], [0.0, 0.0]])
+    assert FM.trained_rows(table, 1e-3).tolist() == [False, True, True, False]
+    pats = FM.on_rows(torch.ones(3, 4, 2), FM.trained_rows(table, 1e-3))
+    assert pats[:, [0, 3]].abs().sum() == 0 and torch.equal(pats[:, [1, 2]], torch.ones(3, 2, 2))

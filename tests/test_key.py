@@ -45,13 +45,20 @@ def field_mark_key(**mark) -> OwnerKey:
         heads_config={},
         heads_state={},
         base={"checkpoint_sha256": "ab" * 32},
-        field_mark={"table": "_model.t", "levels": [0, 1], "pattern_seed": 7, "amplitude": 0.01, **mark},
+        field_mark={
+            "table": "_model.t",
+            "levels": [0, 1],
+            "pattern_seed": 7,
+            "amplitude": 0.01,
+            "init_scale": 0.001,
+            **mark,
+        },
     )
 
 
 def test_a_field_mark_key_reads_back_with_its_mark(tmp_path):
     back = OwnerKey.load(field_mark_key().save(tmp_path / "k.gskey"))
-    assert back.field_mark == {"table": "_model.t", "levels": [0, 1], "pattern_seed": 7, "amplitude": 0.01}
+    assert back.field_mark == field_mark_key().field_mark
     assert back.geometry is None and back.version == 5
 
 

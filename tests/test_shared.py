@@ -100,7 +100,11 @@ def test_the_shared_run_is_a_stock_run_with_the_base_state_dict_keys_and_no_secr
     base = runs.load_checkpoint_state(runs.latest_checkpoint(shared["base"].parent / "nerfstudio_models"))["pipeline"]
     assert set(state) == set(base) and all(state[k].shape == base[k].shape for k in base)
     changed = [k for k in base if not torch.equal(state[k], base[k])]
-    assert changed == ["_model.field.mlp_base.model.0.hash_table"]
+    table = "_model.field.mlp_base.model.0.hash_table"
+    assert changed == [table]
+    # the recipient's tell: rows a stock run leaves at their initial values (never sampled) are left as they were
+    untouched = ~FM.trained_rows(base[table], 0.001)
+    assert untouched.sum() > 100 and torch.equal(state[table][untouched], base[table][untouched])
     key = OwnerKey.load(shared["key"])
     assert key.field_mark["pattern_seed"] == 0 and key.field_mark["levels"] == [0, 1, 2, 3] and key.signed()
     assert key.heads_state == {} and key.geometry is None and key.model_run == str(run.parent)

@@ -76,6 +76,7 @@ def load_field_reference(
         )
     table = encoder.hash_table
     pats = FM.patterns(table.shape, encoder.hash_table_size, mark["levels"], key.num_bits, mark["pattern_seed"])
+    pats = FM.on_rows(pats, FM.trained_rows(table.data, mark["init_scale"]))
     model.eval()
     return FieldReference(
         config_path=cfg_path,
@@ -108,18 +109,23 @@ def decode_suspect(
     progress: bool = False,
     cameras: Optional[List] = None,
     full_renders: bool = True,
+    cache: Optional[Dict[str, FM.FieldView]] = None,
 ):
     """Render the base and the suspect at ``num_views`` cameras of the base run (or the given ``(name, camera)``
     list), fit and decode every view. Returns ``(dec, views)`` as :func:`gsticker_plugin.decoders.geometric.
     decode_suspect` (``geometry`` holds the per-view fit details; ``views`` the suspect's renders, none without
-    ``full_renders``)."""
+    ``full_renders``). ``cache``: a dict kept by the caller to reuse the base's views (by camera name) across
+    suspects read with the same reference."""
+    cache = {} if cache is None else cache
     gen = tie_generator(seed)
     bits, details, views = [], [], []
     renders = suspect_renders(
         reference, suspect_model, num_views, sampled_share, seed, None, progress, "field-mark decoding", cameras
     )
     for name, cam, out in renders:
-        fv = FM.field_view(reference.model, cam.to(reference.model.device), reference.patterns)
+        if name not in cache:
+            cache[name] = FM.field_view(reference.model, cam.to(reference.model.device), reference.patterns)
+        fv = cache[name]
         b, fit = FM.decode_view(fv, out, reference.amplitude, gen)
         bits.append(b)
         details.append(
