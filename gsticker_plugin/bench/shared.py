@@ -30,11 +30,11 @@ from gsticker_plugin.machine import config_under, console_script, recolor_into, 
 RECOLORS: Tuple[str, ...] = (
     *(
         f"palette:--set 0={c}"
-        for c in ("green", "yellow", "orange", "red", "pink", "magenta", "purple", "blue", "dodger blue", "cyan")
+        for c in ("green", "yellow", "orange", "red", "pink", "magenta", "purple", "blue", "dodgerblue", "cyan")
     ),
     "hue:--shift 0.25",
     "hue:--shift 0.5",
-    "hue:--shift 0.75",
+    "hue:--shift -0.25",
     "finetune:--set 0=blue --steps 50",
     "finetune:--hue-shift 0.5 --steps 50",
 )
