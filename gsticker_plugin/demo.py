@@ -2,10 +2,11 @@
 
 1. ``ns-gsticker-scene``: render the built-in textured scene (64 px, Blender format).
 2. ``ns-train gsticker-nerfacto-small``: train the right-sized base.
-3. ``ns-train geometrysticker --load-checkpoint``: stick the owner message onto its geometry.
-4. Render the test views of the watermarked model with its sticker on and off: what the mark costs (PSNR).
-5. ``ns-recolor``: a palette edit and a model-level hue shift of the watermarked model (new runs).
-6. ``ns-verify-owner``: verdicts on the watermarked, recolored and unwatermarked models (exit 0 owned, 1 not shown)
+3. ``ns-train geometrysticker --load-checkpoint``: write the owner message into its geometry, a stock nerfacto run
+   to share (``--blind``: the trained sticker, and the blind extractor read too).
+4. Render the test views of the shared run and of the base: what the mark costs (PSNR).
+5. ``ns-recolor``: a palette edit and a model-level hue shift of the shared run (new runs).
+6. ``ns-verify-owner``: verdicts on the shared, recolored and unwatermarked models (exit 0 owned, 1 not shown)
    with the informed geometric decoder (reads the message from the model's geometry against the owner's base run);
    ``--blind`` adds the blind extractor (its empirical null, its bits and verdicts on RGB renders).
 
@@ -28,9 +29,6 @@ from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.machine import config_under, console_script, recolor_into, run_logged, sticker_train_argv
 from gsticker_plugin.runs import latest_checkpoint
 
-HEADS_OFF = ("--pipeline.msg-weight", "0", "--pipeline.negative-weight", "0", "--pipeline.cls-weight", "0")
-"""Sticker-stage flags that switch the extractor and classifier off (pipeline.trains_heads)."""
-
 
 @dataclass
 class DemoConfig:
@@ -45,7 +43,7 @@ class DemoConfig:
     base_iterations: int = 600
     """Training steps of the small nerfacto base."""
     sticker_iterations: int = 250
-    """Training steps of the sticker stage."""
+    """Training steps of the sticker stage (--blind)."""
     test_views: int = 10
     """Test views decoded in the verification stage."""
     owner_id: str = "demo-owner"
@@ -55,11 +53,11 @@ class DemoConfig:
     geometry_views: int = 6
     """Views per model for the informed geometric decoder (each renders the suspect and the owner's base)."""
     pool_views: int = 24
-    """Training and as many novel cameras in the sticker stage's cached pool (the stage's default is 48 + 48)."""
+    """--blind: training and as many novel cameras in the sticker stage's cached pool (its default is 48 + 48)."""
     blind: bool = False
-    """Also train and read the blind extractor (its bits on the test views, its empirical null, its verdicts): off by
-    default, as it does not learn the message yet (docs/geometrysticker.md, Status); without it the sticker stage
-    skips the extractor and classifier passes, which the informed geometric decoder does not use."""
+    """Mark with the trained sticker (`--pipeline.mark sticker`) instead of the default field mark, and also train
+    and read the blind extractor (its bits on the test views, its empirical null, its verdicts); it does not learn
+    the message yet (docs/geometrysticker.md, Status)."""
 
 
 def _run(cmd: List[str], log: Path, ok: tuple = (0,)) -> int:
@@ -125,35 +123,15 @@ def main(cfg: DemoConfig) -> None:
         print("    (exists)")
     base_ckpt = latest_checkpoint(base_run / "nerfstudio_models")
 
-    print("[3/6] Sticking the owner message onto the geometry", flush=True)
-    wm_run = out / "demo" / "geometrysticker" / "watermarked"
+    print("[3/6] Writing the owner message into the geometry: the shared run", flush=True)
     key_path = out / "owner-keys" / "demo.gskey"  # the secret half: outside the run's output folder
-    if not key_path.exists() or not list((wm_run / "nerfstudio_models").glob("step-*.ckpt")):
-        _run(
-            sticker_train_argv(
-                out,
-                "demo",
-                cfg.sticker_iterations,
-                cfg.owner_id,
-                key_path,
-                "--load-checkpoint",
-                str(base_ckpt),
-                "--pipeline.pool-train-views",
-                str(cfg.pool_views),
-                "--pipeline.pool-novel-views",
-                str(cfg.pool_views),
-                *([] if cfg.blind else HEADS_OFF),
-            ),
-            logs / "sticker.log",
-        )
-    else:
-        print("    (exists)")
-
-    print("[4/6] Rendering test views with the sticker on and off", flush=True)
+    wm_run = mark_base(cfg, out, base_ckpt, key_path, logs)
+    print("[4/6] Rendering test views of the shared run and of the base: what the mark costs (PSNR)", flush=True)
     key = OwnerKey.load(key_path)
     pipe = load_pipeline(wm_run / "config.yml")
     marked = render_split(pipe, "test", cfg.test_views, sticker=True)
-    clean = render_split(pipe, "test", cfg.test_views, sticker=False)
+    unmarked = pipe if cfg.blind else load_pipeline(base_run / "config.yml")  # the sticker run switches it off
+    clean = render_split(unmarked, "test", cfg.test_views, sticker=False)
     summary: Dict[str, Any] = {
         "test_views": int(marked["rgb"].shape[0]),
         "psnr_watermarked_vs_unwatermarked": float(psnr_nhw3(marked["rgb"], clean["rgb"]).mean()),
@@ -234,7 +212,7 @@ def main(cfg: DemoConfig) -> None:
     print(f"\nDone in {(time.time() - t_start) / 60:.1f} min.")
     print(f"  scene:               {scene}")
     print(f"  base model:          {base_run / 'config.yml'}")
-    print(f"  watermarked model:   {wm_run / 'config.yml'}   (shareable: ns-viewer --load-config ...)")
+    print(f"  shared model:        {wm_run / 'config.yml'}   (ns-viewer --load-config ...)")
     print(f"  owner key (secret):  {key_path}")
     print(f"  recolored models:    {recolored['palette']}\n                       {recolored['hue']}")
     print(f"  verdict reports:     {out / 'verify'}/*/report.json, report.png")
@@ -244,6 +222,28 @@ def main(cfg: DemoConfig) -> None:
         "images (docs/verify.md). The blind extractor (images alone) does not yet learn the 48-bit message on a CPU\n"
         "budget (docs/geometrysticker.md, Status); --blind adds its honest 'not shown' verdicts to this demo."
     )
+
+
+def mark_base(cfg: DemoConfig, out: Path, base_ckpt: Path, key_path: Path, logs: Path) -> Path:
+    """``ns-train geometrysticker`` on the base: the field-marked stock run (the sticker run with ``--blind``), skipped
+    when it exists; returns the run folder."""
+    run = out / "demo" / ("geometrysticker" if cfg.blind else "nerfacto") / "watermarked"
+    if key_path.exists() and list((run / "nerfstudio_models").glob("step-*.ckpt")):
+        print("    (exists)")
+        return run
+    options = ["--load-checkpoint", str(base_ckpt)]
+    if cfg.blind:
+        options += [
+            "--pipeline.pool-train-views",
+            str(cfg.pool_views),
+            "--pipeline.pool-novel-views",
+            str(cfg.pool_views),
+        ]
+    argv = sticker_train_argv(out, "demo", cfg.sticker_iterations, cfg.owner_id, key_path, *options)
+    if not cfg.blind:
+        argv[argv.index("--pipeline.mark") + 1] = "field"
+    _run(argv, logs / "mark.log")
+    return run
 
 
 def verify_stage(

@@ -3,9 +3,9 @@
 1. ``ns-train geometrysticker`` on the base (message and pattern seed drawn from ``--seed``; timed): the field-marked
    stock run and its owner key.
 2. The recolors of that run (``ns-recolor``; every spec in ``--recolors``).
-3. Every ``--every``-th test view: the field-mark decoder on the shared run, the unmarked base and each ``--null``
-   (independently trained bases), with render PSNR vs the ground truth; every ``--recolor-every``-th test view on each
-   recolor. The verdict of each suspect follows ``ns-verify-owner``'s rule (per-view FPR 1e-6, half the views).
+3. Every ``--every``-th test view: the field-mark decoder on the shared run, with render PSNR vs the ground truth;
+   every ``--null-every``-th on the unmarked base and each ``--null`` (independently trained bases), every
+   ``--recolor-every``-th on each recolor. The verdict of each suspect follows ``ns-verify-owner``'s rule (per-view FPR 1e-6, half the views).
 
 Rows go to ``WORK/rows.jsonl`` as they are measured (a rerun continues); writes a Markdown page and its JSON.
 """
@@ -52,7 +52,9 @@ class Args:
     seed: int = 20261207
     """Message and pattern seed (drawn before the run; a user's are drawn with `secrets`)."""
     every: int = 1
-    """Read every this-many-th test view on the shared run, the base and the nulls."""
+    """Read every this-many-th test view on the shared run."""
+    null_every: int = 8
+    """... every this-many-th on the unmarked base and each --null."""
     recolor_every: int = 8
     """... and every this-many-th on each recolor."""
     null: Tuple[Path, ...] = ()
@@ -107,8 +109,9 @@ def measure(args: Args) -> Dict[str, Any]:
     dev = torch.device("cpu")
     key = OwnerKey.load(key_path)
     ref = load_field_reference(key, key_path, None, args.data, dev)
-    suspects = [("shared run", shared_cfg, args.every), ("unmarked base", args.base, args.every)]
-    suspects += [(f"independent base {n.parent.parent.parent.name}", n, args.every) for n in args.null] + recolored
+    suspects = [("shared run", shared_cfg, args.every), ("unmarked base", args.base, args.null_every)]
+    suspects += [(f"independent base {n.parent.parent.parent.name}", n, args.null_every) for n in args.null]
+    suspects += recolored
     models = {}
     for label, cfg, _ in suspects:
         with contextlib.redirect_stdout(sys.stderr):
