@@ -26,6 +26,8 @@ from gsticker_plugin.shared import as_stock_method, marked_pipeline_state, stock
 from gsticker_plugin.trainer import chosen_mark
 
 HELPERS = Path(__file__).parent / "helpers"
+OWNER_PATTERN_SEED = 977
+"""The tests' owner pattern seed (a user's is drawn with `secrets`): not one a recipient would guess first."""
 
 
 # ---------------------------------------------------------------------------------------------- pure parts
@@ -76,13 +78,13 @@ def test_the_mark_is_the_field_for_torch_nerfacto_and_the_sticker_otherwise():
 
 @pytest.fixture(scope="module")
 def shared(tiny_trained_base, tmp_path_factory) -> Dict[str, Path]:
-    """``ns-train geometrysticker`` on the 100-step tiny base, message ``TINY_MESSAGE`` and pattern seed 0:
-    ``{base, run, key, out}``."""
+    """``ns-train geometrysticker`` on the 100-step tiny base, message ``TINY_MESSAGE`` and pattern seed
+    ``OWNER_PATTERN_SEED``: ``{base, run, key, out}``."""
     out = tmp_path_factory.mktemp("shared")
     ckpt = max((tiny_trained_base.parent / "nerfstudio_models").glob("step-*.ckpt"))
     args = ["geometrysticker", "--load-checkpoint", str(ckpt), *CPU_ARGS, "--output-dir", str(out)]
     args += ["--experiment-name", "gs", "--timestamp", "run", "--pipeline.message", TINY_MESSAGE]
-    ns_train([*args, "--pipeline.pattern-seed", "0"], out)
+    ns_train([*args, "--pipeline.pattern-seed", str(OWNER_PATTERN_SEED)], out)
     key = default_key_path("gs", "geometrysticker", "run")
     return {"base": tiny_trained_base, "run": out / "gs" / "nerfacto" / "run" / "config.yml", "key": key, "out": out}
 
@@ -106,7 +108,11 @@ def test_the_shared_run_is_a_stock_run_with_the_base_state_dict_keys_and_no_secr
     untouched = ~FM.trained_rows(base[table], 0.001)
     assert untouched.sum() > 100 and torch.equal(state[table][untouched], base[table][untouched])
     key = OwnerKey.load(shared["key"])
-    assert key.field_mark["pattern_seed"] == 0 and key.field_mark["levels"] == [0, 1, 2, 3] and key.signed()
+    assert (
+        key.field_mark["pattern_seed"] == OWNER_PATTERN_SEED
+        and key.field_mark["levels"] == [0, 1, 2, 3]
+        and key.signed()
+    )
     assert key.heads_state == {} and key.geometry is None and key.model_run == str(run.parent)
 
 
@@ -150,3 +156,21 @@ def test_ns_verify_owner_reads_the_message_from_the_shared_run_and_nothing_from_
     assert [v["matches"] for v in marked["keys"][0]["per_view"]] == [48] * 4
     base = verify(shared["base"], shared["key"], tmp_path / "base")
     assert base["verdict"] == "not shown" and max(v["matches"] for v in base["keys"][0]["per_view"]) < 41
+
+
+def test_a_recipient_who_regenerates_the_patterns_from_guessed_seeds_reads_the_shared_table_at_chance(shared):
+    """The recipient correlates the shared table with patterns from seeds 0-7 and the config's machine.seed; the
+    owner's control, the same reading with the key's secret seed, shows the seed is what protects the message."""
+    from gsticker_plugin.attacks.recipient import field_mark_correlation
+
+    cfg = runs.load_run_config(shared["run"])
+    table = runs.load_checkpoint_state(runs.latest_checkpoint(shared["run"].parent / "nerfstudio_models"))["pipeline"][
+        "_model.field.mlp_base.model.0.hash_table"
+    ]
+    size = 2**cfg.pipeline.model.log2_hashmap_size
+    message = parse_message(TINY_MESSAGE)
+    guesses = [*range(8), cfg.machine.seed]
+    read = [int((field_mark_correlation(table, size, [0, 1, 2, 3], s, 0.001) == message).sum()) for s in guesses]
+    assert max(read) < 41 and len(set(read)) > 1, read
+    owner = field_mark_correlation(table, size, [0, 1, 2, 3], OWNER_PATTERN_SEED, 0.001)
+    assert int((owner == message).sum()) >= 41

@@ -102,3 +102,20 @@ __all__: List[str] = [
     "recover_bits",
     "regenerated_patterns",
 ]
+
+
+def field_mark_correlation(
+    table: Tensor, table_size: int, levels: Iterable[int], seed: int, init_scale: float, num_bits: int = 48
+) -> Tensor:
+    """The recipient's reading of a field-marked shared run: bit ``k`` is the sign of ``<T~, P_k>`` on the trained rows,
+    the per-bit patterns regenerated from ``seed`` (:func:`gsticker_plugin.fieldmark.patterns`).
+
+    The base's table is independent of the patterns, so with the owner's pattern seed the mark's own term
+    ``a s_k |P_k|^2 / sqrt(K)`` stands out of ``<T, P_k>``; with any other seed the bits are coin flips. The pattern
+    seed is the secret that matters (drawn with ``secrets``, kept only in the owner key)."""
+    from gsticker_plugin import fieldmark as FM
+
+    pats = FM.on_rows(
+        FM.patterns(table.shape, table_size, list(levels), num_bits, seed), FM.trained_rows(table, init_scale)
+    )
+    return (torch.einsum("knf,nf->k", pats, table.float()) > 0).long()
