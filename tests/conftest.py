@@ -167,10 +167,8 @@ def shared_dir() -> Path:
     return SHARED
 
 
-@pytest.fixture(scope="session")
-def tiny_base(tiny_scene, tmp_path_factory) -> Path:
-    """config.yml of a 2-step nerfacto base on the tiny scene (read-only: copy it before changing it)."""
-    ws = tmp_path_factory.mktemp("tiny_base")
+def train_tiny_nerfacto(scene: Path, ws: Path, steps: int) -> Path:
+    """config.yml of a ``steps``-step nerfacto base (``NERFACTO_TINY``) on ``scene``, trained in ``ws``."""
     ns_train(
         [
             *NERFACTO_TINY,
@@ -182,44 +180,29 @@ def tiny_base(tiny_scene, tmp_path_factory) -> Path:
             "--timestamp",
             "base",
             "--max-num-iterations",
-            "2",
+            str(steps),
             "--steps-per-save",
-            "2",
+            str(steps),
             "blender-data",
             "--data",
-            str(tiny_scene),
+            str(scene),
         ],
         ws,
     )
     return ws / "nerfacto" / "gsticker-nerfacto-small" / "base" / "config.yml"
+
+
+@pytest.fixture(scope="session")
+def tiny_base(tiny_scene, tmp_path_factory) -> Path:
+    """config.yml of a 2-step nerfacto base on the tiny scene (read-only: copy it before changing it)."""
+    return train_tiny_nerfacto(tiny_scene, tmp_path_factory.mktemp("tiny_base"), 2)
 
 
 @pytest.fixture(scope="session")
 def tiny_trained_base(tiny_scene, tmp_path_factory) -> Path:
     """config.yml of a 100-step nerfacto base on the tiny scene (some geometry for the field mark to ride on;
     read-only)."""
-    ws = tmp_path_factory.mktemp("tiny_trained_base")
-    ns_train(
-        [
-            *NERFACTO_TINY,
-            *CPU_ARGS,
-            "--output-dir",
-            str(ws),
-            "--experiment-name",
-            "nerfacto",
-            "--timestamp",
-            "base",
-            "--max-num-iterations",
-            "100",
-            "--steps-per-save",
-            "100",
-            "blender-data",
-            "--data",
-            str(tiny_scene),
-        ],
-        ws,
-    )
-    return ws / "nerfacto" / "gsticker-nerfacto-small" / "base" / "config.yml"
+    return train_tiny_nerfacto(tiny_scene, tmp_path_factory.mktemp("tiny_trained_base"), 100)
 
 
 @pytest.fixture(scope="session")
