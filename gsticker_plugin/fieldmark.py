@@ -29,7 +29,6 @@ from jaxtyping import Float
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from torch import Tensor, nn
 
-from gsticker_plugin.decoders.fit import fit_and_decide
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.sticker import render_weights
 
@@ -132,6 +131,7 @@ class FieldView:
     features: Tensor  # [R S K] d pre / d s per unit amplitude (0 where the sample cannot change a render)
     base_signal: Tensor  # [2 R]
     depth_scale: float
+    hw: Tuple[int, int] = (0, 0)  # the camera's image size (0, 0: not recorded)
 
 
 def capture_samples(model, camera) -> Tuple[Dict[str, Tensor], Dict[str, Tensor]]:
@@ -195,6 +195,7 @@ def field_view(model, camera, pats: Tensor, min_transmittance: float = 1e-3, min
         features=feats,
         base_signal=base,
         depth_scale=float(base[1].mean().clamp_min(1e-6)) if rays.numel() else 1.0,
+        hw=(int(camera.height[0, 0]), int(camera.width[0, 0])),
     )
 
 
@@ -222,20 +223,3 @@ def predict_jacobian(view: FieldView, signs: Tensor, amplitude: float) -> Float[
         out = geometry_from_logits(view, change)
         grads = [torch.autograd.grad(out[c * r : (c + 1) * r].sum(), change, retain_graph=c == 0)[0] for c in range(2)]
     return torch.cat([amplitude * torch.einsum("rs,rsk->rk", g, view.features) for g in grads])
-
-
-def decode_view(view: FieldView, suspect_outputs: Dict[str, Tensor], amplitude: float, generator: torch.Generator):
-    """Fit the signs to a suspect's geometry at the view's rays (against the base's own) and decide the bits; returns
-    (bits, fit)."""
-    sig = geometry_of(suspect_outputs)[:, view.rays]
-    target = torch.cat([sig[0] - view.base_signal[0], (sig[1] - view.base_signal[1]) / view.depth_scale])
-    k = view.features.shape[-1]
-    fit, bits, _ = fit_and_decide(
-        lambda s: predict(view, s, amplitude),
-        lambda s: predict_jacobian(view, s, amplitude),
-        target,
-        k,
-        view.rays.numel() > 0,
-        generator,
-    )
-    return bits, fit

@@ -9,6 +9,7 @@ from nerfstudio.field_components.mlp import MLP
 from torch import nn
 
 from gsticker_plugin import fieldmark as FM
+from gsticker_plugin.decoders.fieldmark import decode_view
 from gsticker_plugin.errors import GStickerError
 
 
@@ -98,11 +99,11 @@ def test_a_view_marked_with_a_message_decodes_to_it_and_an_unmarked_one_to_nothi
     marked = FM.predict(view, FM.signs_of(msg), 0.05).reshape(2, -1)
     outputs = {"accumulation": marked[0], "expected_depth": marked[1] * view.depth_scale / marked[0]}
     view.base_signal = FM.predict(view, torch.zeros(8), 0.05).reshape(2, -1) * torch.tensor([[1.0], [2.0]])
-    bits, fit = FM.decode_view(view, outputs, 0.05, tie_generator(0))
+    bits, fit = decode_view(view, outputs, 0.05, tie_generator(0))
     assert torch.equal(bits, msg) and fit.explained > 0.999
     base = view.base_signal
     same = {"accumulation": base[0], "expected_depth": base[1] / base[0]}
-    bits, fit = FM.decode_view(view, same, 0.05, tie_generator(0))
+    bits, fit = decode_view(view, same, 0.05, tie_generator(0))
     assert (bits == UNDETERMINED).all()
 
 

@@ -69,6 +69,7 @@ def write_marked_run(base_cfg: Path, table, work: Path, name: str) -> Path:
 def measure(args: Args) -> Dict[str, Any]:
     from gsticker_plugin import fieldmark as FM
     from gsticker_plugin import metrics
+    from gsticker_plugin.decoders.fieldmark import decode_view
     from gsticker_plugin.decoders.fit import tie_generator
     from gsticker_plugin.runs import load_run
 
@@ -117,7 +118,7 @@ def measure(args: Args) -> Dict[str, Any]:
             with torch.no_grad():
                 out = model.get_outputs_for_camera(cams[vi : vi + 1])
             amp = a if a is not None else args.amplitudes[len(args.amplitudes) // 2]
-            bits, fit = FM.decode_view(fv, out, amp, gen)
+            bits, fit = decode_view(fv, out, amp, gen)
             rows.append(
                 {
                     "view": vi,

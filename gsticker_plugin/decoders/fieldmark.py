@@ -26,7 +26,7 @@ from torch import Tensor
 
 from gsticker_plugin import fieldmark as FM
 from gsticker_plugin import runs
-from gsticker_plugin.decoders.fit import tie_generator
+from gsticker_plugin.decoders.fit import fit_and_decide, tie_generator
 from gsticker_plugin.decoders.geometric import SCENE_AGREEMENT_TOLERANCE, suspect_renders
 from gsticker_plugin.decoders.reference import base_checkpoint, base_config_path, data_if_missing
 from gsticker_plugin.decoders.result import decoded
@@ -89,6 +89,29 @@ def load_field_reference(
     )
 
 
+def decode_view(view: FM.FieldView, suspect_outputs: Dict[str, Tensor], amplitude: float, generator: torch.Generator):
+    """Fit the signs to a suspect's geometry at the view's rays (against the base's own) and decide the bits; returns
+    (bits, fit)."""
+    h_w = view.hw[0] * view.hw[1]
+    if h_w and suspect_outputs["accumulation"].numel() != h_w:
+        raise GStickerError(
+            f"the suspect rendered {suspect_outputs['accumulation'].numel()} pixels for a {view.hw[0]}x{view.hw[1]} "
+            "camera; the field-mark decoder needs renders at the base's cameras"
+        )
+    sig = FM.geometry_of(suspect_outputs)[:, view.rays]
+    target = torch.cat([sig[0] - view.base_signal[0], (sig[1] - view.base_signal[1]) / view.depth_scale])
+    k = view.features.shape[-1]
+    fit, bits, _ = fit_and_decide(
+        lambda s: FM.predict(view, s, amplitude),
+        lambda s: FM.predict_jacobian(view, s, amplitude),
+        target,
+        k,
+        view.rays.numel() > 0,
+        generator,
+    )
+    return bits, fit
+
+
 def scene_agreement(view: FM.FieldView, suspect_outputs: Dict[str, Tensor]) -> Optional[float]:
     """Share of the base's surface rays (accumulation above :data:`SURFACE_ACCUMULATION`) where the suspect's
     accumulation is within :data:`SCENE_AGREEMENT_TOLERANCE` of the base's; None for a view without surface."""
@@ -126,7 +149,7 @@ def decode_suspect(
         if name not in cache:
             cache[name] = FM.field_view(reference.model, cam.to(reference.model.device), reference.patterns)
         fv = cache[name]
-        b, fit = FM.decode_view(fv, out, reference.amplitude, gen)
+        b, fit = decode_view(fv, out, reference.amplitude, gen)
         bits.append(b)
         details.append(
             {
