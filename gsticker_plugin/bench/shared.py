@@ -197,7 +197,16 @@ def page(res: Dict[str, Any]) -> str:
             f"| {label} | {s['views']} | {s['passing']} | {100 * s['bit_acc']:.2f} % | {s['min']} / {s['median']:g} / "
             f"{s['max']} | {s['verdict']} | {s['psnr_vs_truth']:.2f} | {s['seconds']:.1f} |"
         )
+    both = {r["view"] for r in res["rows"] if r["suspect"] == "unmarked base"}
+    psnr = {
+        label: statistics.mean(r["psnr_vs_truth"] for r in res["rows"] if r["suspect"] == label and r["view"] in both)
+        for label in ("shared run", "unmarked base")
+    }
     lines += [
+        "",
+        f"Render PSNR vs the ground truth on the {len(both)} test views read on both: shared run "
+        f"{psnr['shared run']:.3f} dB, unmarked base {psnr['unmarked base']:.3f} dB "
+        f"(difference {psnr['shared run'] - psnr['unmarked base']:+.3f} dB).",
         "",
         "Seconds per view: the decoder on one suspect (its render, the fit; the base's view is computed once per "
         "camera and counted on the first suspect). They are quoted only from a run that had the machine alone.",
