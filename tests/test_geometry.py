@@ -288,7 +288,7 @@ def test_key_holds_the_geometry_reference_and_loads_weights_only(runs):
     code = "import torch,sys; p=torch.load(sys.argv[1], weights_only=True); print(p['version'], sorted(p['geometry']))"
     proc = subprocess.run([sys.executable, "-c", code, str(runs["key"])], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-1000:]
-    assert proc.stdout.startswith("4 ") and "'sticker_state'" in proc.stdout
+    assert proc.stdout.startswith(f"{KEY_VERSION} ") and "'sticker_state'" in proc.stdout
 
 
 def test_watermarked_run_is_owned_48_of_48(runs, ws, capsys):
