@@ -260,3 +260,45 @@ def test_capture_run_is_owned_from_the_model_its_palette_recolor_and_ns_render_i
         capsys, ws / "rep-base", "--load-config", str(capture["base"]), "--key", str(capture["key"]), "--num-views", "4"
     )
     assert status == 1 and stdout.startswith("VERDICT: NOT SHOWN"), stdout[-2000:]
+
+
+@pytest.mark.slow
+def test_the_default_field_mark_of_a_capture_base_is_owned_from_the_model_and_its_recolor_and_not_from_the_base(
+    capture, capsys
+):
+    """The default shared run of a stock-defaults nerfacto capture (contraction, proposal sampler, last_sample): a
+    stock nerfacto run whose hash table carries the message."""
+    ws = capture["ws"]
+    key = ws / "keys" / "field.gskey"
+    argv = [str(console_script("ns-train")), "geometrysticker", "--load-checkpoint"]
+    argv += [str(max((capture["base"].parent / "nerfstudio_models").glob("step-*.ckpt"))), *CPU_ARGS]
+    argv += [
+        "--output-dir",
+        str(ws),
+        "--experiment-name",
+        "cap",
+        "--timestamp",
+        "field",
+        "--pipeline.key-path",
+        str(key),
+    ]
+    (proc,) = run_parallel([argv], ws / "logs-field")
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    shared = ws / "cap" / "nerfacto" / "field" / "config.yml"
+    views = ("--num-views", "8")
+    status, stdout, rep = _verify(capsys, ws / "rep-field", "--load-config", str(shared), "--key", str(key), *views)
+    assert status == 0 and stdout.startswith("VERDICT: OWNED"), stdout[-2000:]
+    assert min(v["matches"] for v in rep["keys"][0]["per_view"][:4]) >= 41  # the run's own cameras
+    from gsticker_plugin.recolor import cli as recolor
+
+    dest = ws / "recolored-field"
+    assert recolor.run(["hue", "--shift", "0.25", "--load-config", str(shared), "--output-dir", str(dest)]) == 0
+    (recolored,) = dest.glob("**/config.yml")
+    capsys.readouterr()
+    status, stdout, _ = _verify(
+        capsys, ws / "rep-field-hue", "--load-config", str(recolored), "--key", str(key), *views
+    )
+    assert status == 0 and stdout.startswith("VERDICT: OWNED"), stdout[-2000:]
+    base = str(capture["base"])
+    status, stdout, _ = _verify(capsys, ws / "rep-field-base", "--load-config", base, "--key", str(key), *views)
+    assert status == 1 and stdout.startswith("VERDICT: NOT SHOWN"), stdout[-2000:]
