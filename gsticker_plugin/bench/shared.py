@@ -209,8 +209,8 @@ def page(res: Dict[str, Any]) -> str:
         f"(difference {psnr['shared run'] - psnr['unmarked base']:+.3f} dB).",
         "",
         "Each row's seconds (the decoder on one suspect: its render and the fit; the base's view is computed once per "
-        "camera and counted on the first suspect) are in the JSON; this page quotes none, as its run shared the "
-        "machine.",
+        "camera and counted on the first suspect) are in the JSON; this page quotes none: time a suspect with the "
+        "machine alone.",
         "",
     ]
     return "\n".join(lines)
