@@ -381,6 +381,17 @@ def load_run(config_path: Path, data: Optional[Path] = None, device: Optional[to
     return config, pipeline, ckpt
 
 
+def load_run_at(config_path: Path, checkpoint: Path, data: Optional[Path] = None, device=None):
+    """:func:`load_run`, then the weights of ``checkpoint`` (one of the run's, e.g. an earlier step than its latest)
+    loaded strictly when they are not the ones it loaded. Returns (config, pipeline, checkpoint state)."""
+    config, pipeline, loaded = load_run(config_path, data=data, device=device)
+    state = load_checkpoint_state(checkpoint)
+    if Path(loaded).resolve() != Path(checkpoint).resolve():
+        ds = pipeline.datamanager.train_dataset
+        strict_load(pipeline.model, model_state_from_pipeline_state(state["pipeline"]), len(ds))
+    return config, pipeline, state
+
+
 def setup_pipeline(config, device, test_mode: str, source: Path):
     """``config.pipeline.setup`` for a run read from ``source``, with no one to answer a prompt: a dataparser that asks
     (COLMAP's "downscale the images now?") reads "no" and its exit becomes a one-line error, as does a dataset that

@@ -142,7 +142,7 @@ def mark_base(
     PSNR vs the base measured on ``psnr_views`` evenly spaced training cameras. Nothing is written here."""
     device = device or torch.device("cpu")
     with contextlib.redirect_stdout(sys.stderr):
-        config, pipeline, loaded = runs.load_run(base_config, data=data, device=device)
+        config, pipeline, state = runs.load_run_at(base_config, checkpoint, data=data, device=device)
     shared = runs.load_run_config(base_config)
     if data is not None:
         shared.pipeline.datamanager.data = shared.pipeline.datamanager.dataparser.data = Path(data)
@@ -154,12 +154,6 @@ def mark_base(
     model = pipeline.model
     encoder, _ = FM.parts(model.field)
     name = table_name(model)
-    state = runs.load_checkpoint_state(checkpoint)
-    if name not in state["pipeline"]:
-        raise GStickerError(f"{checkpoint} has no {name}; pass the base run's own checkpoint")
-    if Path(loaded).resolve() != Path(checkpoint).resolve():  # an earlier step than the run's latest
-        ds = pipeline.datamanager.train_dataset
-        runs.strict_load(model, runs.model_state_from_pipeline_state(state["pipeline"]), len(ds))
     table = state["pipeline"][name]
     pats = FM.patterns(table.shape, encoder.hash_table_size, levels, int(message.numel()), pattern_seed)
     pats = FM.on_rows(pats, FM.trained_rows(table, encoder.hash_init_scale))

@@ -283,12 +283,7 @@ class GeometryStickerTrainer(Trainer):
                     "checkpoint_sha256": file_sha256(ckpt),
                 }
             self._checkpoint = ckpt
-        self._key_path = (
-            Path(owner.key_path)
-            if owner.key_path is not None
-            else default_key_path(cfg.experiment_name, cfg.method_name, cfg.timestamp)
-        )
-        check_key_path(self._key_path, self.base_dir)
+        self._key_path = self._owner_key_path(owner)
         self._identity = owner_identity() if comms.is_main_process() else None
         message = GeometryStickerPipeline.resolve_message(owner)
         source = pcfg.message_source or GeometryStickerPipeline.source_of_message(owner)
@@ -302,21 +297,27 @@ class GeometryStickerTrainer(Trainer):
             self.pipeline.model.reseed_sticker(int(owner.sticker_seed))
         CONSOLE.print(f"\\[gsticker] {self.pipeline.describe()}; message source {source}; owner key {self._key_path}")
 
+    def _owner_key_path(self, owner) -> Path:
+        """``--pipeline.key-path``, else the keys folder's default for this run; checked before any work."""
+        cfg = self.config
+        path = (
+            Path(owner.key_path)
+            if owner.key_path is not None
+            else default_key_path(cfg.experiment_name, cfg.method_name, cfg.timestamp)
+        )
+        check_key_path(path, self.base_dir)
+        return path
+
     def _setup_field_mark(self, owner, ckpt: Path) -> None:
         """The field mark needs no training: check the inputs, then :meth:`train` writes the shared run."""
-        cfg, pcfg = self.config, self.config.pipeline
+        pcfg = self.config.pipeline
         if pcfg.mark == "auto":
             CONSOLE.print(
                 "\\[gsticker] the base has a torch hash table: the message goes into it (--pipeline.mark field)"
             )
         if self.world_size > 1:
             raise GStickerError("the field mark is written by one process: drop --machine.num-devices")
-        self._key_path = (
-            Path(owner.key_path)
-            if owner.key_path is not None
-            else default_key_path(cfg.experiment_name, cfg.method_name, cfg.timestamp)
-        )
-        check_key_path(self._key_path, self.base_dir)
+        self._key_path = self._owner_key_path(owner)
         message = GeometryStickerPipeline.resolve_message(owner)
         self._field = {
             "checkpoint": ckpt,

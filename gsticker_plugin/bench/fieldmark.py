@@ -19,7 +19,6 @@ from typing import Any, Dict, List, Tuple
 
 import torch
 import tyro
-import yaml
 
 from gsticker_plugin.bench import command_lines, provenance, write_page
 from gsticker_plugin.machine import config_under, recolor_into
@@ -53,6 +52,7 @@ class Args:
 def write_marked_run(base_cfg: Path, table, work: Path, name: str) -> Path:
     """A stock run of the base's method whose checkpoint is the base's with ``table`` as its field's hash table."""
     from gsticker_plugin.runs import latest_checkpoint, load_checkpoint_state, load_run_config, relocate
+    from gsticker_plugin.shared import write_run
 
     config = load_run_config(base_cfg)
     run_dir = relocate(config, work, name, config.method_name, "run")
@@ -60,10 +60,7 @@ def write_marked_run(base_cfg: Path, table, work: Path, name: str) -> Path:
     if TABLE_KEY not in state["pipeline"]:
         raise SystemExit(f"error: {base_cfg}'s checkpoint has no {TABLE_KEY} (not a torch nerfacto run)")
     state["pipeline"][TABLE_KEY] = table.detach().clone()
-    (run_dir / "nerfstudio_models").mkdir(parents=True, exist_ok=True)
-    torch.save(state, run_dir / "nerfstudio_models" / f"step-{int(state['step']):09d}.ckpt")
-    (run_dir / "config.yml").write_text(yaml.dump(config))
-    return run_dir / "config.yml"
+    return write_run(config, state, run_dir)
 
 
 def measure(args: Args) -> Dict[str, Any]:

@@ -61,12 +61,8 @@ def load_field_reference(
     cfg_path = base_config_path(key, key_path, base_config)
     ckpt = base_checkpoint(key, cfg_path, only_beside=base_config is not None)
     with contextlib.redirect_stdout(sys.stderr):
-        config, pipeline, loaded = runs.load_run(cfg_path, data=data_if_missing(cfg_path, data), device=device)
+        config, pipeline, _ = runs.load_run_at(cfg_path, ckpt, data=data_if_missing(cfg_path, data), device=device)
     model = pipeline.model
-    if Path(loaded).resolve() != ckpt.resolve():
-        state = runs.load_checkpoint_state(ckpt)
-        ds = pipeline.datamanager.train_dataset
-        runs.strict_load(model, runs.model_state_from_pipeline_state(state["pipeline"]), len(ds))
     encoder, _ = FM.parts(model.field)
     names = {"_model." + n: p for n, p in model.named_parameters()}
     if names.get(mark["table"]) is not encoder.hash_table:
