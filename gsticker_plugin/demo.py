@@ -234,6 +234,8 @@ def mark_base(cfg: DemoConfig, out: Path, base_ckpt: Path, key_path: Path, logs:
     options = ["--load-checkpoint", str(base_ckpt)]
     if cfg.blind:
         options += [
+            "--pipeline.train-heads",
+            "True",
             "--pipeline.pool-train-views",
             str(cfg.pool_views),
             "--pipeline.pool-novel-views",

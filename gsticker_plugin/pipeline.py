@@ -58,6 +58,9 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     model: GeometryStickerModelConfig = field(default_factory=GeometryStickerModelConfig)
     heads: HeadConfig = field(default_factory=HeadConfig)
     """Extractor and classifier networks (the owner's secret)."""
+    train_heads: bool = False
+    """Sticker: train the extractor and classifier beside the sticker (the blind decoder reads them; the informed
+    decoders do not). Off: they stay at their initialization and no step runs them."""
     owner_id: str = ""
     """A label for the owner, kept in the owner key only (reports name it); not the source of the bits."""
     message: Optional[str] = None
@@ -506,10 +509,10 @@ class GeometryStickerPipeline(VanillaPipeline):
 
     @property
     def trains_heads(self) -> bool:
-        """False when the message, honesty and classifier losses all weigh 0: the extractor and classifier then stay
-        at their initialization (the owner key still holds them) and no step runs them."""
+        """False unless ``train_heads`` and a message, honesty or classifier loss weighs above 0: the extractor and
+        classifier then stay at their initialization (the owner key still holds them) and no step runs them."""
         c = self.config
-        return bool(c.msg_weight or c.negative_weight or c.cls_weight)
+        return c.train_heads and bool(c.msg_weight or c.negative_weight or c.cls_weight)
 
     def get_train_loss_dict(self, step: int):
         if self.config.fast_path and not self.pool:

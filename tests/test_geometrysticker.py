@@ -345,8 +345,8 @@ def test_wrap_changes_density_only_where_the_gate_is_open(gs_runs, val_pipeline,
 def test_gradients_reach_only_sticker_gates_and_heads(gs_runs, val_pipeline, base, fast_path):
     pipeline = val_pipeline(base)
     model = pipeline.model
-    old = (pipeline.config.fast_path, pipeline.config.patch_size)
-    pipeline.config.fast_path, pipeline.config.patch_size = fast_path, 8
+    old = (pipeline.config.fast_path, pipeline.config.patch_size, pipeline.config.train_heads)
+    pipeline.config.fast_path, pipeline.config.patch_size, pipeline.config.train_heads = fast_path, 8, True
     _zero_grads(pipeline)
     try:
         _, loss_dict, metrics_dict = pipeline.get_train_loss_dict(0)
@@ -370,17 +370,22 @@ def test_gradients_reach_only_sticker_gates_and_heads(gs_runs, val_pipeline, bas
                 assert id(p) in allowed, f"{name} received a gradient but is not trained"
         assert set(pipeline.get_param_groups()) == {"sticker", "heads"}
     finally:
-        pipeline.config.fast_path, pipeline.config.patch_size = old
+        pipeline.config.fast_path, pipeline.config.patch_size, pipeline.config.train_heads = old
         _zero_grads(pipeline)
 
 
-def test_with_the_head_losses_off_no_step_runs_the_heads(gs_runs, val_pipeline):
-    """msg, negative and classifier weights 0 (the sweep's heads-none): content and sparsity losses only, the
-    sticker still learns, the heads get no gradient (and are not run)."""
+@pytest.mark.parametrize(
+    "train_heads, weights", [(False, (1.0, 0.5, 0.1)), (True, (0.0, 0.0, 0.0))], ids=["default", "weights-0"]
+)
+def test_unless_asked_no_step_runs_the_heads(gs_runs, val_pipeline, train_heads, weights):
+    """By default (--pipeline.train-heads False), and with the message, honesty and classifier weights all 0 (the
+    sweep's heads-none): content and sparsity losses only, the sticker still learns, the heads get no gradient and
+    are not run. Asked (train-heads and a weight above 0), they train."""
     pipeline = val_pipeline("nerfacto")
     cfg = pipeline.config
-    old = (cfg.msg_weight, cfg.negative_weight, cfg.cls_weight)
-    cfg.msg_weight = cfg.negative_weight = cfg.cls_weight = 0.0
+    old = (cfg.train_heads, cfg.msg_weight, cfg.negative_weight, cfg.cls_weight)
+    cfg.train_heads = train_heads
+    cfg.msg_weight, cfg.negative_weight, cfg.cls_weight = weights
     _zero_grads(pipeline)
     calls = []
     hooks = [
@@ -394,12 +399,13 @@ def test_with_the_head_losses_off_no_step_runs_the_heads(gs_runs, val_pipeline):
         sum(loss_dict.values()).backward()
         assert any(p.grad is not None for p in pipeline.model.sticker.parameters())
         assert all(p.grad is None for p in pipeline.heads.parameters()) and not calls
+        cfg.train_heads, cfg.msg_weight = True, 1.0
+        assert pipeline.trains_heads
     finally:
         for h in hooks:
             h.remove()
-        cfg.msg_weight, cfg.negative_weight, cfg.cls_weight = old
+        cfg.train_heads, cfg.msg_weight, cfg.negative_weight, cfg.cls_weight = old
         _zero_grads(pipeline)
-    assert pipeline.trains_heads
 
 
 def test_the_conditioning_loss_trains_the_sticker_from_a_training_step(gs_runs, val_pipeline):
@@ -755,6 +761,7 @@ def test_short_training_lowers_the_message_loss(gs_runs):
     pipeline.restore_owner(OwnerKey.load(gs_runs["nerfacto"]["key"]), heads=False)
     pipeline.config.views_per_step = 4
     pipeline.config.steps_per_monitor = 10**9
+    pipeline.config.train_heads = True
     generator = torch.Generator().manual_seed(0)
     owner = pipeline.owner_message.cpu()
 

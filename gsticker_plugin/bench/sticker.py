@@ -91,6 +91,7 @@ def sticker_trainer_config(
     tcfg.set_timestamp()
     p = tcfg.pipeline
     p.pool_train_views, p.pool_novel_views, p.monitor_views = pool_views
+    p.train_heads = True  # the held-out bit accuracy is the extractor's
     return tcfg
 
 

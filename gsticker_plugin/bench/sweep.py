@@ -244,6 +244,8 @@ def run_variant(cfg: SweepConfig, name: str) -> Dict[str, Any]:
                 str(cfg.save_every),
                 "--save-only-latest-checkpoint",
                 "False",
+                "--pipeline.train-heads",
+                "True",
                 "--pipeline.pool-train-views",
                 str(cfg.pool_views),
                 "--pipeline.pool-novel-views",

@@ -334,6 +334,8 @@ class Workspace:
                 "geometrysticker",
                 "--pipeline.mark",
                 "sticker",
+                "--pipeline.train-heads",
+                "True",
                 "--machine.device-type",
                 self.p.device,
                 "--vis",
