@@ -223,3 +223,95 @@ def predict_jacobian(view: FieldView, signs: Tensor, amplitude: float) -> Float[
         out = geometry_from_logits(view, change)
         grads = [torch.autograd.grad(out[c * r : (c + 1) * r].sum(), change, retain_graph=c == 0)[0] for c in range(2)]
     return torch.cat([amplitude * torch.einsum("rs,rsk->rk", g, view.features) for g in grads])
+
+
+# ---------------------------------------------------------------------------------------------- images
+
+
+@dataclass
+class ImageView:
+    """One camera of the base in colour: the rays the mark can change, the base's colour there and its derivative in
+    the signs (through density and the colour head's geometry features alike)."""
+
+    rays: Tensor  # [R] flat pixel indices
+    base_rgb: Tensor  # [R 3]
+    jacobian: Tensor  # [R 3 K] d rgb / d s per unit amplitude
+    hw: Tuple[int, int]
+
+
+def image_view(
+    model,
+    camera,
+    pats: Float[Tensor, "K N F"],
+    chunk: int = 1024,
+    min_transmittance: float = 1e-3,
+    min_alpha: float = 1e-4,
+    min_change: float = 1e-4,
+) -> ImageView:
+    """Render ``camera`` with the base and differentiate its colour in the signs at ``s = 0``.
+
+    The hash encoding is linear in its table, so with the marked table the encoder's output at ``x`` is
+    ``enc(x; T) + sum_k s_k enc(x; P_k) / sqrt(K)`` (per unit amplitude). The field's encoder is swapped for that sum,
+    each ray with its own copy of ``s``; the stock field and renderer do the rest, so a backward pass per colour
+    channel gives every ray's row of the Jacobian. The proposal networks and their samples are the base's (the mark
+    leaves them unchanged). Only samples that light reaches and that hold some density carry the per-bit encodings
+    (a first pass finds them); rays whose colour changes by less than ``min_change`` per unit amplitude are left
+    out."""
+    field = model.field
+    encoder, _ = parts(field)
+    table = encoder.hash_table
+    k, n, f = pats.shape
+    stacked = pats.permute(1, 0, 2).reshape(n, k * f).to(table)
+    original, original_field = encoder.forward, field.forward
+    state: Dict[str, Tensor] = {}
+
+    def forward(x: Tensor) -> Tensor:
+        e0 = original(x)
+        live = state["live"].reshape(-1)
+        ek = torch.zeros(x.shape[0], e0.shape[-1] // f, k, f, dtype=e0.dtype, device=e0.device)
+        saved = table.data
+        try:
+            table.data = stacked
+            with torch.no_grad():
+                ek[live] = original(x[live]).reshape(int(live.sum()), -1, k, f)
+        finally:
+            table.data = saved
+        s = state["s"]
+        per_ray = s.repeat_interleave(x.shape[0] // s.shape[0], dim=0)
+        return e0 + torch.einsum("nlkf,nk->nlf", ek, per_ray).reshape(e0.shape) / math.sqrt(k)
+
+    def field_forward(ray_samples, *args, **kwargs):
+        out = original_field(ray_samples, *args, **kwargs)
+        tau = (out[FieldHeadNames.DENSITY] * ray_samples.deltas)[..., 0].detach()
+        trans = torch.exp(-(torch.cumsum(tau, dim=-1) - tau))
+        state["live"] = (trans > min_transmittance) & (tau > min_alpha)
+        return out
+
+    h, w = int(camera.height[0, 0]), int(camera.width[0, 0])
+    bundle = camera.to(model.device).generate_rays(camera_indices=0, keep_shape=False)
+    rgb_all, jac_all = [], []
+    for i in range(0, h * w, chunk):
+        sub = bundle[i : i + chunk]
+        object.__setattr__(field, "forward", field_forward)
+        try:
+            with torch.no_grad():
+                model(sub)
+        finally:
+            del field.__dict__["forward"]
+        s = torch.zeros(len(sub), k, device=table.device, requires_grad=True)
+        state["s"] = s
+        object.__setattr__(encoder, "forward", forward)
+        try:
+            with torch.enable_grad():
+                rgb = model(sub)["rgb"]
+                grads = [
+                    torch.autograd.grad(rgb[:, c].sum(), s, retain_graph=c < 2, allow_unused=True)[0] for c in range(3)
+                ]
+        finally:
+            del encoder.__dict__["forward"]
+        grads = [torch.zeros_like(s) if g is None else g for g in grads]
+        rgb_all.append(rgb.detach().float().cpu())
+        jac_all.append(torch.stack(grads, dim=1).detach().float().cpu())
+    rgb_full, jac_full = torch.cat(rgb_all), torch.cat(jac_all)
+    rays = (jac_full.abs().amax(dim=(1, 2)) > min_change).nonzero().squeeze(-1)
+    return ImageView(rays=rays, base_rgb=rgb_full[rays], jacobian=jac_full[rays], hw=(h, w))

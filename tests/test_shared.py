@@ -174,3 +174,31 @@ def test_a_recipient_who_regenerates_the_patterns_from_guessed_seeds_reads_the_s
     assert max(read) < 41 and len(set(read)) > 1, read
     owner = field_mark_correlation(table, size, [0, 1, 2, 3], OWNER_PATTERN_SEED, 0.001)
     assert int((owner == message).sum()) >= 41
+
+
+def verify_images(images: Path, key: Path, out: Path) -> dict:
+    proc = subprocess.run(
+        [str(BIN / "ns-verify-owner"), "--images", str(images), "--key", str(key), "--output", str(out), "--no-figure"],
+        capture_output=True,
+        text=True,
+        env=subprocess_env(1),
+        timeout=900,
+    )
+    assert proc.returncode in (0, 1), proc.stderr[-3000:]
+    return json.loads((out / "report.json").read_text())
+
+
+def test_ns_verify_owner_reads_pictures_of_the_shared_run_without_cameras_and_nothing_from_the_bases(shared, tmp_path):
+    """Stock ns-render's PNGs of the shared run's test views, read with no camera file: the camera found against the
+    owner's base, then the field-mark image fit; the base's own pictures read nothing."""
+    verdicts = {}
+    for name, config in (("shared", shared["run"]), ("base", shared["base"])):
+        cmd = [str(BIN / "ns-render"), "dataset", "--load-config", str(config), "--split", "test"]
+        cmd += ["--output-path", str(tmp_path / name), "--rendered-output-names", "rgb", "--image-format", "png"]
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=subprocess_env(1), cwd=tmp_path, timeout=600)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        rep = verify_images(tmp_path / name / "test" / "rgb", shared["key"], tmp_path / f"report-{name}")
+        assert rep["decoder"]["kind"] == "image" and rep["input"]["views"] == 2 and not rep["input"]["skipped"]
+        verdicts[name] = (rep["verdict"], [v["matches"] for v in rep["keys"][0]["per_view"]])
+    assert verdicts["shared"][0] == "owned" and min(verdicts["shared"][1]) >= 41, verdicts
+    assert verdicts["base"][0] == "not shown" and max(verdicts["base"][1]) < 41, verdicts

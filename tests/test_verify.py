@@ -827,7 +827,7 @@ def test_load_run_keeps_stock_nerfacto_in_process(shared_dir):
     assert dm.eval_dataset[0]["image"].shape[:2] == (100, 100)
 
 
-def test_a_field_mark_key_is_read_from_a_model_by_the_geometric_decoder_and_refused_elsewhere(tmp_path):
+def test_a_field_mark_key_is_read_by_the_geometric_decoder_from_a_model_and_the_image_decoder_from_images(tmp_path):
     from test_key import field_mark_key
     from test_ownership import small_key
 
@@ -838,9 +838,12 @@ def test_a_field_mark_key_is_read_from_a_model_by_the_geometric_decoder_and_refu
     field = [(tmp_path / "f.gskey", field_mark_key())]
     model = VerifyConfig(load_config=tmp_path / "config.yml", key=tmp_path / "f.gskey")
     assert choose_decoder(model, field) == ("geometry", [])
+    assert choose_decoder(VerifyConfig(images=tmp_path, key=tmp_path / "f.gskey"), field) == ("image", [])
     cases = [
-        (VerifyConfig(images=tmp_path, key=tmp_path / "f.gskey"), field, "pass --load-config"),
+        (VerifyConfig(images=tmp_path, decode="geometry"), field, "image decoder from images: drop --decode geometry"),
+        (VerifyConfig(images=tmp_path, decode="extractor"), field, "drop --decode extractor"),
         (VerifyConfig(load_config=tmp_path / "c.yml", decode="extractor"), field, "drop --decode extractor"),
+        (VerifyConfig(load_config=tmp_path / "c.yml", decode="image"), field, "drop --decode image"),
         (VerifyConfig(load_config=tmp_path / "c.yml"), field + [(tmp_path / "s.gskey", small_key())], "apart"),
     ]
     for config, keys, fix in cases:

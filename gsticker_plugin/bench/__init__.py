@@ -52,9 +52,11 @@ def provenance(module: str) -> Dict[str, Any]:
 
 
 def write_page(output: Path, res: Dict[str, Any], page: Callable[[Dict[str, Any]], str]) -> None:
-    """Write ``res`` as ``OUTPUT.json`` and the page ``page(res)`` as ``OUTPUT`` (folders created)."""
+    """Write ``res`` as ``OUTPUT.json`` (its name in ``res["json"]``, for the page's link) and the page ``page(res)``
+    as ``OUTPUT`` (folders created)."""
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
+    res["json"] = output.with_suffix(".json").name
     output.with_suffix(".json").write_text(json.dumps(res, indent=1) + "\n")
     output.write_text(page(res))
     print(f"wrote {output}")

@@ -178,7 +178,7 @@ def page(res: Dict[str, Any]) -> str:
     lines = command_lines(
         "The shared run: a stock nerfacto with the mark in its field, read back",
         f"{res['date']}, {res['machine']['cpu']}",
-        "bench-shared.json",
+        res["json"],
         res["command"],
     )
     lines += [

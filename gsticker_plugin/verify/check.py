@@ -12,11 +12,14 @@ from typing import Any, Dict, List, Optional, Tuple
 import torch
 
 from gsticker_plugin.attacks import parse_attack_spec
+from gsticker_plugin.decoders import fieldimage as field_images
 from gsticker_plugin.decoders import fieldmark as field_decoder
 from gsticker_plugin.decoders.blind import decode_views
 from gsticker_plugin.decoders.geometric import decode_suspect
 from gsticker_plugin.decoders.image import (
+    base_pose_map,
     decode_images_at_cameras,
+    posed_views,
     read_cameras_file,
 )
 from gsticker_plugin.decoders.pose import PoseSearch
@@ -139,21 +142,20 @@ def choose_decoder(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]]) -> T
 
 
 def choose_field_decoder(config: VerifyConfig, marked: List[Path], num_keys: int) -> Tuple[str, List[str]]:
-    """Field-mark keys are read by the geometric decoder from a model; one-line errors for anything else."""
+    """Field-mark keys are read by the geometric decoder from a model and by the image decoder from images; one-line
+    errors for anything else."""
     if len(marked) != num_keys:
         raise GStickerError(
             f"{marked[0]} is a field-mark key and the others are sticker keys; verify with each kind of key apart"
         )
-    if config.load_config is None:
+    kind = "geometry" if config.load_config is not None else "image"
+    if config.decode not in ("auto", kind):
         raise GStickerError(
-            f"{marked[0]} is a field-mark key, read from a model's geometry: pass --load-config SUSPECT/config.yml "
-            "(images are read with sticker keys only)"
+            f"{marked[0]} is a field-mark key, read by the "
+            + ("geometric decoder from a model" if kind == "geometry" else "image decoder from images")
+            + f": drop --decode {config.decode}"
         )
-    if config.decode not in ("auto", "geometry"):
-        raise GStickerError(
-            f"{marked[0]} is a field-mark key, read by the geometric decoder: drop --decode {config.decode}"
-        )
-    return "geometry", []
+    return kind, []
 
 
 def _informed_result(
@@ -255,6 +257,11 @@ def _verify_images_informed(
     frames = read_cameras_file(config.cameras) if config.cameras is not None else None
     results, used, bases, notes = [], None, [], []
     for path, key in keys:
+        if key.field_mark:
+            posed, dec, ref = _field_images(config, path, key, views, frames, device)
+            results.append(_informed_result(key, path, dec, posed, config, "image", ref, notes, bases))
+            used = used or posed
+            continue
         ref = load_base_reference(key, path, config.base_config, config.base_data or config.data, device)
         if frames is not None:
             posed, dec = decode_images_at_cameras(key, ref, views, frames, config.seed, config.progress)
@@ -277,6 +284,31 @@ def _verify_images_informed(
         del ref
     cameras = str(config.cameras) if config.cameras is not None else "estimated"
     return results, used, {"bases": bases, "cameras": cameras, "notes": notes}
+
+
+def _field_images(config: VerifyConfig, path: Path, key: OwnerKey, views: Views, frames, device: torch.device):
+    """One field-mark key's image decoding: at the cameras in --cameras, or at cameras found against the base.
+    Returns ``(views read, dec, reference)``."""
+    ref = field_decoder.load_field_reference(key, path, config.base_config, config.base_data or config.data, device)
+    if frames is not None:
+        posed, cams = posed_views(views, frames, base_pose_map(ref))
+        cameras = [c for _, c in cams]
+        posed.details["cameras_of"] = str(config.cameras)
+    else:
+        posed, cameras = same_aspect_views(views, ref.pipeline.datamanager.train_dataset.cameras), None
+        posed.details["cameras_of"] = "found by a camera search against the owner's base"
+    with contextlib.redirect_stdout(sys.stderr):
+        dec = field_images.decode_images(
+            key,
+            ref,
+            [v.image.permute(1, 2, 0) for v in posed.views],
+            config.seed,
+            cameras=cameras,
+            search=PoseSearch(rolls=tuple(config.rolls)),
+            names=[v.name for v in posed.views],
+            progress=config.progress,
+        )
+    return posed, dec, ref
 
 
 def same_aspect_views(views: Views, cameras) -> Views:
@@ -355,7 +387,9 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
             "kind": "image",
             "informed": True,
             **info,
-            "description": "informed: fits the key's sticker to each image's colour change from the "
+            "description": "informed: fits the key's "
+            + ("field mark" if any(k.field_mark for _, k in keys) else "sticker")
+            + " to each image's colour change from the "
             "owner's unwatermarked base rendered at the image's camera ("
             + (
                 "--cameras"

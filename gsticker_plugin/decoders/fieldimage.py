@@ -1,0 +1,133 @@
+"""Informed decoding of the field mark from images: the owner's message read from pictures of the shared run.
+
+An image shows colour only. The field mark changes the base's density *and* the geometry features its colour head
+reads, both linearly in the table; at a camera the base's colour then changes by ``a * J s`` to first order, with
+``J`` the derivative of the rendered colour in the signs (:func:`gsticker_plugin.fieldmark.image_view`: the stock
+field and renderer, differentiated). Per image:
+
+1. the camera, found against the owner's base (:func:`gsticker_plugin.decoders.pose.estimate_camera`) unless given;
+2. ``s`` fitted to ``image - base render`` by least squares beside the base render's pose Jacobian, so what remains of
+   the camera's error is fitted too (:func:`gsticker_plugin.decoders.image.without_columns`); the fitted pose step
+   moves the camera and the fit runs again, for a few rounds, the best kept;
+3. bit ``i`` = ``s_i > 0``.
+
+Neither step reads the message: for an image that does not carry it the bits are independent of it, and with the
+message uniformly random and secret the matches are ``Binomial(K, 1/2)`` (the informed decoders' null,
+docs/verify.md).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from gsticker_plugin import fieldmark as FM
+from gsticker_plugin.decoders.fit import fit_and_decide, fit_summary, tie_generator
+from gsticker_plugin.decoders.image import image_at_rays, without_columns
+from gsticker_plugin.decoders.pose import (
+    PoseSearch,
+    camera_distance,
+    estimate_camera,
+    moved_camera,
+    pose_columns,
+    search_renders,
+)
+from gsticker_plugin.decoders.result import decoded
+from gsticker_plugin.views import progress_bar
+
+
+def decode_image_view(
+    view: FM.ImageView,
+    image_rgb: Float[Tensor, "R 3"],
+    amplitude: float,
+    generator: torch.Generator,
+    columns: Optional[Float[Tensor, "M P"]] = None,
+) -> Dict[str, Any]:
+    """Fit the signs to one image's colour at the view's rays (minus the base render) and decide the bits.
+    ``columns``: further free columns fitted beside the message (rows ``r * 3 + c``; the pose Jacobian); the result then
+    holds their fitted coefficients (``column_step``). Returns the bits and the fit's summary."""
+    k = view.jacobian.shape[-1]
+    j = (view.jacobian * amplitude).reshape(-1, k)
+    target = (image_rgb.float() - view.base_rgb).reshape(-1)
+    t, predict, jac = target, (lambda s: j @ s), (lambda s: j)
+    if columns is not None and columns.numel():
+        t, predict, jac = without_columns(columns, target, predict, jac)
+    fit, bits, undetermined = fit_and_decide(predict, jac, t, k, view.rays.numel() > 0, generator)
+    out = {"bits": bits, **fit_summary(fit, undetermined, int(view.rays.numel())), "signals": ["rgb"]}
+    if columns is not None and columns.numel():
+        rest = (target - j @ fit.signs).double()
+        out["column_step"] = torch.linalg.lstsq(columns.double(), rest[:, None]).solution[:, 0].tolist()
+    return out
+
+
+def left_after(d: Dict[str, Any]) -> float:
+    """What a fit leaves of its target (RMS)."""
+    return d["residual_rms"] * max(0.0, 1.0 - d["explained"]) ** 0.5
+
+
+def read_at_camera(
+    reference, image: Float[Tensor, "H W 3"], camera, generator: torch.Generator, rounds: int
+) -> Tuple[Dict[str, Any], Any, int]:
+    """Fit the message and the camera's pose error together for up to ``rounds`` rounds, each from the camera the
+    previous fit's pose step moved; returns the fit that left the least, its camera and its round (1-based)."""
+    best: Optional[Tuple[float, Dict[str, Any], Any, int]] = None
+    for r in range(rounds):
+        view = FM.image_view(reference.model, camera, reference.patterns)
+        cols = pose_columns(reference.model, camera, view.rays, False) if rounds > 1 else None
+        d = decode_image_view(view, image_at_rays(image, view.rays, view.hw), reference.amplitude, generator, cols)
+        step = torch.tensor(d.pop("column_step", [0.0] * 6))[:6]
+        if best is None or left_after(d) < best[0]:
+            best = (left_after(d), d, camera, r + 1)
+        if r + 1 == rounds or float(step.abs().max()) <= 1e-7:
+            break
+        camera = moved_camera(camera, step, camera_distance(camera))
+    assert best is not None
+    return best[1], best[2], best[3]
+
+
+def decode_images(
+    key,
+    reference,
+    images: Sequence[Float[Tensor, "H W 3"]],
+    seed: int,
+    cameras: Optional[Sequence[Any]] = None,
+    search: Optional[PoseSearch] = None,
+    rounds: int = 2,
+    names: Optional[Sequence[str]] = None,
+    progress: bool = False,
+    renders: Optional[Dict[Tuple[int, int], Any]] = None,
+) -> Dict[str, Any]:
+    """Decode ``images`` (``[H W 3]`` in [0, 1]) of the owner's scene against the field-mark ``reference``
+    (:func:`gsticker_plugin.decoders.fieldmark.load_field_reference`): at the given ``cameras`` (one per image, a
+    one-camera ``Cameras``; None: found by the camera search), then the fit with the pose Jacobian. ``renders``: the
+    search's candidate renders per image size, kept by a caller that decodes images one call at a time (filled here).
+    Returns the
+    decoders' shared result with, per image, its camera (``c2w``, and whether it was estimated), the fit and the
+    seconds taken."""
+    search = search or PoseSearch()
+    gen = tie_generator(seed)
+    names = list(names) if names is not None else [f"image/{i:04d}" for i in range(len(images))]
+    renders = renders if renders is not None else {}
+    bits: List[Tensor] = []
+    details: List[Dict[str, Any]] = []
+    for i, (name, image) in enumerate(progress_bar(list(zip(names, images)), "field-mark image decoding", progress)):
+        t0 = time.time()
+        extra: Dict[str, Any] = {"camera": "given"}
+        if cameras is not None:
+            camera = cameras[i]
+        else:
+            hw = (int(image.shape[0]), int(image.shape[1]))
+            if hw not in renders:
+                renders[hw] = search_renders(reference, search, hw, value=True)
+            pose = estimate_camera(reference, image, True, search, renders[hw])
+            camera = pose.camera
+            extra = {"camera": "estimated", "pose_rms": pose.rms, "pose_score": pose.score}
+        d, camera, used = read_at_camera(reference, image, camera, gen, rounds)
+        d.update(extra, name=name, round=used, c2w=camera.camera_to_worlds[0].tolist(), seconds=time.time() - t0)
+        bits.append(d.pop("bits"))
+        details.append(d)
+    return decoded(key, bits, "image", details)
