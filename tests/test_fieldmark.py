@@ -112,3 +112,90 @@ def test_only_rows_training_moved_carry_the_patterns():
     assert FM.trained_rows(table, 1e-3).tolist() == [False, True, True, False]
     pats = FM.on_rows(torch.ones(3, 4, 2), FM.trained_rows(table, 1e-3))
     assert pats[:, [0, 3]].abs().sum() == 0 and torch.equal(pats[:, [1, 2]], torch.ones(3, 2, 2))
+
+
+def tiny_nerfacto(monkeypatch):
+    """A randomly initialised nerfacto (torch implementation, 4 hash levels) with density everywhere in its box."""
+    from nerfstudio.data.scene_box import SceneBox
+    from nerfstudio.models.nerfacto import NerfactoModelConfig
+
+    from gsticker_plugin import compat
+
+    monkeypatch.setenv("GSTICKER_NO_DOWNLOAD", "1")
+    compat.apply()
+    torch.manual_seed(0)
+    proposal = {"hidden_dim": 8, "log2_hashmap_size": 8, "num_levels": 2, "max_res": 16, "use_linear": False}
+    cfg = NerfactoModelConfig(
+        implementation="torch",
+        hidden_dim=16,
+        hidden_dim_color=16,
+        num_levels=4,
+        max_res=32,
+        log2_hashmap_size=10,
+        num_nerf_samples_per_ray=8,
+        num_proposal_samples_per_ray=(16, 8),
+        proposal_net_args_list=[proposal, proposal],
+        background_color="white",
+        disable_scene_contraction=True,
+        appearance_embed_dim=4,
+    )
+    model = cfg.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]])), num_train_data=2, metadata={})
+    model.eval()
+    with torch.no_grad():
+        FM.parts(model.field)[0].hash_table.normal_(0, 1.0)
+    return model
+
+
+def test_the_image_jacobian_is_the_colour_change_of_the_marked_render(monkeypatch):
+    """``a J s`` from :func:`FM.image_view` against the stock render with the marked table, minus the base's: equal to
+    first order (density and the colour head's geometry features both change with the table)."""
+    from nerfstudio.cameras.cameras import Cameras
+
+    model = tiny_nerfacto(monkeypatch)
+    enc, _ = FM.parts(model.field)
+    c2w = torch.tensor([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2.5]]])
+    cam = Cameras(camera_to_worlds=c2w, fx=10.0, fy=10.0, cx=6.0, cy=6.0, width=12, height=12)
+    pats = FM.patterns(enc.hash_table.shape, enc.hash_table_size, [0, 1], 8, seed=3)
+    view = FM.image_view(model, cam, pats)
+    assert view.rays.numel() == 144 and view.jacobian.shape == (144, 3, 8)
+    signs, a = torch.tensor([1.0, -1, 1, 1, -1, -1, 1, -1]), 1e-3
+    with torch.no_grad():
+        base = model.get_outputs_for_camera(cam)["rgb"].reshape(-1, 3)
+        table = enc.hash_table.data.clone()
+        enc.hash_table.data = FM.marked_table(table, pats, signs, a)
+        marked = model.get_outputs_for_camera(cam)["rgb"].reshape(-1, 3)
+        enc.hash_table.data = table
+    change = (marked - base)[view.rays]
+    predicted = a * torch.einsum("rck,k->rc", view.jacobian, signs)
+    assert torch.allclose(view.base_rgb, base[view.rays])
+    assert float((change - predicted).norm() / change.norm()) < 0.02
+    assert float((change + predicted).norm() / change.norm()) > 1.9  # the sign matters: not a loose tolerance
+
+
+def test_a_picture_of_the_marked_field_at_its_camera_decodes_to_the_message_and_the_base_to_nothing(monkeypatch):
+    """decode_images at a given camera (two rounds with the pose Jacobian): the marked render, 8-bit, gives the
+    message; the base's own render leaves nothing to explain."""
+    from types import SimpleNamespace
+
+    from nerfstudio.cameras.cameras import Cameras
+
+    from gsticker_plugin.decoders.fieldimage import decode_images
+
+    model = tiny_nerfacto(monkeypatch)
+    enc, _ = FM.parts(model.field)
+    c2w = torch.tensor([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2.5]]])
+    cam = Cameras(camera_to_worlds=c2w, fx=20.0, fy=20.0, cx=12.0, cy=12.0, width=24, height=24)
+    pats = FM.patterns(enc.hash_table.shape, enc.hash_table_size, [0, 1], 8, seed=3)
+    message = torch.tensor([1, 0, 1, 1, 0, 0, 1, 0])
+    key = SimpleNamespace(message=message, num_bits=8)
+    ref = SimpleNamespace(model=model, patterns=pats, amplitude=0.3)
+    with torch.no_grad():
+        base = model.get_outputs_for_camera(cam)["rgb"]
+        table = enc.hash_table.data.clone()
+        enc.hash_table.data = FM.marked_table(table, pats, FM.signs_of(message), 0.3)
+        marked = model.get_outputs_for_camera(cam)["rgb"]
+        enc.hash_table.data = table
+    pictures = [(x * 255).round() / 255 for x in (marked, base)]
+    dec = decode_images(key, ref, pictures, seed=0, cameras=[cam, cam])
+    assert dec["matches"].tolist()[0] == 8 and dec["image"][0]["explained"] > 0.5
+    assert dec["image"][1]["explained"] < 0.05 and dec["matches"].tolist()[1] < 8
