@@ -336,8 +336,8 @@ def same_aspect_views(views: Views, cameras) -> Views:
     return out
 
 
-def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
-    """Run ``verify``; returns (exit status, report). Raises GStickerError for bad input."""
+def _check_inputs(config: VerifyConfig) -> None:
+    """One-line errors for settings that cannot work, before anything is loaded."""
     _check_stats(config.fpr, config.min_share)
     if (config.load_config is None) == (config.images is None):
         raise GStickerError("pass exactly one input: --load-config RUN/config.yml or --images DIR")
@@ -348,86 +348,96 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
             parse_attack_spec(config.attack)
         except ValueError as e:
             raise GStickerError(f"--attack: {e}") from None
+
+
+def _mark_name(keys: List[Tuple[Path, OwnerKey]]) -> str:
+    return "field mark" if any(k.field_mark for _, k in keys) else "sticker"
+
+
+def _run_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device):
+    """The geometric decoder on the suspect model: ``(results, views, decoder info)``."""
+    results, views, info = _verify_geometry(config, keys, device)
+    notes = info.pop("notes")
+    if config.attack.strip():
+        notes.append(
+            f"--attack {config.attack!r} not applied: attacks are image-level distortions, and the "
+            "geometric decoder reads the model's geometry, not images"
+        )
+    signals = " + ".join(sorted({n.replace("_", " ") for sig in info["signals"] for n in sig}))
+    description = (
+        f"informed: fits the key's {_mark_name(keys)} to the suspect's geometry ({signals}) against the owner's "
+        "unwatermarked base run; model-level only"
+    )
+    return results, views, {"kind": "geometry", "informed": True, **info, "description": description, "notes": notes}
+
+
+def _run_images(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device):
+    """The informed image decoder on --images: ``(results, views, decoder info)``."""
+    views = images_views(config.images, config.max_side, config.min_side, config.max_pixels, config.progress)
+    apply_attack(views, config.attack, config.seed)
+    results, views, info = _verify_images_informed(config, keys, views, device)
+    cameras = (
+        "--cameras" if config.cameras is not None else "found against the base; its error fitted beside the message"
+    )
+    description = (
+        f"informed: fits the key's {_mark_name(keys)} to each image's colour change from the owner's unwatermarked "
+        f"base rendered at the image's camera ({cameras})"
+    )
+    return results, views, {"kind": "image", "informed": True, **info, "description": description}
+
+
+def _run_extractor(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device):
+    """The blind extractor on a model's renders or on --images: ``(results, views, decoder info)``."""
+    leaning = [str(p) for p, k in keys if k.owner_message_prob > 0]
+    if leaning:
+        raise GStickerError(
+            f"{', '.join(leaning)}: its extractor was trained on the owner's message "
+            "(--pipeline.owner-message-prob > 0) and decodes it from unmarked images too; its "
+            "binomial null does not hold: use --decode geometry or --decode image"
+        )
+    if config.load_config is not None:
+        cfg = config
+        views = model_views(
+            cfg.load_config, cfg.num_views, cfg.sampled_share, cfg.seed, cfg.data, device, progress=cfg.progress
+        )
+    else:
+        views = images_views(config.images, config.max_side, config.min_side, config.max_pixels, config.progress)
+    if not views.views:
+        raise GStickerError("no view to decode; nothing to base a verdict on")
+    apply_attack(views, config.attack, config.seed)
+    results = []
+    for path, key in progress_bar(keys, "decoding", config.progress and len(keys) > 1):
+        dec = decode_views(key, views, device)
+        results.append(key_result(key, path, dec, views, config.fpr, config.min_share))
+        # a diagnostic beside the verdict: distribution-free over the random message, not used to decide
+        results[-1]["soft_score_pvalue"] = dec["soft_pvalue_pooled"]
+    what = "renders" if views.kind == "model" else "images"
+    description = f"blind: the key's extractor reads the message from RGB {what}"
+    return results, views, {"kind": "extractor", "informed": False, "description": description}
+
+
+DECODERS = {"geometry": _run_geometry, "image": _run_images, "extractor": _run_extractor}
+"""Each decoder's run: ``(config, keys, device) -> (per-key results, the views read, the report's decoder entry)``."""
+
+
+def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
+    """Run ``verify``; returns (exit status, report). Raises GStickerError for bad input."""
+    _check_inputs(config)
     keys = _load_keys(config.key, config.keys, config.allow_legacy)
     committed = check_commitment(config.commitment, keys, config.public_key)
     device = pick_device(config.device)
     decoder, notes = choose_decoder(config, keys)
-    if decoder == "extractor":
-        leaning = [str(p) for p, k in keys if k.owner_message_prob > 0]
-        if leaning:
-            raise GStickerError(
-                f"{', '.join(leaning)}: its extractor was trained on the owner's message "
-                "(--pipeline.owner-message-prob > 0) and decodes it from unmarked images too; its "
-                "binomial null does not hold: use --decode geometry or --decode image"
-            )
-    if decoder == "geometry":
-        results, views, info = _verify_geometry(config, keys, device)
-        notes += info.pop("notes")
-        if config.attack.strip():
-            notes.append(
-                f"--attack {config.attack!r} not applied: attacks are image-level distortions, and the "
-                "geometric decoder reads the model's geometry, not images"
-            )
-        decoder_info = {
-            "kind": "geometry",
-            "informed": True,
-            **info,
-            "description": "informed: fits the key's "
-            + ("field mark" if any(k.field_mark for _, k in keys) else "sticker")
-            + " to the suspect's geometry ("
-            + " + ".join(sorted({n.replace("_", " ") for sig in info["signals"] for n in sig}))
-            + ") against the owner's unwatermarked base run; model-level only",
-        }
-    elif decoder == "image":
-        views = images_views(config.images, config.max_side, config.min_side, config.max_pixels, config.progress)
-        apply_attack(views, config.attack, config.seed)
-        results, views, info = _verify_images_informed(config, keys, views, device)
-        notes += info.pop("notes")
-        decoder_info = {
-            "kind": "image",
-            "informed": True,
-            **info,
-            "description": "informed: fits the key's "
-            + ("field mark" if any(k.field_mark for _, k in keys) else "sticker")
-            + " to each image's colour change from the "
-            "owner's unwatermarked base rendered at the image's camera ("
-            + (
-                "--cameras"
-                if config.cameras is not None
-                else "found against the base; its error fitted beside the message"
-            )
-            + ")",
-        }
-    else:
-        if config.load_config is not None:
-            views = model_views(
-                config.load_config,
-                config.num_views,
-                config.sampled_share,
-                config.seed,
-                config.data,
-                device,
-                progress=config.progress,
-            )
-        else:
-            views = images_views(config.images, config.max_side, config.min_side, config.max_pixels, config.progress)
-        if not views.views:
-            raise GStickerError("no view to decode; nothing to base a verdict on")
-        apply_attack(views, config.attack, config.seed)
-        results = []
-        for path, key in progress_bar(keys, "decoding", config.progress and len(keys) > 1):
-            dec = decode_views(key, views, device)
-            results.append(key_result(key, path, dec, views, config.fpr, config.min_share))
-            # a diagnostic beside the verdict: distribution-free over the random message, not used to decide
-            results[-1]["soft_score_pvalue"] = dec["soft_pvalue_pooled"]
-        decoder_info = {
-            "kind": "extractor",
-            "informed": False,
-            "description": "blind: the key's extractor reads the message from RGB "
-            + ("renders" if views.kind == "model" else "images"),
-        }
-    decoder_info["notes"] = notes
-    report: Dict[str, Any] = {
+    results, views, decoder_info = DECODERS[decoder](config, keys, device)
+    decoder_info["notes"] = notes + decoder_info.get("notes", [])
+    report = _report(config, keys, views, results, decoder_info, committed)
+    _write_report(config, report, views, keys, results)
+    return report["exit_status"], report
+
+
+def _report(config: VerifyConfig, keys, views: Views, results, decoder_info, committed) -> Dict[str, Any]:
+    """The report: input, settings, decoder, per-key results and the verdict."""
+    owned = [r["owner_id"] for r in results if r["owned"]]
+    return {
         "tool": "ns-verify-owner",
         "created": time.time(),
         "input": {
@@ -451,11 +461,14 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
         "multiple_testing": correct_keys(results, config.fpr, config.min_share, config.correction)
         if len(keys) > 1
         else None,
+        "verdict": "owned" if owned else "not shown",
+        "owned_by": owned,
+        "exit_status": EXIT_OWNED if owned else EXIT_NOT_SHOWN,
     }
-    owned = [r["owner_id"] for r in results if r["owned"]]
-    report["verdict"] = "owned" if owned else "not shown"
-    report["owned_by"] = owned
-    report["exit_status"] = EXIT_OWNED if owned else EXIT_NOT_SHOWN
+
+
+def _write_report(config: VerifyConfig, report: Dict[str, Any], views: Views, keys, results) -> None:
+    """report.json (and report.png) in --output; one-line error when the folder is not writable."""
     out = Path(config.output)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -470,7 +483,6 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
         raise GStickerError(
             f"cannot write the report to {out} ({e.strerror or e}); pass --output with a writable folder"
         ) from None
-    return report["exit_status"], report
 
 
 def _hex_arg(given: str, option: str, what: str) -> str:
