@@ -177,7 +177,7 @@ def capture(tmp_path_factory) -> Dict[str, Path]:
         "wm",
         *STICKER_SEED_ARGS,
         "--max-num-iterations",
-        "40",
+        "80",
         "--pipeline.pool-train-views",
         "4",
         "--pipeline.pool-novel-views",
