@@ -48,6 +48,8 @@ class Args:
     output: Path = Path("docs/bench-shared-images.md")
     page_only: bool = False
     """Rewrite the page from OUTPUT's JSON (no measuring)."""
+    rows_only: bool = False
+    """Write the page from the rows measured so far (no measuring): a partial run's page says how far it got."""
 
 
 def write_png(path: Path, rgb: torch.Tensor) -> None:
@@ -66,7 +68,6 @@ def read_png(path: Path) -> torch.Tensor:
 
 
 def measure(args: Args) -> Dict[str, Any]:
-    from gsticker_plugin import metrics
     from gsticker_plugin.decoders.fieldimage import decode_images
     from gsticker_plugin.decoders.fieldmark import load_field_reference
     from gsticker_plugin.key import OwnerKey
@@ -75,10 +76,12 @@ def measure(args: Args) -> Dict[str, Any]:
     dev = torch.device("cpu")
     key_path = args.shared_dir / "owner.gskey"
     key = OwnerKey.load(key_path)
-    ref = load_field_reference(key, key_path, None, args.data, dev)
     suspects = [("shared run", config_under(args.shared_dir / "runs")), ("unmarked base", args.base)]
     suspects += [(f"independent base {n.parent.parent.parent.name}", n) for n in args.null]
     rows_path = args.work_dir / "rows.jsonl"
+    if args.rows_only:
+        return result(args, key, suspects, rows_path)
+    ref = load_field_reference(key, key_path, None, args.data, dev)
     args.work_dir.mkdir(parents=True, exist_ok=True)
     done = (
         {(r["suspect"], r["view"]) for r in map(json.loads, rows_path.read_text().splitlines())}
@@ -117,12 +120,20 @@ def measure(args: Args) -> Dict[str, Any]:
             with rows_path.open("a") as f:
                 f.write(json.dumps(row) + "\n")
             print(f"test view {vi} {label}: {row['matches']}/48", file=sys.stderr, flush=True)
-    rows = [json.loads(line) for line in rows_path.read_text().splitlines()]
+    return result(args, key, suspects, rows_path)
+
+
+def result(args: Args, key, suspects, rows_path: Path) -> Dict[str, Any]:
+    """The bench's JSON from the rows measured (all of them, or so far)."""
+    from gsticker_plugin import metrics
+
+    rows = [json.loads(line) for line in rows_path.read_text().splitlines()] if rows_path.is_file() else []
     return {
         "shared_dir": str(args.shared_dir),
         "views": list(args.views),
         "suspects": [s[0] for s in suspects],
         "rows": rows,
+        "complete": len(rows) == len(args.views) * len(suspects),
         "threshold": metrics.min_matches_for_fpr(key.num_bits, 1e-6),
         **provenance("gsticker_plugin.bench.shared_images"),
     }
@@ -155,6 +166,12 @@ def page(res: Dict[str, Any]) -> str:
         res["json"],
         res["command"],
     )
+    if not res.get("complete", True):
+        lines += [
+            f"**Partial**: {len(res['rows'])} of {len(res['views']) * len(res['suspects'])} images read so far (the same "
+            "command without --rows-only continues from its rows).",
+            "",
+        ]
     lines += [
         f"Test views {res['views'][0]}, {res['views'][1]}, ..., {res['views'][-1]} ({len(res['views'])}, fixed before "
         "the run; the decoder was developed on test views 1 to 3). Each suspect rendered at them by its own model, "
