@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
 from jaxtyping import Float
@@ -75,7 +75,7 @@ def on_rows(pats: Float[Tensor, "K N F"], rows: Tensor) -> Float[Tensor, "K N F"
 def marked_table(table: Tensor, pats: Float[Tensor, "K N F"], signs: Tensor, amplitude: float) -> Tensor:
     """``T + a * sum_k s_k P_k / sqrt(K)`` for signs ``s`` in [-1, 1] (``2M - 1`` for a message)."""
     k = pats.shape[0]
-    return table + amplitude * torch.einsum("k,knf->nf", signs.to(pats), pats).to(table) / math.sqrt(k)
+    return table + amplitude * torch.einsum("k,k...->...", signs.to(pats), pats).to(table) / math.sqrt(k)
 
 
 def signs_of(message: Tensor) -> Tensor:
@@ -129,9 +129,11 @@ class FieldView:
     deltas: Tensor  # [R S 1]
     steps: Tensor  # [R S 1] sample distance along the ray
     features: Tensor  # [R S K] d pre / d s per unit amplitude (0 where the sample cannot change a render)
-    base_signal: Tensor  # [2 R]
+    base_signal: Tensor  # [C R], one row per signal
     depth_scale: float
     hw: Tuple[int, int] = (0, 0)  # the camera's image size (0, 0: not recorded)
+    pre: Optional[Tensor] = None  # [R S] density before its relu (TensoRF's planes); None: exponential activation
+    signals: Tuple[str, ...] = ("accumulation", "expected_depth")
 
 
 def capture_samples(model, camera) -> Tuple[Dict[str, Tensor], Dict[str, Tensor]]:
@@ -200,10 +202,17 @@ def field_view(model, camera, pats: Tensor, min_transmittance: float = 1e-3, min
 
 
 def geometry_from_logits(view: FieldView, change: Float[Tensor, "R S"]) -> Float[Tensor, " M"]:
-    """The view's geometry (accumulation, scaled accumulation x depth) with the density logits changed by
-    ``change`` at every sample."""
-    w = render_weights(view.density * torch.exp(change)[..., None], view.deltas)
-    return torch.cat([w.sum(-2)[..., 0], (w * view.steps).sum(-2)[..., 0] / view.depth_scale])
+    """The view's geometry (its signals: accumulation, and scaled accumulation x depth) with the density logits
+    changed by ``change`` at every sample: ``sigma * exp(change)`` (nerfacto), ``relu(pre + change)`` (TensoRF)."""
+    if view.pre is not None:
+        density = torch.relu(view.pre + change)[..., None]
+    else:
+        density = view.density * torch.exp(change)[..., None]
+    w = render_weights(density, view.deltas)
+    out = [w.sum(-2)[..., 0]]
+    if "expected_depth" in view.signals:
+        out.append((w * view.steps).sum(-2)[..., 0] / view.depth_scale)
+    return torch.cat(out)
 
 
 def predict(view: FieldView, signs: Tensor, amplitude: float) -> Float[Tensor, " M"]:
@@ -221,8 +230,148 @@ def predict_jacobian(view: FieldView, signs: Tensor, amplitude: float) -> Float[
     r = view.rays.numel()
     with torch.enable_grad():
         out = geometry_from_logits(view, change)
-        grads = [torch.autograd.grad(out[c * r : (c + 1) * r].sum(), change, retain_graph=c == 0)[0] for c in range(2)]
+        n = len(view.signals)
+        grads = [
+            torch.autograd.grad(out[c * r : (c + 1) * r].sum(), change, retain_graph=c < n - 1)[0] for c in range(n)
+        ]
     return torch.cat([amplitude * torch.einsum("rs,rsk->rk", g, view.features) for g in grads])
+
+
+# ---------------------------------------------------------------------------------------------- TensoRF planes
+#
+# TensoRF's density is ``relu(sum_c plane_c(x) line_c(x))`` over its three vector-matrix planes and their lines: linear
+# in the planes. The per-bit patterns are smooth tables of the planes' shape (a standard Gaussian on a coarse grid,
+# upsampled), so at a sample ``pre(x)`` changes by exactly ``a * f_k(x) / sqrt(K)``, ``f_k`` the encoding with the
+# planes replaced by ``P_k``, and the density by ``relu(pre + a f . s / sqrt(K))``.
+
+PLANES_GRID = 20
+"""Side of the coarse grid each plane pattern is drawn on before it is upsampled to the planes' resolution."""
+
+
+def planes_of(field: nn.Module) -> nn.Module:
+    """The density encoding of a TensoRF field (vector-matrix planes)."""
+    enc = getattr(field, "density_encoding", None)
+    if enc is None or not hasattr(enc, "plane_coef") or not hasattr(enc, "line_coef"):
+        raise GStickerError(f"{type(field).__name__} has no TensoRF vector-matrix density encoding")
+    return enc
+
+
+def host_of(field: nn.Module) -> str:
+    """Where a field's mark lives: ``hash`` (a nerfacto field's torch hash table) or ``planes`` (TensoRF's density
+    planes); one-line error for any other field."""
+    if hasattr(getattr(getattr(field, "mlp_base", None), "model", None), "__getitem__"):
+        parts(field)
+        return "hash"
+    if hasattr(getattr(field, "density_encoding", None), "plane_coef"):
+        return "planes"
+    raise GStickerError(
+        f"{type(field).__name__} carries no field mark: the field mark needs a nerfacto base with the torch "
+        "implementation or a TensoRF base (vector-matrix); pass --pipeline.mark sticker"
+    )
+
+
+def marked_parameter(field: nn.Module) -> nn.Parameter:
+    """The tensor the mark is written into: the hash table, or TensoRF's density planes."""
+    return parts(field)[0].hash_table if host_of(field) == "hash" else planes_of(field).plane_coef
+
+
+def plane_patterns(shape: Sequence[int], grid: int, num_bits: int, seed: int) -> Float[Tensor, "K ..."]:
+    """The per-bit plane patterns: for each bit and plane component a standard Gaussian on a ``grid x grid`` grid,
+    upsampled bilinearly to the planes' resolution and scaled to unit standard deviation; drawn from ``seed``
+    alone."""
+    planes, comps, h, w = (int(x) for x in shape)
+    gen = torch.Generator().manual_seed(int(seed))
+    coarse = torch.randn(num_bits * planes, comps, grid, grid, generator=gen)
+    fine = torch.nn.functional.interpolate(coarse, size=(h, w), mode="bilinear", align_corners=True)
+    fine = fine.reshape(num_bits, planes, comps, h, w)
+    return fine / fine.flatten(1).std(dim=1).clamp_min(1e-12)[:, None, None, None, None]
+
+
+def plane_features(
+    enc: nn.Module, positions: Float[Tensor, "N 3"], pats: Tensor, chunk: int = 4096
+) -> Tuple[Float[Tensor, " N"], Float[Tensor, "N K"]]:
+    """The density before its relu at ``positions`` (in [-1, 1]) and ``d pre / d s_k`` per unit amplitude
+    (``f_k / sqrt(K)``). The K patterns are stacked as K times the components (the lines repeated), so one pass of
+    the encoding gives them all; the encoding is restored afterwards."""
+    k = pats.shape[0]
+    planes, comps = int(pats.shape[1]), int(pats.shape[2])
+    stacked = pats.permute(1, 0, 2, 3, 4).reshape(planes, k * comps, *pats.shape[3:]).to(enc.plane_coef)
+    lines = enc.line_coef.data.repeat(1, k, 1, 1)
+    pre = torch.empty(positions.shape[0])
+    feats = torch.empty(positions.shape[0], k)
+    saved = (enc.plane_coef.data, enc.line_coef.data, enc.num_components)
+    with torch.no_grad():
+        for i in range(0, positions.shape[0], chunk):
+            pre[i : i + chunk] = enc(positions[i : i + chunk]).sum(-1).float()
+        try:
+            enc.plane_coef.data, enc.line_coef.data, enc.num_components = stacked, lines, k * comps
+            for i in range(0, positions.shape[0], chunk):
+                f = enc(positions[i : i + chunk]).reshape(-1, planes, k, comps)
+                feats[i : i + chunk] = f.sum(dim=(1, 3)).float()
+        finally:
+            enc.plane_coef.data, enc.line_coef.data, enc.num_components = saved
+    return pre, feats / math.sqrt(k)
+
+
+def planes_view(model, camera, pats: Tensor) -> FieldView:
+    """Capture a TensoRF base's view at ``camera``: its fine samples (the PDF pass), their density before the relu and
+    their per-bit features, on the rays the coarse pass kept; the signal is the accumulation (TensoRF reports a
+    median depth, which is not smooth in the density)."""
+    from nerfstudio.data.scene_box import SceneBox
+
+    field = model.field
+    rec: Dict[str, List[Tensor]] = {}
+    original = field.forward
+
+    def forward(ray_samples, *args, **kwargs):
+        out = original(ray_samples, *args, **kwargs)
+        fr = ray_samples.frustums
+        pos = SceneBox.get_normalized_positions(fr.get_positions(), field.aabb) * 2 - 1
+        rec.setdefault("positions", []).append(pos.detach())
+        rec.setdefault("deltas", []).append(ray_samples.deltas.detach())
+        rec.setdefault("steps", []).append(((fr.starts + fr.ends) / 2).detach())
+        rec.setdefault("density", []).append(out[FieldHeadNames.DENSITY].detach())
+        return out
+
+    object.__setattr__(field, "forward", forward)
+    try:
+        with torch.no_grad():
+            outputs = model.get_outputs_for_camera(camera)
+    finally:
+        del field.__dict__["forward"]
+    smp = {k: torch.cat([x.reshape(-1, *x.shape[-2:]) for x in v]) for k, v in rec.items()}
+    rays = (smp["density"][..., 0] > 0).any(-1).nonzero().squeeze(-1)
+    pos = smp["positions"][rays]
+    pre, feats = plane_features(planes_of(field), pos.reshape(-1, 3), pats)
+    acc = outputs["accumulation"].reshape(-1)[rays]
+    return FieldView(
+        rays=rays,
+        density=smp["density"][rays],
+        deltas=smp["deltas"][rays],
+        steps=smp["steps"][rays],
+        features=feats.reshape(*pos.shape[:2], -1),
+        base_signal=acc[None],
+        depth_scale=1.0,
+        hw=(int(camera.height[0, 0]), int(camera.width[0, 0])),
+        pre=pre.reshape(pos.shape[:2]),
+        signals=("accumulation",),
+    )
+
+
+def view_of(model, camera, pats: Tensor) -> FieldView:
+    """The base's view at ``camera`` for its field's host (:func:`field_view` or :func:`planes_view`)."""
+    return planes_view(model, camera, pats) if host_of(model.field) == "planes" else field_view(model, camera, pats)
+
+
+def key_patterns(field: nn.Module, mark: Dict, num_bits: int) -> Tensor:
+    """The per-bit patterns a key's field mark names, on the field's host: hash patterns on the levels and the rows
+    training moved, or smooth plane patterns (``mark["grid"]``)."""
+    table = marked_parameter(field).data
+    if mark.get("host", "hash") == "planes":
+        return plane_patterns(table.shape, int(mark["grid"]), num_bits, mark["pattern_seed"])
+    encoder, _ = parts(field)
+    pats = patterns(table.shape, encoder.hash_table_size, mark["levels"], num_bits, mark["pattern_seed"])
+    return on_rows(pats, trained_rows(table, mark["init_scale"]))
 
 
 # ---------------------------------------------------------------------------------------------- images

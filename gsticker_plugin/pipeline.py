@@ -44,7 +44,7 @@ from gsticker_plugin.heads import HeadConfig, Heads, count_parameters
 from gsticker_plugin.key import OwnerKey, message_from_owner_id, parse_message, random_message
 from gsticker_plugin.model import GeometryStickerModel, GeometryStickerModelConfig, geometry_reference, shareable_state
 from gsticker_plugin.runs import final_rgb
-from gsticker_plugin.shared import DEFAULT_AMPLITUDE, DEFAULT_LEVELS
+from gsticker_plugin.shared import DEFAULT_LEVELS
 from gsticker_plugin.sticker import composite, sparsity_loss
 
 
@@ -74,12 +74,13 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     """Seed of the sticker's initial weights (default: drawn with `secrets`). Kept in the owner key only, never in
     config.yml; give one only to reproduce a run, and keep it as secret as the message."""
     mark: Literal["auto", "field", "sticker"] = "auto"
-    """What carries the message in the shared run. field: the base's own density hash table (the shared run is a
-    stock run of the base's method, written in seconds; nerfacto bases with the torch implementation). sticker: a
-    trained sticker (a geometrysticker run, heads and steps below). auto: field when the base has a torch hash table,
-    else sticker."""
-    field_amplitude: float = DEFAULT_AMPLITUDE
-    """Field mark: amplitude of the per-bit patterns (0.01: 50 dB render PSNR vs the base on lego100)."""
+    """What carries the message in the shared run. field: the base's own density field (its hash table, or TensoRF's
+    density planes: the shared run is a stock run of the base's method, written in seconds; nerfacto bases with the
+    torch implementation and TensoRF bases). sticker: a trained sticker (a geometrysticker run, heads and steps
+    below). auto: field when the base can host it, else sticker."""
+    field_amplitude: Optional[float] = None
+    """Field mark: amplitude of the per-bit patterns (default: 0.01 on a hash table, 50 dB render PSNR vs the base on
+    lego100; 0.03 on TensoRF's density planes)."""
     field_levels: Tuple[int, ...] = DEFAULT_LEVELS
     """Field mark: the hash levels the per-bit patterns live on."""
     pattern_seed: Optional[int] = None

@@ -30,8 +30,16 @@ from gsticker_plugin.key import file_sha256, plain
 DEFAULT_LEVELS: Tuple[int, ...] = (0, 1, 2, 3)
 """Hash levels the per-bit patterns live on: the coarse ones, so each bit spreads over the whole object."""
 DEFAULT_AMPLITUDE = 0.01
-"""Pattern amplitude: on the lego100 nerfacto-small base, 48/48 bits on 25 test views at 50.3 dB render PSNR vs the
-base (docs/bench-fieldmark.md)."""
+"""Pattern amplitude on a hash table: on the lego100 nerfacto-small base, 48/48 bits on 25 test views at 50.3 dB
+render PSNR vs the base (docs/bench-fieldmark.md)."""
+
+DEFAULT_PLANES_AMPLITUDE = 0.03
+"""Pattern amplitude on TensoRF's density planes (their entries spread ~0.34 on the lego100 tensorf-small base)."""
+
+
+def default_amplitude(host: str) -> float:
+    """The amplitude a host's mark gets unless one is given."""
+    return DEFAULT_PLANES_AMPLITUDE if host == "planes" else DEFAULT_AMPLITUDE
 
 
 @dataclass
@@ -56,12 +64,13 @@ class SharedRun:
 
 
 def table_name(model) -> str:
-    """The pipeline state-dict name of the model's density hash table (``_model.`` + its parameter name)."""
-    encoder, _ = FM.parts(model.field)
+    """The pipeline state-dict name of the tensor the mark goes into (``_model.`` + its parameter name): the density
+    hash table, or TensoRF's density planes."""
+    table = FM.marked_parameter(model.field)
     for name, p in model.named_parameters():
-        if p is encoder.hash_table:
+        if p is table:
             return "_model." + name
-    raise GStickerError(f"{type(model).__name__}'s hash table is not one of its parameters")
+    raise GStickerError(f"{type(model).__name__}'s density table is not one of its parameters")
 
 
 def stock_method_name(config) -> str:
@@ -131,7 +140,7 @@ def mark_base(
     output_dir: Path,
     experiment_name: str,
     timestamp: str,
-    amplitude: float = DEFAULT_AMPLITUDE,
+    amplitude: Optional[float] = None,
     levels: Sequence[int] = DEFAULT_LEVELS,
     psnr_views: int = 4,
     data: Optional[Path] = None,
@@ -152,37 +161,37 @@ def mark_base(
     if (run_dir / "config.yml").exists():
         raise GStickerError(f"{run_dir} already holds a run; pass another --timestamp or --output-dir")
     model = pipeline.model
-    encoder, _ = FM.parts(model.field)
+    host = FM.host_of(model.field)
+    amplitude = default_amplitude(host) if amplitude is None else float(amplitude)
     name = table_name(model)
-    table = state["pipeline"][name]
-    pats = FM.patterns(table.shape, encoder.hash_table_size, levels, int(message.numel()), pattern_seed)
-    pats = FM.on_rows(pats, FM.trained_rows(table, encoder.hash_init_scale))
+    if host == "planes":
+        mark = {"host": "planes", "grid": FM.PLANES_GRID, "levels": [], "init_scale": 0.0}
+    else:
+        init_scale = float(FM.parts(model.field)[0].hash_init_scale)
+        mark = {"levels": [int(lv) for lv in levels], "init_scale": init_scale}
+    mark.update(table=name, pattern_seed=int(pattern_seed), amplitude=amplitude)
+    pats = FM.key_patterns(model.field, mark, int(message.numel()))
     # numpy scalars (the base's optimizer state) become Python ones: stock torch >= 2.6 loads the run as it is
     state = plain({**state, "pipeline": marked_pipeline_state(state["pipeline"], name, pats, message, amplitude)})
     cams = pipeline.datamanager.train_dataset.cameras
     picks = [int(round(i * (len(cams) - 1) / max(1, psnr_views - 1))) for i in range(psnr_views)]
     psnrs = []
-    saved = encoder.hash_table.data
+    param = FM.marked_parameter(model.field)
+    saved = param.data
     for i in picks:
         with torch.no_grad():
             clean = runs.final_rgb(model.get_outputs_for_camera(cams[i : i + 1].to(device)))
-            encoder.hash_table.data = state["pipeline"][name].to(saved)
+            param.data = state["pipeline"][name].to(saved)
             try:
                 marked = runs.final_rgb(model.get_outputs_for_camera(cams[i : i + 1].to(device)))
             finally:
-                encoder.hash_table.data = saved
+                param.data = saved
         psnrs.append(float(metrics.psnr(marked.permute(2, 0, 1), clean.permute(2, 0, 1))))
     return SharedRun(
         config=shared,
         state=state,
         run_dir=run_dir,
-        field_mark={
-            "table": name,
-            "levels": [int(lv) for lv in levels],
-            "pattern_seed": int(pattern_seed),
-            "amplitude": float(amplitude),
-            "init_scale": float(encoder.hash_init_scale),
-        },
+        field_mark=mark,
         base={
             "method": config.method_name,
             "shared_method": method,

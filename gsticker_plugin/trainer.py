@@ -145,9 +145,13 @@ def resume_key(ckpt: Path, run_cfg, key_path: Optional[Path]) -> Tuple[Path, Own
 
 
 def field_markable(model_config) -> bool:
-    """Whether a base's model config builds a density field with a torch hash table (the field mark's host)."""
+    """Whether a base's model config builds a density field the field mark can live in: a torch hash table
+    (nerfacto) or vector-matrix density planes (TensoRF)."""
     from nerfstudio.models.nerfacto import NerfactoModelConfig
+    from nerfstudio.models.tensorf import TensoRFModelConfig
 
+    if isinstance(model_config, TensoRFModelConfig):
+        return model_config.tensorf_encoding == "vm"
     return isinstance(model_config, NerfactoModelConfig) and model_config.implementation == "torch"
 
 
@@ -157,7 +161,8 @@ def chosen_mark(choice: str, model_config) -> str:
         return "field" if field_markable(model_config) else "sticker"
     if choice == "field" and not field_markable(model_config):
         raise GStickerError(
-            f"the field mark needs a nerfacto base with the torch implementation, not {type(model_config).__name__}; "
+            f"the field mark needs a nerfacto base with the torch implementation or a TensoRF base (vector-matrix), not "
+            f"{type(model_config).__name__}; "
             "pass --pipeline.mark sticker"
         )
     return choice
@@ -313,7 +318,7 @@ class GeometryStickerTrainer(Trainer):
         pcfg = self.config.pipeline
         if pcfg.mark == "auto":
             CONSOLE.print(
-                "\\[gsticker] the base has a torch hash table: the message goes into it (--pipeline.mark field)"
+                "\\[gsticker] the message goes into the base's own density field (--pipeline.mark field)"
             )
         if self.world_size > 1:
             raise GStickerError("the field mark is written by one process: drop --machine.num-devices")

@@ -63,16 +63,14 @@ def load_field_reference(
     with contextlib.redirect_stdout(sys.stderr):
         config, pipeline, _ = runs.load_run_at(cfg_path, ckpt, data=data_if_missing(cfg_path, data), device=device)
     model = pipeline.model
-    encoder, _ = FM.parts(model.field)
     names = {"_model." + n: p for n, p in model.named_parameters()}
-    if names.get(mark["table"]) is not encoder.hash_table:
+    host = FM.host_of(model.field)
+    if host != mark.get("host", "hash") or names.get(mark["table"]) is not FM.marked_parameter(model.field):
         raise GStickerError(
-            f"the key marks {mark['table']}, which is not the density hash table of {cfg_path}; pass --base-config "
+            f"the key marks {mark['table']}, which is not the density {host} of {cfg_path}; pass --base-config "
             "with the base run the mark was made on"
         )
-    table = encoder.hash_table
-    pats = FM.patterns(table.shape, encoder.hash_table_size, mark["levels"], key.num_bits, mark["pattern_seed"])
-    pats = FM.on_rows(pats, FM.trained_rows(table.data, mark["init_scale"]))
+    pats = FM.key_patterns(model.field, mark, key.num_bits)
     model.eval()
     return FieldReference(
         config_path=cfg_path,
@@ -95,7 +93,9 @@ def decode_view(view: FM.FieldView, suspect_outputs: Dict[str, Tensor], amplitud
             "camera; the field-mark decoder needs renders at the base's cameras"
         )
     sig = FM.geometry_of(suspect_outputs)[:, view.rays]
-    target = torch.cat([sig[0] - view.base_signal[0], (sig[1] - view.base_signal[1]) / view.depth_scale])
+    target = sig[0] - view.base_signal[0]
+    if "expected_depth" in view.signals:
+        target = torch.cat([target, (sig[1] - view.base_signal[1]) / view.depth_scale])
     k = view.features.shape[-1]
     fit, bits, _ = fit_and_decide(
         lambda s: FM.predict(view, s, amplitude),
@@ -143,7 +143,7 @@ def decode_suspect(
     )
     for name, cam, out in renders:
         if name not in cache:
-            cache[name] = FM.field_view(reference.model, cam.to(reference.model.device), reference.patterns)
+            cache[name] = FM.view_of(reference.model, cam.to(reference.model.device), reference.patterns)
         fv = cache[name]
         b, fit = decode_view(fv, out, reference.amplitude, gen)
         bits.append(b)
@@ -156,7 +156,7 @@ def decode_suspect(
                 "rays": int(fv.rays.numel()),
                 "signs_abs_mean": float(fit.signs.abs().mean()),
                 "scene_agreement": scene_agreement(fv, out),
-                "signals": ["accumulation", "expected_depth"],
+                "signals": list(fv.signals),
             }
         )
         if full_renders:
