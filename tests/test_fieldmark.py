@@ -199,3 +199,48 @@ def test_a_picture_of_the_marked_field_at_its_camera_decodes_to_the_message_and_
     dec = decode_images(key, ref, pictures, seed=0, cameras=[cam, cam])
     assert dec["matches"].tolist()[0] == 8 and dec["image"][0]["explained"] > 0.5
     assert dec["image"][1]["explained"] < 0.05 and dec["matches"].tolist()[1] < 8
+
+
+def tiny_planes():
+    from nerfstudio.field_components.encodings import TensorVMEncoding
+
+    torch.manual_seed(0)
+    return TensorVMEncoding(resolution=16, num_components=3, init_scale=0.5)
+
+
+def test_plane_patterns_are_smooth_unit_tables_drawn_from_the_seed_alone():
+    shape = (3, 4, 32, 32)
+    a, b = FM.plane_patterns(shape, 4, 6, seed=2), FM.plane_patterns(shape, 4, 6, seed=2)
+    assert a.shape == (6, *shape) and torch.equal(a, b) and not torch.equal(a, FM.plane_patterns(shape, 4, 6, seed=3))
+    assert torch.allclose(a.flatten(1).std(dim=1), torch.ones(6), atol=1e-5)
+    step = (a[..., 1:, :] - a[..., :-1, :]).abs().mean()  # neighbours on the fine grid differ little: drawn coarse
+    assert float(step) < 0.2 * float(a.abs().mean())
+
+
+def test_plane_features_are_the_exact_change_of_the_density_before_its_relu():
+    """TensoRF's density is linear in its planes: ``pre(planes + a sum_k s_k P_k / sqrt(K)) - pre(planes)`` is
+    ``a * features @ s`` to float precision, at any amplitude."""
+    enc = tiny_planes()
+    pats = FM.plane_patterns(tuple(enc.plane_coef.shape), 4, 8, seed=1)
+    x = torch.rand(200, 3) * 2 - 1
+    pre, feats = FM.plane_features(enc, x, pats)
+    signs, a = torch.tensor([1.0, -1, 1, 1, -1, -1, 1, -1]), 0.7
+    with torch.no_grad():
+        assert torch.allclose(pre, enc(x).sum(-1), atol=1e-5)
+        saved = enc.plane_coef.data
+        enc.plane_coef.data = FM.marked_table(saved, pats, signs, a)
+        marked = enc(x).sum(-1)
+        enc.plane_coef.data = saved
+    assert torch.allclose(marked - pre, a * feats @ signs, atol=1e-4)
+    assert torch.equal(enc.plane_coef.data, saved) and enc.num_components == 3  # the encoding is restored
+
+
+def test_the_host_is_the_hash_table_of_a_torch_nerfacto_field_or_the_planes_of_a_tensorf_field(monkeypatch):
+    from types import SimpleNamespace
+
+    model = tiny_nerfacto(monkeypatch)
+    assert FM.host_of(model.field) == "hash" and FM.marked_parameter(model.field) is FM.parts(model.field)[0].hash_table
+    planes = SimpleNamespace(density_encoding=tiny_planes())
+    assert FM.host_of(planes) == "planes" and FM.marked_parameter(planes) is planes.density_encoding.plane_coef
+    with pytest.raises(GStickerError, match="--pipeline.mark sticker"):
+        FM.host_of(nn.Linear(2, 2))
