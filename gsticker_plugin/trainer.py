@@ -317,9 +317,7 @@ class GeometryStickerTrainer(Trainer):
         """The field mark needs no training: check the inputs, then :meth:`train` writes the shared run."""
         pcfg = self.config.pipeline
         if pcfg.mark == "auto":
-            CONSOLE.print(
-                "\\[gsticker] the message goes into the base's own density field (--pipeline.mark field)"
-            )
+            CONSOLE.print("\\[gsticker] the message goes into the base's own density field (--pipeline.mark field)")
         if self.world_size > 1:
             raise GStickerError("the field mark is written by one process: drop --machine.num-devices")
         self._key_path = self._owner_key_path(owner)
