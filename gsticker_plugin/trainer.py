@@ -157,8 +157,11 @@ def field_markable(model_config) -> bool:
 
 def chosen_mark(choice: str, model_config) -> str:
     """``--pipeline.mark`` resolved for a base: field or sticker (one-line error for a field mark it cannot host)."""
-    if choice == "auto":
-        return "field" if field_markable(model_config) else "sticker"
+    if choice == "auto":  # TensoRF's field mark is taken on request until its benchmark has run
+        from nerfstudio.models.tensorf import TensoRFModelConfig
+
+        tensorf = isinstance(model_config, TensoRFModelConfig)
+        return "field" if field_markable(model_config) and not tensorf else "sticker"
     if choice == "field" and not field_markable(model_config):
         raise GStickerError(
             f"the field mark needs a nerfacto base with the torch implementation or a TensoRF base (vector-matrix), not "
