@@ -244,3 +244,13 @@ def test_the_host_is_the_hash_table_of_a_torch_nerfacto_field_or_the_planes_of_a
     assert FM.host_of(planes) == "planes" and FM.marked_parameter(planes) is planes.density_encoding.plane_coef
     with pytest.raises(GStickerError, match="--pipeline.mark sticker"):
         FM.host_of(nn.Linear(2, 2))
+
+
+def test_pictures_of_a_tensorf_shared_run_are_refused_with_the_fix():
+    from types import SimpleNamespace
+
+    from gsticker_plugin.decoders.fieldimage import decode_images
+
+    reference = SimpleNamespace(model=SimpleNamespace(field=SimpleNamespace(density_encoding=tiny_planes())))
+    with pytest.raises(GStickerError, match="--load-config SUSPECT/config.yml"):
+        decode_images(SimpleNamespace(num_bits=8), reference, [torch.zeros(4, 4, 3)], seed=0)

@@ -45,7 +45,7 @@ two 50-step colour fine-tunes (toward a blue palette edit and toward a half-turn
 @dataclass
 class Args:
     base: Path
-    """The base run's config.yml (nerfacto, torch implementation)."""
+    """The base run's config.yml (nerfacto with the torch implementation, or TensoRF with --mark field)."""
     data: Path
     """Its dataset folder."""
     work_dir: Path = Path("outputs/bench-shared")
@@ -61,6 +61,8 @@ class Args:
     """Independently trained bases of the same scene (config.yml)."""
     recolors: Tuple[str, ...] = RECOLORS
     """ns-recolor edits of the shared run: each `SUBCOMMAND:ARG ARG`."""
+    mark: str = "auto"
+    """--pipeline.mark of the shared run (field: TensoRF's field mark, taken on request)."""
     output: Path = Path("docs/bench-shared.md")
     page_only: bool = False
     """Rewrite the page from OUTPUT's JSON (no measuring)."""
@@ -79,7 +81,7 @@ def train_shared(args: Args) -> Tuple[Path, Path, Dict[str, Any]]:
         cmd = [console_script("ns-train"), "geometrysticker", "--load-checkpoint", str(ckpt), "--data", str(args.data)]
         cmd += ["--machine.device-type", "cpu", "--vis", "tensorboard", "--output-dir", str(work / "runs")]
         cmd += ["--experiment-name", "lego", "--timestamp", "shared", "--pipeline.key-path", str(key)]
-        cmd += ["--pipeline.message", bits, "--pipeline.pattern-seed", str(args.seed)]
+        cmd += ["--pipeline.message", bits, "--pipeline.pattern-seed", str(args.seed), "--pipeline.mark", args.mark]
         t0 = time.time()
         run_logged(cmd, work / "train.log", what="ns-train geometrysticker")
         record.write_text(json.dumps({"seconds": time.time() - t0}))

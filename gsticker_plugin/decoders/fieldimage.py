@@ -37,6 +37,7 @@ from gsticker_plugin.decoders.pose import (
     search_renders,
 )
 from gsticker_plugin.decoders.result import decoded
+from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.views import progress_bar
 
 
@@ -108,6 +109,11 @@ def decode_images(
     Returns the
     decoders' shared result with, per image, its camera (``c2w``, and whether it was estimated), the fit and the
     seconds taken."""
+    if FM.host_of(reference.model.field) != "hash":
+        raise GStickerError(
+            "pictures of a TensoRF shared run are not read yet; verify the model itself with --load-config "
+            "SUSPECT/config.yml"
+        )
     search = search or PoseSearch()
     gen = tie_generator(seed)
     names = list(names) if names is not None else [f"image/{i:04d}" for i in range(len(images))]
