@@ -60,3 +60,25 @@ def write_page(output: Path, res: Dict[str, Any], page: Callable[[Dict[str, Any]
     output.with_suffix(".json").write_text(json.dumps(res, indent=1) + "\n")
     output.write_text(page(res))
     print(f"wrote {output}")
+
+
+def suspect_summary(rows: List[Dict[str, Any]], threshold: int, num_bits: int = 48) -> Dict[str, Any]:
+    """One suspect's rows (each with ``matches``) as ns-verify-owner would judge them: views, views passing at
+    ``threshold``, bit accuracy, min / median / max matches and the verdict (OWNED when half the views pass)."""
+    import statistics
+
+    from gsticker_plugin import metrics
+
+    m = [r["matches"] for r in rows]
+    if not m:
+        return {"views": 0}
+    passing = sum(x >= threshold for x in m)
+    return {
+        "views": len(m),
+        "passing": passing,
+        "bit_acc": sum(m) / (num_bits * len(m)),
+        "min": min(m),
+        "median": statistics.median(m),
+        "max": max(m),
+        "verdict": "OWNED" if passing >= metrics.views_needed(len(m), 0.5) else "not shown",
+    }

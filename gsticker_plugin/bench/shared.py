@@ -24,7 +24,7 @@ from typing import Any, Dict, Tuple
 import torch
 import tyro
 
-from gsticker_plugin.bench import command_lines, provenance, write_page
+from gsticker_plugin.bench import command_lines, provenance, suspect_summary, write_page
 from gsticker_plugin.machine import config_under, console_script, recolor_into, run_logged
 
 RECOLORS: Tuple[str, ...] = (
@@ -159,19 +159,9 @@ def measure(args: Args) -> Dict[str, Any]:
 
 
 def summary(res: Dict[str, Any], label: str) -> Dict[str, Any]:
-    from gsticker_plugin import metrics
-
     rows = [r for r in res["rows"] if r["suspect"] == label]
-    m = [r["matches"] for r in rows]
-    passing = sum(x >= res["threshold"] for x in m)
     return {
-        "views": len(m),
-        "passing": passing,
-        "bit_acc": sum(m) / (48 * len(m)),
-        "min": min(m),
-        "median": statistics.median(m),
-        "max": max(m),
-        "verdict": "OWNED" if passing >= metrics.views_needed(len(m), 0.5) else "not shown",
+        **suspect_summary(rows, res["threshold"]),
         "psnr_vs_truth": statistics.mean(r["psnr_vs_truth"] for r in rows),
     }
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import statistics
 import sys
 import time
 from dataclasses import dataclass
@@ -26,7 +25,7 @@ import numpy as np
 import torch
 import tyro
 
-from gsticker_plugin.bench import command_lines, provenance, write_page
+from gsticker_plugin.bench import command_lines, provenance, suspect_summary, write_page
 from gsticker_plugin.machine import config_under
 
 
@@ -140,23 +139,11 @@ def result(args: Args, key, suspects, rows_path: Path) -> Dict[str, Any]:
 
 
 def summary(res: Dict[str, Any], label: str) -> Dict[str, Any]:
-    from gsticker_plugin import metrics
-
     rows = [r for r in res["rows"] if r["suspect"] == label]
-    m = [r["matches"] for r in rows]
-    if not m:
-        return {"views": 0}
-    passing = sum(x >= res["threshold"] for x in m)
-    return {
-        "views": len(m),
-        "passing": passing,
-        "bit_acc": sum(m) / (48 * len(m)),
-        "min": min(m),
-        "median": statistics.median(m),
-        "max": max(m),
-        "verdict": "OWNED" if passing >= metrics.views_needed(len(m), 0.5) else "not shown",
-        "camera_error_max": max(r["camera_error"] for r in rows),
-    }
+    out = suspect_summary(rows, res["threshold"])
+    if rows:
+        out["camera_error_max"] = max(r["camera_error"] for r in rows)
+    return out
 
 
 def page(res: Dict[str, Any]) -> str:
