@@ -267,7 +267,8 @@ FIELD_MARK_FIELDS: Dict[str, Tuple[type, ...]] = {
 }
 """What a key's field mark holds (:mod:`gsticker_plugin.shared`): the state-dict name of the marked hash table, its
 levels, the secret seed of the per-bit patterns, the amplitude and the table's initialization range (the patterns
-live on the rows training moved beyond it)."""
+live on the rows training moved beyond it). A mark in TensoRF's density planes adds ``host`` ("planes") and ``grid`` (the
+side of the coarse grid its smooth patterns are drawn on); its ``levels`` are empty."""
 
 
 def _check_fields(p: Dict[str, Any], version: int, path: Path) -> None:
