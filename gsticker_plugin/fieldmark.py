@@ -20,6 +20,7 @@ density MLP (:func:`parts`), so they work on any nerfacto-style field with the t
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence, Tuple
@@ -174,14 +175,22 @@ def geometry_of(outputs: Dict[str, Tensor]) -> Float[Tensor, "2 P"]:
     return torch.stack([acc, depth.reshape(-1) * acc])
 
 
+def live_samples(
+    density: Float[Tensor, "R S 1"], deltas: Float[Tensor, "R S 1"], min_transmittance: float, min_alpha: float
+) -> Tensor:
+    """[R S] bool: the samples that light reaches (transmittance above ``min_transmittance``) and that hold some
+    density (opacity above ``min_alpha``): the only ones a change of density can show in a render."""
+    tau = (density * deltas)[..., 0]
+    trans = torch.exp(-(torch.cumsum(tau, dim=-1) - tau))
+    return (trans > min_transmittance) & (tau > min_alpha)
+
+
 def field_view(model, camera, pats: Tensor, min_transmittance: float = 1e-3, min_alpha: float = 1e-4) -> FieldView:
     """Capture the base's view at ``camera`` and the per-bit features of the samples that light reaches and that hold
     some density (the others cannot change the render)."""
     outputs, smp = capture_samples(model, camera)
     dens, deltas = smp["density"], smp["deltas"]
-    tau = dens * deltas
-    trans = torch.exp(-(torch.cumsum(tau, dim=-2) - tau))[..., 0]
-    live = (trans > min_transmittance) & (tau[..., 0] > min_alpha)
+    live = live_samples(dens, deltas, min_transmittance, min_alpha)
     rays = live.any(-1).nonzero().squeeze(-1)
     encoder, mlp = parts(model.field)
     feats = torch.zeros(rays.numel(), dens.shape[1], pats.shape[0])
@@ -259,10 +268,11 @@ def planes_of(field: nn.Module) -> nn.Module:
 def host_of(field: nn.Module) -> str:
     """Where a field's mark lives: ``hash`` (a nerfacto field's torch hash table) or ``planes`` (TensoRF's density
     planes); one-line error for any other field."""
-    if hasattr(getattr(getattr(field, "mlp_base", None), "model", None), "__getitem__"):
+    with contextlib.suppress(GStickerError):
         parts(field)
         return "hash"
-    if hasattr(getattr(field, "density_encoding", None), "plane_coef"):
+    with contextlib.suppress(GStickerError):
+        planes_of(field)
         return "planes"
     raise GStickerError(
         f"{type(field).__name__} carries no field mark: the field mark needs a nerfacto base with the torch "
@@ -431,9 +441,9 @@ def image_view(
 
     def field_forward(ray_samples, *args, **kwargs):
         out = original_field(ray_samples, *args, **kwargs)
-        tau = (out[FieldHeadNames.DENSITY] * ray_samples.deltas)[..., 0].detach()
-        trans = torch.exp(-(torch.cumsum(tau, dim=-1) - tau))
-        state["live"] = (trans > min_transmittance) & (tau > min_alpha)
+        state["live"] = live_samples(
+            out[FieldHeadNames.DENSITY].detach(), ray_samples.deltas, min_transmittance, min_alpha
+        )
         return out
 
     h, w = int(camera.height[0, 0]), int(camera.width[0, 0])

@@ -144,25 +144,25 @@ def resume_key(ckpt: Path, run_cfg, key_path: Optional[Path]) -> Tuple[Path, Own
     )
 
 
-def field_markable(model_config) -> bool:
-    """Whether a base's model config builds a density field the field mark can live in: a torch hash table
-    (nerfacto) or vector-matrix density planes (TensoRF)."""
+def field_host(model_config) -> Optional[str]:
+    """Where a base's field mark would live: ``hash`` (nerfacto with the torch implementation), ``planes`` (TensoRF,
+    vector-matrix), None (no field mark for this model)."""
     from nerfstudio.models.nerfacto import NerfactoModelConfig
     from nerfstudio.models.tensorf import TensoRFModelConfig
 
     if isinstance(model_config, TensoRFModelConfig):
-        return model_config.tensorf_encoding == "vm"
-    return isinstance(model_config, NerfactoModelConfig) and model_config.implementation == "torch"
+        return "planes" if model_config.tensorf_encoding == "vm" else None
+    if isinstance(model_config, NerfactoModelConfig) and model_config.implementation == "torch":
+        return "hash"
+    return None
 
 
 def chosen_mark(choice: str, model_config) -> str:
     """``--pipeline.mark`` resolved for a base: field or sticker (one-line error for a field mark it cannot host)."""
+    host = field_host(model_config)
     if choice == "auto":  # TensoRF's field mark is taken on request until its benchmark has run
-        from nerfstudio.models.tensorf import TensoRFModelConfig
-
-        tensorf = isinstance(model_config, TensoRFModelConfig)
-        return "field" if field_markable(model_config) and not tensorf else "sticker"
-    if choice == "field" and not field_markable(model_config):
+        return "field" if host == "hash" else "sticker"
+    if choice == "field" and host is None:
         raise GStickerError(
             f"the field mark needs a nerfacto base with the torch implementation or a TensoRF base (vector-matrix), not "
             f"{type(model_config).__name__}; "

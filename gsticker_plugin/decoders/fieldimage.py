@@ -26,7 +26,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from gsticker_plugin import fieldmark as FM
-from gsticker_plugin.decoders.fit import fit_and_decide, fit_summary, tie_generator
+from gsticker_plugin.decoders.fit import fit_and_decide, fit_summary, left_after, tie_generator
 from gsticker_plugin.decoders.image import image_at_rays, without_columns
 from gsticker_plugin.decoders.pose import (
     PoseSearch,
@@ -63,11 +63,6 @@ def decode_image_view(
         rest = (target - j @ fit.signs).double()
         out["column_step"] = torch.linalg.lstsq(columns.double(), rest[:, None]).solution[:, 0].tolist()
     return out
-
-
-def left_after(d: Dict[str, Any]) -> float:
-    """What a fit leaves of its target (RMS)."""
-    return d["residual_rms"] * max(0.0, 1.0 - d["explained"]) ** 0.5
 
 
 def read_at_camera(

@@ -209,6 +209,11 @@ def fit_and_decide(
     return fit, bits, undetermined
 
 
+def left_after(summary: Dict[str, Any]) -> float:
+    """What a fit leaves of its target (RMS), from its :func:`fit_summary`."""
+    return summary["residual_rms"] * max(0.0, 1.0 - summary["explained"]) ** 0.5
+
+
 def fit_summary(fit: Fit, undetermined: int, rays: int) -> Dict[str, Any]:
     """The per-view fit details the colour and image decoders report."""
     return {

@@ -20,7 +20,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from gsticker_plugin.decoders.colormap import ColorMap, fit_color_map, map_columns, mapped_colors, scene_clusters
-from gsticker_plugin.decoders.fit import tie_generator
+from gsticker_plugin.decoders.fit import left_after, tie_generator
 from gsticker_plugin.decoders.image import (
     DEGRADATION_GRID,
     Degradation,
@@ -352,7 +352,7 @@ def decode_unposed_images(
             d = decode_image_view(ref, st, y, gen, iterations, value=value, pose_columns=cols)
             step = torch.tensor(d.pop("pose_step"))[:6]
             mark = d.pop("mark_change")
-            left = d["residual_rms"] * max(0.0, 1.0 - d["explained"]) ** 0.5  # what the joint fit leaves
+            left = left_after(d)  # what the joint fit leaves
             d["color_map"] = cmap is not None
             if best is None or left < best[0]:
                 best = (left, d, camera, k + 1, ref, ref_view)

@@ -396,9 +396,14 @@ def _run_extractor(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], devi
             "binomial null does not hold: use --decode geometry or --decode image"
         )
     if config.load_config is not None:
-        cfg = config
         views = model_views(
-            cfg.load_config, cfg.num_views, cfg.sampled_share, cfg.seed, cfg.data, device, progress=cfg.progress
+            config.load_config,
+            config.num_views,
+            config.sampled_share,
+            config.seed,
+            config.data,
+            device,
+            progress=config.progress,
         )
     else:
         views = images_views(config.images, config.max_side, config.min_side, config.max_pixels, config.progress)
