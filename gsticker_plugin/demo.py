@@ -57,7 +57,7 @@ class DemoConfig:
     blind: bool = False
     """Mark with the trained sticker (`--pipeline.mark sticker`) instead of the default field mark, and also train
     and read the blind extractor (its bits on the test views, its empirical null, its verdicts); it does not learn
-    the message yet (docs/geometrysticker.md, Status)."""
+    the message yet (docs/experiments/sticker-notes.md, Status)."""
 
 
 def _run(cmd: List[str], log: Path, ok: tuple = (0,)) -> int:
@@ -191,7 +191,7 @@ def main(cfg: DemoConfig) -> None:
     }
     verdicts = verify_stage(out / "verify", logs, key_path, suspects, {"geometry": cfg.geometry_views})
     # The blind extractor for comparison, on the watermarked run and the base (recolored runs add nothing while it
-    # does not learn the message; docs/geometrysticker.md, Status).
+    # does not learn the message; docs/experiments/sticker-notes.md, Status).
     blind = (
         verify_stage(
             out / "verify",
@@ -220,7 +220,7 @@ def main(cfg: DemoConfig) -> None:
     print(
         "\nNote: the geometric decoder is informed: it needs the owner's unwatermarked base run and reads models, not\n"
         "images (docs/verify.md). The blind extractor (images alone) does not yet learn the 48-bit message on a CPU\n"
-        "budget (docs/geometrysticker.md, Status); --blind adds its honest 'not shown' verdicts to this demo."
+        "budget (docs/experiments/sticker-notes.md, Status); --blind adds its honest 'not shown' verdicts to this demo."
     )
 
 

@@ -233,19 +233,6 @@ def render_signs(
     )
 
 
-@torch.no_grad()
-def sign_jacobian(view: ViewCache, wrap, num_bits: int, background: Tensor, eps: float = 1e-2) -> Tensor:
-    """R[b] = dI/ds_b at s = 0 by central differences: the render's per-bit change [K H W 3] (unclamped)."""
-    rows = []
-    for b in range(num_bits):
-        e = torch.zeros(num_bits)
-        e[b] = eps
-        plus = render_signs(view, wrap, e, background, clamp=False)
-        minus = render_signs(view, wrap, -e, background, clamp=False)
-        rows.append((plus - minus) / (2 * eps))
-    return torch.stack(rows)
-
-
 def sign_gram(view: ViewCache, wrap, message: Tensor, background: Tensor, blur: float = 0.0) -> Float[Tensor, "K K"]:
     """``J^T J`` of the render's per-bit change at the corner ``message``: J[(r, c), b] = d colour / d s_b of every
     active ray and channel (the informed image decoder's columns there). Differentiable in the sticker's weights

@@ -306,7 +306,7 @@ class FuseConfig:
     keep_other: float = 0.1
     """Share of the empty rays (nothing seen, no sample changed) kept in the pool."""
     steps: int = 800
-    """Distillation steps (defaults: the lego100 measurement of docs/bench-fuse.md)."""
+    """Distillation steps (defaults: the lego100 measurement of docs/experiments/bench-fuse.md)."""
     rays_per_step: int = 1024
     lr: float = 3e-4
     """Adam learning rate of the student's final field (hash grid and MLPs), decayed to lr_final."""

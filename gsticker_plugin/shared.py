@@ -31,7 +31,7 @@ DEFAULT_LEVELS: Tuple[int, ...] = (0, 1, 2, 3)
 """Hash levels the per-bit patterns live on: the coarse ones, so each bit spreads over the whole object."""
 DEFAULT_AMPLITUDE = 0.01
 """Pattern amplitude on a hash table: on the lego100 nerfacto-small base, 48/48 bits on 25 test views at 50.3 dB
-render PSNR vs the base (docs/bench-fieldmark.md)."""
+render PSNR vs the base (docs/experiments/bench-fieldmark.md)."""
 
 DEFAULT_PLANES_AMPLITUDE = 0.03
 """Pattern amplitude on TensoRF's density planes (their entries spread ~0.34 on the lego100 tensorf-small base)."""

@@ -139,7 +139,7 @@ class Sticker(nn.Module):
     ``kind="bilinear"`` (default) keeps the same MLP trunk on gamma(x) but mixes the message in linearly:
     ``m = tanh(<f(gamma(x)), 2M - 1> / sqrt(K))``, i.e. every bit owns a learned 3D pattern on the cover
     media and its sign flips that pattern. The extractor then faces a (nearly) linear decoding problem,
-    which it learns in a few hundred steps instead of thousands (docs/geometrysticker.md).
+    which it learns in a few hundred steps instead of thousands (docs/experiments/sticker-notes.md).
     """
 
     def __init__(
@@ -225,28 +225,6 @@ class FoldedSticker(nn.Module):
 
     def forward(self, positions01: Float[Tensor, "N 3"]) -> Float[Tensor, "N 1"]:
         return torch.tanh(self.mlp(self.pos_in(positional_encoding(positions01, self.num_frequencies))))
-
-
-class BlindTerm(nn.Module):
-    """The per-key blind sticker term: ``amplitude * tanh(MLP(gamma(x)))`` for one fixed message, trained so the
-    frozen blind extractor reads that message from renders. The informed decoders never read it."""
-
-    def __init__(self, num_frequencies: int = 6, hidden_dim: int = 32, amplitude: float = 1.0) -> None:
-        super().__init__()
-        self.num_frequencies = num_frequencies
-        self.amplitude = amplitude
-        self.mlp = nn.Sequential(
-            nn.Linear(3 + 6 * num_frequencies, hidden_dim),
-            nn.ReLU(),
-            nn.Linear(hidden_dim, hidden_dim),
-            nn.ReLU(),
-            nn.Linear(hidden_dim, 1),
-        )
-        nn.init.uniform_(self.mlp[-1].weight, -0.1, 0.1)
-        nn.init.zeros_(self.mlp[-1].bias)
-
-    def forward(self, positions01: Float[Tensor, "N 3"]) -> Float[Tensor, "N 1"]:
-        return self.amplitude * torch.tanh(self.mlp(positional_encoding(positions01, self.num_frequencies)))
 
 
 @dataclass

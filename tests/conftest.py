@@ -278,8 +278,9 @@ def synthetic_reference_view(st, r: int = 600, s: int = 24, seed: int = 0, with_
     )
 
 
-def tiny_view_and_wrap(k=6):
-    """A 4x4 view whose 16 rays each cross 8 samples, a calibrated gate and a bilinear sticker."""
+def tiny_view_and_wrap(k=6, seed=0):
+    """A 4x4 view whose 16 rays each cross 8 samples, a calibrated gate and a bilinear sticker (its weights drawn
+    from ``seed``)."""
     import torch  # after triton (above)
 
     from gsticker_plugin.fastpath import ViewCache, render_signs
@@ -296,7 +297,9 @@ def tiny_view_and_wrap(k=6):
         density=density,
         rgb=torch.rand(n, s, 3, generator=g),
     )
-    sticker, gate = Sticker(num_bits=k, num_frequencies=2, hidden_dim=8, init_scale=0.5), Gate()
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        sticker, gate = Sticker(num_bits=k, num_frequencies=2, hidden_dim=8, init_scale=0.5), Gate()
     gate.calibrate(density, torch.ones_like(density), quantile=0.3, amplitude=1.0)
     field = torch.nn.Module()
     field.get_density = lambda *a, **kw: None

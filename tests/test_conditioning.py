@@ -6,8 +6,9 @@ from conftest import tiny_view_and_wrap
 from gsticker_plugin.fastpath import condition_term, noise_variance, render_signs, sign_gram
 
 
-def _per_bit_changes(view, wrap, message, bg, eps: float = 1e-3):
-    """The render's change per bit at the corner ``message`` by float32 central differences: ``[K H W 3]``."""
+def _per_bit_changes(view, wrap, message, bg, eps: float = 1e-2):
+    """The render's change per bit at the corner ``message`` by float32 central differences: ``[K H W 3]`` (a step of
+    1e-2: its second-order error is far below the float32 rounding of a smaller step, which failed 6 sticker inits in 30)."""
     signs = message.float() * 2 - 1
     changes = []
     for b in range(signs.numel()):
@@ -78,3 +79,10 @@ def test_the_gram_stats_give_each_bits_noise_deviation_and_flag_collinear_bits()
     assert st["bits_std_below_0.4"] == 3
     collinear = torch.tensor([[1.0, 1.0, 0.0], [0.0, 1e-3, 0.0], [0.0, 0.0, 1.0]])
     assert gram_stats(collinear, 0.1)["bit_std_median"] > 50 * gram_stats(orthogonal, 0.1)["bit_std_median"]
+
+
+def test_render_signs_at_zero_is_the_clean_render_and_moves_with_the_signs():
+    view, wrap, bg = tiny_view_and_wrap()
+    clean = view.image
+    assert torch.allclose(render_signs(view, wrap, torch.zeros(6), bg), clean)
+    assert not torch.allclose(render_signs(view, wrap, torch.ones(6), bg), clean)

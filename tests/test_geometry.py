@@ -358,7 +358,7 @@ def test_auto_decoder_and_explicit_extractor(runs, ws, capsys):
         ],
         capsys,
     )
-    # the blind extractor cannot read a 10-step run (docs/geometrysticker.md): exactly "not shown"
+    # the blind extractor cannot read a 10-step run (docs/experiments/sticker-notes.md): exactly "not shown"
     assert status == 1 and report_of(out)["decoder"]["kind"] == "extractor" and "decoder: extractor (blind" in stdout
     # auto without a reachable base: the extractor, and the report says why
     moved = rewrite_key(
@@ -758,7 +758,7 @@ def test_verify_images_at_known_cameras_with_the_image_decoder(runs, ws, capsys,
     assert status == 1 and r["empirical_null"]["n"] == 2 and r["thresholds"]["empirical"] is not None, stdout
     # without cameras the image decoder searches each image's camera against the base. On this 32 px scene many
     # poses look alike (the search's accuracy is tested on an analytic scene in test_pose.py and measured on lego100
-    # in docs/bench-unposed.md), so here: the camera found explains each unmarked render of the base (small pose
+    # in docs/experiments/bench-unposed.md), so here: the camera found explains each unmarked render of the base (small pose
     # residual), the unmarked images stay below the threshold, and the report says the cameras were estimated.
     # Bad input: one line, exit 2.
     unposed = ws / "suspect-unposed"

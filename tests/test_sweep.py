@@ -141,7 +141,7 @@ def test_the_command_line_names_the_image_views_and_attacks_only_when_asked():
     cfg = SweepConfig(load_checkpoint=Path("b.ckpt"), image_views=24, image_attacks=("clean", "hue=~0.5"))
     md = markdown(cfg, [row], "today", "cpu")
     assert (
-        "--work-dir outputs/bench-sweep --image-views 24 --image-attacks clean hue=~0.5 --output docs/bench-sweep.md`"
+        "--work-dir outputs/bench-sweep --image-views 24 --image-attacks clean hue=~0.5 --output docs/experiments/bench-sweep.md`"
         in md
     )
     assert "--camera-seed" not in md  # bench.unposed's default seed is left out

@@ -15,7 +15,7 @@ brightness pattern) is kept.
 
 The end-to-end tests train a tiny nerfacto base and a tiny ``geometrysticker`` run on the 32 px tiny scene
 (like tests/test_geometrysticker.py) and check that ``verify`` and ``calibrate`` run on real runs and write
-sane reports. The blind extractor of such a 10-step run has not learned the message (docs/geometrysticker.md,
+sane reports. The blind extractor of such a 10-step run has not learned the message (docs/experiments/sticker-notes.md,
 "Status"), so on it ``--decode extractor`` must answer exactly "not shown" (exit 1) with every view below the
 threshold and the median at chance: it claims nothing it cannot show. The informed geometric decoder
 (``--decode geometry``, the default for a model with a version-2 key whose base is reachable; more in

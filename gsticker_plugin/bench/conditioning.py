@@ -52,7 +52,7 @@ class BenchConditioningConfig:
     """Image noise std of the bits' estimate deviation."""
     camera_seed: int = 12345
     num_views: int = 24
-    output: Path = Path("docs/bench-conditioning.md")
+    output: Path = Path("docs/experiments/bench-conditioning.md")
 
 
 def gram_stats(jac: torch.Tensor, noise: float) -> Dict[str, float]:

@@ -46,7 +46,7 @@ class Args:
     recolor: Tuple[str, ...] = ()
     """ns-recolor edits of the first amplitude's marked run, read like it: each `SUBCOMMAND:ARG ARG`, e.g.
     'palette:--set 0=blue' 'hue:--shift 0.25'."""
-    output: Path = Path("docs/bench-fieldmark.md")
+    output: Path = Path("docs/experiments/bench-fieldmark.md")
 
 
 def write_marked_run(base_cfg: Path, table, work: Path, name: str) -> Path:

@@ -1,5 +1,5 @@
 """Does the geometric decoder still read a *fused* export (a stock run of the base's method, distilled from the
-watermarked run)? Writes docs/bench-fuse.md and docs/bench-fuse.json.
+watermarked run)? Writes docs/experiments/bench-fuse.md and docs/experiments/bench-fuse.json.
 
     python -m gsticker_plugin.bench.fuse --load-config outputs/fuse/wm/geometrysticker/run/config.yml \\
         --key outputs/fuse/wm.gskey --output-dir outputs/fuse
@@ -65,7 +65,7 @@ class BenchFuseConfig:
     """Eval cameras for the PSNR comparison."""
     verify_watermarked: bool = True
     """Also verify the watermarked run itself (the reference row)."""
-    doc: Path = Path("docs/bench-fuse.md")
+    doc: Path = Path("docs/experiments/bench-fuse.md")
     """Markdown report; the JSON goes beside it."""
 
 

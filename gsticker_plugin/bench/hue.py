@@ -51,7 +51,7 @@ class BenchHueConfig:
     shifts: Tuple[float, ...] = (0.0, 0.1, 0.25, -0.25, 0.5)
     """Hue shifts in turns (0.5 = 180 degrees)."""
     seed: int = 0
-    output: Path = Path("docs/bench-hue.md")
+    output: Path = Path("docs/experiments/bench-hue.md")
     """The page; its JSON goes beside it."""
 
 

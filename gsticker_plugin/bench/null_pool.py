@@ -1,7 +1,7 @@
 """The null of several images-alone pages together: their unmarked images, each image counted once.
 
-    python -m gsticker_plugin.bench.null_pool --pages docs/bench-unposed-evened.json docs/bench-unposed-evened-b.json \\
-        --output docs/bench-null-pool.md
+    python -m gsticker_plugin.bench.null_pool --pages docs/experiments/bench-unposed-evened.json docs/experiments/bench-unposed-evened-b.json \\
+        --output docs/experiments/bench-null-pool.md
 
 Reads the per-image rows that :mod:`gsticker_plugin.bench.unposed` wrote into each page's JSON. An unmarked image
 (a row of :data:`~gsticker_plugin.bench.unposed_page.NULL_IMAGES`) is named by its row and index, the same image on
@@ -31,7 +31,7 @@ class NullPoolConfig:
 
     pages: Tuple[Path, ...]
     """The pages' JSON files (``bench.unposed``'s), the first one's other keys and readings first."""
-    output: Path = Path("docs/bench-null-pool.md")
+    output: Path = Path("docs/experiments/bench-null-pool.md")
     """The page; its JSON and chart go beside it."""
 
 

@@ -1,14 +1,14 @@
 """Benchmark the base presets: train each with stock Nerfstudio, time it, and score it on the test split.
 
     python -m gsticker_plugin.bench.presets --data ../shared/data/lego100 \\
-        --presets gsticker-nerfacto-small gsticker-tensorf-small --output docs/presets.md
+        --presets gsticker-nerfacto-small gsticker-tensorf-small --output docs/experiments/presets.md
 
 For every preset this runs the real training loop (Nerfstudio's ``Trainer`` built from the preset's
 ``MethodSpecification``, as ``ns-train PRESET --machine.device-type cpu --vis tensorboard`` would), then loads
 the saved ``config.yml`` and checkpoint again (as ``ns-eval``/``ns-render`` would), renders the first N views of
 the Blender test split and scores them (PSNR against the ground truth composited on white). It writes a
 Markdown table (preset, parameters, s/iteration, test PSNR, minutes, iterations) with the exact command and
-the machine, and the same numbers as JSON beside it (``docs/presets.json``).
+the machine, and the same numbers as JSON beside it (``docs/experiments/presets.json``).
 
 ``--quick`` (20 iterations, 3 test views) checks the whole path in well under a minute on a tiny scene.
 """
@@ -51,7 +51,7 @@ class BenchConfig:
     """Blender-format scene (transforms_{train,val,test}.json)."""
     presets: Tuple[str, ...] = DEFAULT_PRESETS
     """Registered Nerfstudio method names to benchmark (ours or stock)."""
-    output: Path = Path("docs/presets.md")
+    output: Path = Path("docs/experiments/presets.md")
     """Markdown report; the JSON goes beside it with the suffix .json."""
     output_dir: Path = Path("outputs/bench-presets")
     """Where the training runs (config.yml, checkpoints, tensorboard events) are written."""

@@ -41,7 +41,7 @@ class Args:
     """Its dataset folder."""
     seeds: int = 8
     """Seeds 0..N-1 tried beside each run's machine.seed."""
-    output: Path = Path("docs/bench-recipient.md")
+    output: Path = Path("docs/experiments/bench-recipient.md")
     """The page (its JSON is written beside it)."""
 
 

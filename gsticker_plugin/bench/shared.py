@@ -63,7 +63,7 @@ class Args:
     """ns-recolor edits of the shared run: each `SUBCOMMAND:ARG ARG`."""
     mark: str = "auto"
     """--pipeline.mark of the shared run (field: TensoRF's field mark, taken on request)."""
-    output: Path = Path("docs/bench-shared.md")
+    output: Path = Path("docs/experiments/bench-shared.md")
     page_only: bool = False
     """Rewrite the page from OUTPUT's JSON (no measuring)."""
 

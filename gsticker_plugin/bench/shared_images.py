@@ -44,7 +44,7 @@ class Args:
     """Independently trained bases of the same scene (config.yml)."""
     seed: int = 20261208
     """Decoding seed."""
-    output: Path = Path("docs/bench-shared-images.md")
+    output: Path = Path("docs/experiments/bench-shared-images.md")
     page_only: bool = False
     """Rewrite the page from OUTPUT's JSON (no measuring)."""
     rows_only: bool = False

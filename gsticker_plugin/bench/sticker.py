@@ -2,7 +2,7 @@
 
     python -m gsticker_plugin.bench.sticker \
         --load-checkpoint ../shared/checkpoints/lego100-nerfacto-small/nerfacto/base/nerfstudio_models/step-000002999.ckpt \
-        --output docs/bench-sticker.md
+        --output docs/experiments/bench-sticker.md
 
 Runs, in one process on the same base and the same held-out views, each configuration for a wall-clock
 budget, and prints steps/s and the time to >= 99% held-out bit accuracy (owner message, no attack).
@@ -50,7 +50,7 @@ class StickerBenchConfig:
     monitor_views: int = 8
     pool_cache: Optional[Path] = Path("outputs/bench-sticker/pool.pt")
     """Rendered pool kept here so every variant (and reruns) use the same views."""
-    output: Path = Path("docs/bench-sticker.md")
+    output: Path = Path("docs/experiments/bench-sticker.md")
     """Markdown report (a JSON file is written beside it)."""
     append: bool = False
     """Keep the variants already in the JSON beside --output and add (or replace) these."""

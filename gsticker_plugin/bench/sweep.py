@@ -2,7 +2,7 @@
 
     python -m gsticker_plugin.bench.sweep \\
         --load-checkpoint ../shared/checkpoints/lego100-nerfacto-small/nerfacto/base/nerfstudio_models/step-000002999.ckpt \\
-        --data ../shared/data/lego100 --output docs/bench-sweep.md
+        --data ../shared/data/lego100 --output docs/experiments/bench-sweep.md
 
 For each variant (sticker width, message length, share of samples under the gate, image resolution) it runs
 ``ns-train geometrysticker`` on the same frozen base, keeping a checkpoint every ``--save-every`` steps, then for
@@ -18,7 +18,7 @@ training time, and bit accuracy against PSNR, per variant), and names the smalle
 reaches the targets.
 The heads variants change the extractor and classifier that train beside the sticker (none, 8 wide, the paper's
 VGG16 shape): what they cost per step and whether the informed decoders' numbers depend on them. The blind
-extractor's own accuracy stays at chance for every configuration this CPU can train (docs/bench-sticker.md).
+extractor's own accuracy stays at chance for every configuration this CPU can train (docs/experiments/bench-sticker.md).
 """
 
 from __future__ import annotations
@@ -129,7 +129,7 @@ class SweepConfig:
     """Per-view false-positive rate of the verdict threshold."""
     target_bit_acc: float = 0.99
     target_psnr: float = 35.0
-    output: Path = Path("docs/bench-sweep.md")
+    output: Path = Path("docs/experiments/bench-sweep.md")
     """Markdown table; the .json and .png beside it."""
     work_dir: Path = Path("outputs/bench-sweep")
     """Where the runs and logs go (a variant whose final checkpoint exists is not retrained)."""

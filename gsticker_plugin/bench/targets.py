@@ -10,7 +10,7 @@
    decoder's reference render, the same pixels as the run with its sticker off) and with the ground truth. Per-view
    rows are appended to ``views.jsonl`` as they finish, so an interrupted run resumes.
 
-Writes the page ``--output`` (default ``docs/bench-targets.md``: the targets of the sticker issue, 48 bits, >= 99.5 %
+Writes the page ``--output`` (default ``docs/experiments/bench-targets.md``: the targets of the sticker issue, 48 bits, >= 99.5 %
 bit accuracy over all test views, >= 35 dB watermarked vs unwatermarked, test PSNR within 0.3 dB of the base, <= 15
 min of training, each with the measured number and met / not met), beside it a JSON of the same stem holding every
 number the page prints, and a PNG chart; ``results.json`` in ``--output-dir`` keeps the training record for resuming.
@@ -47,7 +47,7 @@ class BenchTargetsConfig(StickerRunConfig):
 
     output_dir: Path = Path("outputs/bench-targets")
     """Where the run, the per-view rows and the training record are written."""
-    output: Path = Path("docs/bench-targets.md")
+    output: Path = Path("docs/experiments/bench-targets.md")
     """The page; the JSON with every number it prints (same stem, ``.json``) and the chart (``.png``) go beside it."""
     steps: int = 300
     """Sticker training steps."""

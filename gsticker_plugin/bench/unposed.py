@@ -93,7 +93,7 @@ class BenchUnposedConfig:
     """Write the page from the images already decoded in ``--work-dir`` (rows not reached are left out), decode
     nothing; the held-out views' PSNR comes from the work dir, else from the page's own JSON, else a render."""
     work_dir: Path = Path("outputs/bench-unposed")
-    output: Path = Path("docs/bench-unposed.md")
+    output: Path = Path("docs/experiments/bench-unposed.md")
     """The page; its JSON goes beside it."""
 
 
