@@ -218,9 +218,9 @@ def main(cfg: DemoConfig) -> None:
     print(f"  verdict reports:     {out / 'verify'}/*/report.json, report.png")
     print(f"  summary:             {out / 'demo_summary.json'}")
     print(
-        "\nNote: the geometric decoder is informed: it needs the owner's unwatermarked base run and reads models, not\n"
-        "images (docs/verify.md). The blind extractor (images alone) does not yet learn the 48-bit message on a CPU\n"
-        "budget (docs/experiments/sticker-notes.md, Status); --blind adds its honest 'not shown' verdicts to this demo."
+        "\nNote: the decoders are informed: they need the owner's unwatermarked base run. Pictures of the shared run\n"
+        "are read too: ns-verify-owner --images DIR --key KEY (docs/verify.md). The blind extractor (no base) does not\n"
+        "learn the 48-bit message on a CPU budget; --blind adds its honest 'not shown' verdicts to this demo."
     )
 
 

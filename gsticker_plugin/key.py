@@ -4,8 +4,8 @@ Holds the message, the extractor and classifier, the base run's reference, the g
 gates) for the informed decoders, how the message was drawn, a secret, a commitment salt and an HMAC over the rest
 (an integrity check, version 3), (version 4) the owner's Ed25519 public key with a signature over the key's
 commitment (authorship: only the holder of the owner identity can sign), and (version 5) the field mark's settings
-(levels, secret pattern seed, amplitude) when the shared run carries the mark in its own field. Written atomically. docs/verify.md has the
-threat model.
+(levels, secret pattern seed, amplitude) when the shared run carries the mark in its own field. Written atomically. docs/threat-model.md
+says what each part proves.
 
 The owner *identity* is an Ed25519 private key in its own file (``$GSTICKER_IDENTITY``, else ``owner.ed25519`` in
 the keys folder), created on first use with mode 0600 and reused for every key of that owner; it never enters a key

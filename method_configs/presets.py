@@ -2,7 +2,7 @@
 
 "Model no more than a scene needs": stock nerfacto (2^19-entry hash grids, 4096 rays) costs ~7 s per
 iteration on a 2-core CPU; these presets keep the stock model classes and only shrink their sizes.
-Measured numbers: docs/presets.md (``python -m gsticker_plugin.bench.presets``).
+Measured numbers: docs/experiments/presets.md (``python -m gsticker_plugin.bench.presets``).
 """
 
 from __future__ import annotations

@@ -40,8 +40,6 @@ def test_the_quick_start_copied_verbatim_reaches_an_owned_verdict_on_the_cpu(tmp
         env.pop(name, None)
     env["CUDA_VISIBLE_DEVICES"] = ""  # a CPU-only machine: the presets must pick the CPU themselves
     for line in quick_start(ROOT / "README.md"):
-        proc = subprocess.run(
-            ["bash", "-c", line], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=1200
-        )
+        proc = subprocess.run(["bash", "-c", line], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=1200)
         assert proc.returncode == 0, f"{line}\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}"
     assert "VERDICT: OWNED" in proc.stdout

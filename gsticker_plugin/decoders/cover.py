@@ -6,7 +6,7 @@ only the mark gone. The fit over the whole image then mixes the bits through the
 every pixel's gain from predicting no mark (``|change - mark|^2 - |change|^2``, positive where the image holds less
 of the mark than predicted) is summed over the best rectangle (:func:`max_sum_rectangle`); the rectangle is left out
 of a second fit when that sum stands far above what the residual's noise can make (:data:`COVER_Z`). The rule sees
-the image, the base and the sticker only, never the message (docs/verify.md).
+the image, the base and the sticker only, never the message (docs/experiments/verify-notes.md).
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ field and renderer, differentiated). Per image:
 
 Neither step reads the message: for an image that does not carry it the bits are independent of it, and with the
 message uniformly random and secret the matches are ``Binomial(K, 1/2)`` (the informed decoders' null,
-docs/verify.md).
+docs/experiments/verify-notes.md).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The camera of a suspect image, found against the owner's base: candidate poses, then Gauss-Newton on the pixels.
 
-The informed image decoder needs each image's camera to a few hundredths of a pixel (docs/verify.md). Without a
+The informed image decoder needs each image's camera to a few hundredths of a pixel (docs/experiments/verify-notes.md). Without a
 cameras file, :func:`estimate_camera` scores the base's renders at candidate poses (its training cameras and novel
 ones drawn like the pool's) against the image at a few pixels' size, then refines the best ones by Levenberg-Marquardt
 on the photometric residual (6 pose parameters, finite-difference Jacobian of the base render) from coarse to full

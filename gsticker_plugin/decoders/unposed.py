@@ -4,7 +4,7 @@
 recoloured image's again with the base rendered through a colour map of its samples, :func:`recoloured_camera`),
 then the image decoder fits the message with the base render's pose Jacobian beside it, so what remains of the camera's
 error is fitted too (:func:`gsticker_plugin.decoders.image.without_columns`). Neither step sees the owner's message:
-the null is the informed decoders' (docs/verify.md).
+the null is the informed decoders' (docs/experiments/verify-notes.md).
 """
 
 from __future__ import annotations
