@@ -30,6 +30,8 @@ import tyro
 from jaxtyping import Float, Int, UInt8
 from tqdm import tqdm
 
+from gsticker_plugin.errors import GStickerError, print_error, run_command
+
 CAMERA_RADIUS = 4.0
 """Distance of every camera from the origin."""
 NEAR, FAR = 2.0, 6.0
@@ -47,7 +49,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tga", ".bmp", ".tif", ".tiff", ".ex
 SPLITS = ("train", "val", "test")
 
 
-class SceneError(Exception):
+class SceneError(GStickerError):
     """A problem with the user's input; the message is one line naming the problem and its fix."""
 
 
@@ -646,14 +648,11 @@ def main(config: SceneConfig, progress: bool = True) -> int:
         _commit(tmp, output)
         tmp = created = None
     except SceneError as exc:
-        print("error: " + " ".join(str(exc).split()), file=sys.stderr)  # always exactly one line
-        return 2
+        return print_error(str(exc))
     except OSError as exc:
-        message = f"writing the dataset failed ({exc}); check free space and permissions of {output.parent}"
-        print("error: " + " ".join(message.split()), file=sys.stderr)
-        return 2
+        return print_error(f"writing the dataset failed ({exc}); check free space and permissions of {output.parent}")
     except KeyboardInterrupt:
-        print("error: interrupted; no dataset was written (rerun the command to render it)", file=sys.stderr)
+        print_error("interrupted; no dataset was written (rerun the command to render it)")
         return 130
     finally:
         if in_main_thread:
@@ -668,7 +667,8 @@ def main(config: SceneConfig, progress: bool = True) -> int:
 
 def entrypoint() -> None:
     """Console script ``ns-gsticker-scene``."""
-    sys.exit(main(tyro.cli(SceneConfig)))
+    config = tyro.cli(SceneConfig)
+    sys.exit(run_command(lambda: main(config)))
 
 
 if __name__ == "__main__":

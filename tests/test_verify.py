@@ -546,7 +546,11 @@ def test_usage_errors_and_help(alice, dirs, ws, capsys):
         status, _, err = run_cli([*argv, "--output", str(ws / "rep-usage")], capsys)
         assert status == 2 and words in one_error_line(err), (argv, err)
     status, stdout, _ = run_cli(["--help"], capsys)
-    assert status == 0 and "--images" in stdout and "--keys" in stdout and "calibrate" in stdout
+    assert status == 0 and all(sub in stdout for sub in ("verify", "calibrate", "export-key", "commit"))
+    status, stdout, _ = run_cli(["verify", "--help"], capsys)
+    assert status == 0 and "--images" in stdout and "--keys" in stdout
+    status, _, _ = run_cli([], capsys)
+    assert status == 2  # no subcommand and no input: a usage error, not a verdict
     status, stdout, _ = run_cli(["calibrate", "--help"], capsys)
     assert status == 0 and "--random-images" in stdout and "--append" in stdout
 

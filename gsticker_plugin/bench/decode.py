@@ -29,7 +29,7 @@ import tyro
 from gsticker_plugin import compat
 from gsticker_plugin.decoders.geometric import decode_suspect
 from gsticker_plugin.decoders.reference import load_base_reference
-from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.errors import GStickerError, run_command
 from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.runs import load_run
 
@@ -149,11 +149,7 @@ def main(cfg: BenchDecodeConfig) -> Dict[str, Any]:
 
 def entrypoint() -> None:
     cfg = tyro.cli(BenchDecodeConfig)
-    try:
-        main(cfg)
-    except GStickerError as e:
-        print(f"error: {e}", file=sys.stderr)
-        raise SystemExit(2)
+    raise SystemExit(run_command(lambda: [main(cfg), 0][1]))
 
 
 if __name__ == "__main__":

@@ -7,7 +7,6 @@ Every stage is skipped when its output exists; ``--redo STAGE ...`` recomputes s
 
 from __future__ import annotations
 
-import sys
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +15,7 @@ from typing import Optional, Sequence, Tuple
 import tyro
 
 from gsticker_plugin import compat
-from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.errors import GStickerError, run_command
 from gsticker_plugin.evaluation.config import ALL_STAGES, load_protocol
 
 
@@ -67,12 +66,7 @@ def main(args: EvalArgs) -> int:
 
 def run(argv: Optional[Sequence[str]] = None) -> int:
     args = tyro.cli(EvalArgs, args=None if argv is None else list(argv), description=__doc__.split("\n\n")[0])
-    try:
-        return main(args)
-    except GStickerError as e:
-        sys.stderr.write(f"error: {e}\n")
-        sys.stderr.flush()
-        return 2
+    return run_command(lambda: main(args))
 
 
 def entrypoint() -> None:

@@ -1,41 +1,30 @@
 """``ns-verify-owner``: does a suspect model, or a folder of suspect images, carry an owner's message?
 
-Four subcommands (``verify`` is the default and may be left out)::
+Four subcommands, one dataclass each (:mod:`gsticker_plugin.verify.configs`) joined by a tyro Union; ``verify`` runs
+when no subcommand is named::
 
     ns-verify-owner [verify] (--load-config RUN/config.yml | --images DIR) (--key KEY.gskey | --keys DIR) [...]
     ns-verify-owner calibrate --key KEY.gskey [--load-config RUN/config.yml ...] [--images DIR ...] [...]
     ns-verify-owner export-key --load-config WATERMARKED_RUN/config.yml --key KEY.gskey [--output NEW.gskey]
-    ns-verify-owner commit --key KEY.gskey      (prints the key's commitment and public key; verify --commitment HEX
-                                                --public-key HEX checks them)
+    ns-verify-owner commit --key KEY.gskey
 
-``verify`` renders N views of a run (its own cameras and sampled orbit poses) or reads the images of a folder,
-decodes each view with the owner key's extractor, tests each view on its own against the binomial null
-(``P(X >= m)`` for ``X ~ Binomial(48, 1/2)``), and combines the per-view decisions with the vote of
-:func:`gsticker_plugin.metrics.combine_view_decisions` (never pooling bits across views). It prints the verdict
-first, writes ``report.json`` and ``report.png``, and exits 0 ("owned"), 1 ("not shown") or 2 (error).
-
-``calibrate`` decodes unmarked renders and images with a key and stores the observed null in the key (the key is
-rewritten atomically; the previous file is kept as ``KEY.gskey.bak``). ``verify`` then uses the stricter of the
-theoretical and the empirical per-view threshold and reports both. See docs/verify.md.
-
-Three decoders (``--decode``): the blind *extractor* (the key's CNN reads RGB renders or images), the informed
-*geometric* decoder (gsticker_plugin.decoders.geometric: fits the key's sticker to a suspect model's accumulation/depth against
-the owner's unwatermarked base run; models only) and the informed *image* decoder (gsticker_plugin.decoders.image:
-the same fit on the colour of images taken at known cameras, ``--images DIR --cameras transforms.json``). ``export-key`` adds the geometric decoder's reference (sticker,
-gates) to a version-1 key from the watermarked run it belongs to.
+``verify`` decodes views of the suspect with each key (:mod:`gsticker_plugin.verify.check`), tests each view on its
+own against the binomial null, combines the per-view decisions by a vote, prints the verdict first, writes
+``report.json`` and ``report.png``, and exits 0 ("owned"), 1 ("not shown") or 2 (error: one ``error:`` line, never
+a verdict). ``calibrate`` stores a measured null in the key; ``commit`` prints what to publish at release. See
+docs/verify.md.
 """
 
 from __future__ import annotations
 
 import sys
-import traceback
-from pathlib import Path
-from typing import Optional, Sequence
+from typing import Callable, Dict, Optional, Sequence, Union
 
 import tyro
+from typing_extensions import Annotated
 
 from gsticker_plugin import compat
-from gsticker_plugin.errors import GStickerError, print_error
+from gsticker_plugin.errors import run_command
 from gsticker_plugin.verify.configs import (  # noqa: F401 (the exit statuses are part of the command)
     EXIT_ERROR,
     EXIT_NOT_SHOWN,
@@ -46,86 +35,91 @@ from gsticker_plugin.verify.configs import (  # noqa: F401 (the exit statuses ar
     VerifyConfig,
 )
 
+SUBCOMMANDS = ("verify", "calibrate", "export-key", "commit")
+
+Commands = Union[
+    Annotated[VerifyConfig, tyro.conf.subcommand(name="verify")],
+    Annotated[CalibrateConfig, tyro.conf.subcommand(name="calibrate")],
+    Annotated[ExportKeyConfig, tyro.conf.subcommand(name="export-key")],
+    Annotated[CommitConfig, tyro.conf.subcommand(name="commit")],
+]
+"""One dataclass per subcommand; ``verify`` is also what runs when no subcommand is named."""
+
+
+def run_verify(cfg: VerifyConfig) -> int:
+    from gsticker_plugin.verify.check import verify
+    from gsticker_plugin.verify.report import summary_text
+
+    status, report = verify(cfg)
+    print(summary_text(report))
+    return status
+
+
+def run_calibrate(cfg: CalibrateConfig) -> int:
+    from gsticker_plugin.verify.calibrate import calibrate, calibrate_text
+
+    print(calibrate_text(calibrate(cfg)))
+    return 0
+
+
+def run_commit(cfg: CommitConfig) -> int:
+    from gsticker_plugin.verify.keys import commit
+
+    res = commit(cfg)
+    signed = bool(res["public_key"])
+    print(res["commitment"])
+    if signed:
+        print(res["public_key"])
+    print(
+        f"commitment of {res['key']}"
+        + (" (first line) and the owner's public key (second line)" if signed else "")
+        + ": publish or timestamp them when you release the model; later `ns-verify-owner --key "
+        f"{res['key']} --commitment HEX"
+        + (" --public-key HEX" if signed else "")
+        + " ...` shows this key existed then"
+        + (" and was signed by that identity" if signed else ""),
+        file=sys.stderr,
+    )
+    for c in res["null_caveats"]:
+        print(f"note: weaker claim: {c}", file=sys.stderr)
+    return 0
+
+
+def run_export_key(cfg: ExportKeyConfig) -> int:
+    from gsticker_plugin.verify.keys import export_key
+
+    res = export_key(cfg)
+    print(
+        f"wrote {res['key']}: geometry reference of {res['run']} (fields {', '.join(res['fields'])})"
+        + (f"; previous key kept as {res['backup']}" if res["backup"] else "")
+    )
+    return 0
+
+
+RUNNERS: Dict[type, Callable] = {
+    VerifyConfig: run_verify,
+    CalibrateConfig: run_calibrate,
+    CommitConfig: run_commit,
+    ExportKeyConfig: run_export_key,
+}
+
+
+def parse(argv: Sequence[str]) -> Union[VerifyConfig, CalibrateConfig, ExportKeyConfig, CommitConfig]:
+    """The subcommand's config from ``argv``; arguments that name no subcommand are ``verify``'s."""
+    argv = list(argv)
+    if argv[:1] and argv[0] not in SUBCOMMANDS and argv[0] not in ("-h", "--help"):
+        argv = ["verify", *argv]
+    return tyro.cli(Commands, args=argv, prog="ns-verify-owner", description=__doc__.split("\n\n")[0])  # type: ignore[call-overload]
+
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Parse ``argv`` (default ``sys.argv[1:]``), run, and return the exit status (0 owned, 1 not shown, 2 error)."""
-
-    # numpy scalars in keys/checkpoints (optimizer lr) under weights_only=True; offline-safe LPIPS for stock models
-    compat.apply()
-    argv = list(sys.argv[1:] if argv is None else argv)
-    sub = "verify"
-    if argv and argv[0] in ("verify", "calibrate", "export-key", "commit"):
-        sub, argv = argv[0], argv[1:]
+    compat.apply()  # numpy scalars in keys/checkpoints under weights_only=True; offline-safe LPIPS for stock models
     try:
-        if sub == "calibrate":
-            cfg = tyro.cli(CalibrateConfig, args=argv, prog="ns-verify-owner calibrate")
-        elif sub == "export-key":
-            cfg = tyro.cli(ExportKeyConfig, args=argv, prog="ns-verify-owner export-key")
-        elif sub == "commit":
-            cfg = tyro.cli(CommitConfig, args=argv, prog="ns-verify-owner commit")
-        else:
-            cfg = tyro.cli(
-                VerifyConfig,
-                args=argv,
-                prog="ns-verify-owner [verify]",
-                description=(VerifyConfig.__doc__ or "") + "\n\nSubcommands: verify (default), calibrate "
-                "(ns-verify-owner calibrate --help), export-key (adds the geometry reference to a "
-                "version-1 key), commit (prints the key's commitment to publish at release).",
-            )
+        cfg = parse(sys.argv[1:] if argv is None else argv)
     except SystemExit as e:  # --help (0) or a parse error (tyro prints it; status 2)
         return int(e.code) if isinstance(e.code, int) else EXIT_ERROR
-    # deferred: the commands pull in Nerfstudio (seconds, and its warnings): parse the arguments first
-    from gsticker_plugin.verify.calibrate import calibrate, calibrate_text
-    from gsticker_plugin.verify.check import verify
-    from gsticker_plugin.verify.keys import commit, export_key
-    from gsticker_plugin.verify.report import summary_text
-
-    try:
-        if sub == "calibrate":
-            res = calibrate(cfg)
-            print(calibrate_text(res))
-            return 0
-        if sub == "commit":
-            res = commit(cfg)
-            print(res["commitment"])
-            if res["public_key"]:
-                print(res["public_key"])
-            print(
-                f"commitment of {res['key']}"
-                + (" (first line) and the owner's public key (second line)" if res["public_key"] else "")
-                + ": publish or timestamp them when you release the model; later `ns-verify-owner --key "
-                f"{res['key']} --commitment HEX"
-                + (" --public-key HEX" if res["public_key"] else "")
-                + " ...` shows this key existed then"
-                + (" and was signed by that identity" if res["public_key"] else ""),
-                file=sys.stderr,
-            )
-            for c in res["null_caveats"]:
-                print(f"note: weaker claim: {c}", file=sys.stderr)
-            return 0
-        if sub == "export-key":
-            res = export_key(cfg)
-            print(
-                f"wrote {res['key']}: geometry reference of {res['run']} (fields {', '.join(res['fields'])})"
-                + (f"; previous key kept as {res['backup']}" if res["backup"] else "")
-            )
-            return 0
-        status, report = verify(cfg)
-        print(summary_text(report))
-        return status
-    except GStickerError as e:
-        return print_error(str(e))
-    except KeyboardInterrupt:
-        return print_error("interrupted; no verdict")
-    except MemoryError:
-        return print_error("out of memory while decoding; lower --max-side or --num-views")
-    except Exception as e:  # a crash is never a verdict: one line, exit 2
-        frames = traceback.extract_tb(e.__traceback__)
-        where = f" at {Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else ""
-        return print_error(
-            f"no verdict: {type(e).__name__}: {e}{where} (a failure inside ns-verify-owner, not a "
-            "negative verdict; rerun with the same inputs to reproduce and report it)"
-        )
+    return run_command(lambda: RUNNERS[type(cfg)](cfg), crash="no verdict")
 
 
 def entrypoint() -> None:
