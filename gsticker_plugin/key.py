@@ -209,7 +209,8 @@ COMMITTED_PARTS = ("message", "message_source", "heads_state", "geometry_sticker
 
 
 def commitment(key: "OwnerKey") -> str:
-    """sha256 over the salt and the key's secret parts (message, heads, sticker, base checksum, creation time):
+    """sha256 over the salt and the key's secret parts (message, heads, sticker or field mark, base checksum, creation
+    time):
     published or timestamped at release, it shows later that this key existed then. Stable across calibration."""
     if not key.salt:
         raise GStickerError(
@@ -224,6 +225,8 @@ def commitment(key: "OwnerKey") -> str:
         "base_sha256": (key.base or {}).get("checkpoint_sha256"),
         "created": key.created,
     }
+    if key.field_mark is not None:  # the secret pattern seed, amplitude and levels: no other seed can be claimed later
+        parts["field_mark"] = plain(key.field_mark)
     h = hashlib.sha256()
     h.update(b"gsticker-commitment-v1:" + bytes.fromhex(key.salt))
     _canonical_hash(parts, h)

@@ -71,3 +71,22 @@ def test_a_key_whose_field_mark_lacks_a_setting_or_has_the_wrong_type_is_refused
         path = field_mark_key(**bad).save(tmp_path / "bad.gskey")
         with pytest.raises(GStickerError, match="malformed field mark"):
             OwnerKey.load(path)
+
+
+def test_the_commitment_binds_the_field_mark_so_no_other_pattern_seed_can_be_claimed_later(tmp_path):
+    """A key signed with one pattern seed, then edited to another (to make some other model read as marked), no
+    longer matches its signed commitment and is refused."""
+    import dataclasses
+
+    import pytest
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+    from gsticker_plugin.errors import GStickerError
+    from gsticker_plugin.key import commitment
+
+    key = dataclasses.replace(field_mark_key(), salt="00" * 16)
+    key.sign(Ed25519PrivateKey.generate())
+    other = dataclasses.replace(key, field_mark={**key.field_mark, "pattern_seed": 8})
+    assert commitment(other) != commitment(key) and key.signed() and not other.signed()
+    with pytest.raises(GStickerError, match="signature"):
+        OwnerKey.load(other.save(tmp_path / "swapped.gskey"))
