@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from gsticker_plugin import metrics
-from gsticker_plugin.bench.unposed import BenchUnposedConfig, attacked, drawn_spec, folder_images, purify_steps
-from gsticker_plugin.bench.unposed_page import (
+from gsticker_plugin.bench.unposed import BenchUnposedConfig
+from gsticker_plugin.evaluation.held_out import attacked, drawn_spec, folder_images, purify_steps
+from gsticker_plugin.evaluation.unposed_page import (
     breaking_points,
     is_null_row,
     is_removal_row,
@@ -242,7 +243,7 @@ def test_a_cropout_row_pastes_the_clean_render_of_the_same_camera_or_paints_whit
 
 
 def test_the_summary_counts_each_route_an_image_was_read_through():
-    from gsticker_plugin.bench.unposed_page import summarize
+    from gsticker_plugin.evaluation.unposed_page import summarize
 
     row = {"matches": 40, "signals": ["rgb"], "seconds": 1.0}
     rows = [
@@ -261,7 +262,7 @@ def test_the_summary_counts_each_route_an_image_was_read_through():
 def test_an_image_with_nothing_to_read_is_left_out_of_the_null_mean_and_counts_zero_for_the_owner():
     """Every bit undetermined (no ray the gate reads at the camera found): a null row's mean is over the images read,
     with the unread one counted apart; a marked row keeps its 0 matches (never flattering the owner)."""
-    from gsticker_plugin.bench.unposed_page import read_nothing, summarize
+    from gsticker_plugin.evaluation.unposed_page import read_nothing, summarize
 
     row = {"signals": ["rgb"], "seconds": 1.0}
     rows = [{**row, "matches": 22, "bits": "01" * 24}, {**row, "matches": 26, "bits": "10" * 24}]
@@ -280,7 +281,7 @@ def test_a_page_rewritten_from_its_rows_keeps_the_recorded_psnr_and_draws_the_nu
     """--page-only on a work dir whose run has changed since: the page's own JSON keeps the PSNR it was decoded at."""
     from types import SimpleNamespace
 
-    from gsticker_plugin.bench.unposed_page import recorded_page, write_page
+    from gsticker_plugin.evaluation.unposed_page import recorded_page, write_page
 
     cfg = BenchUnposedConfig(
         load_config=Path("c.yml"),

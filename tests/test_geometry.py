@@ -681,7 +681,7 @@ def test_a_sweep_point_reads_the_checkpoint_from_its_images_and_compares_with_th
     decoded bits are compared with the key, not printed)."""
     import dataclasses
 
-    from gsticker_plugin.bench.sweep import decode_checkpoint
+    from gsticker_plugin.evaluation.sweep import decode_checkpoint
 
     key = OwnerKey.load(runs["key"])
     _, pipe, _ = RUNS.load_run(runs["run"], data=tiny_scene, device=torch.device("cpu"))

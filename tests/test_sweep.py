@@ -2,15 +2,8 @@
 
 from pathlib import Path
 
-from gsticker_plugin.bench.sweep import (
-    VARIANTS,
-    SweepConfig,
-    cost_lines,
-    image_lines,
-    markdown,
-    smallest_meeting,
-    train_seconds,
-)
+from gsticker_plugin.bench.sweep import SweepConfig, image_lines, markdown
+from gsticker_plugin.evaluation.sweep import VARIANTS, cost_lines, smallest_meeting, train_seconds
 
 
 def test_train_seconds_reads_pool_and_monitor_lines(tmp_path):

@@ -24,9 +24,9 @@ import torch
 import tyro
 
 from gsticker_plugin import compat, metrics
-from gsticker_plugin.bench.unposed import renders_8_bit, view_attack
 from gsticker_plugin.decoders.image import decode_posed_images, image_change_jacobian, image_reference
 from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker, load_base_reference
+from gsticker_plugin.evaluation.held_out import renders_8_bit, view_attack
 from gsticker_plugin.fastpath import novel_cameras
 from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.machine import machine_info

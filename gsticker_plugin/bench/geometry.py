@@ -21,45 +21,12 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict
 
 import tyro
 
-from gsticker_plugin.evaluate import load_pipeline, psnr_nhw3, render_split
-from gsticker_plugin.machine import config_under, console_script, recolor_into, run_logged, sticker_train_argv
-
-
-@dataclass
-class StickerRunConfig:
-    """The watermarked run a benchmark trains on a base (shared by bench.geometry and bench.targets)."""
-
-    load_checkpoint: Path
-    """The base run's checkpoint (RUN/nerfstudio_models/step-N.ckpt)."""
-    data: Optional[Path] = None
-    """The base's dataset folder, when its recorded path does not exist from here."""
-    output_dir: Path = Path("outputs/bench-geometry")
-    """Where the runs, reports and results are written."""
-    steps: int = 200
-    """Sticker training steps."""
-    warmup_steps: int = 50
-    """Sticker warm-up (no content loss) before the content loss ramps in."""
-    pool_views: int = 16
-    """Training and novel views each in the sticker's fast-path pool."""
-    owner_id: str = "bench-owner"
-    """Owner ID of the message."""
-    message: Optional[str] = None
-    """The message as 0/1 characters (default: drawn at random by ns-train); a benchmark records the bits it used,
-    so passing them back reproduces its numbers."""
-
-    def layout(self) -> Tuple[Path, Path, List[str], Path, Path]:
-        """(output folder, its logs folder (made), the --data arguments, base checkpoint, base config.yml)."""
-        out = self.output_dir.resolve()
-        logs = out / "logs"
-        logs.mkdir(parents=True, exist_ok=True)
-        data = ["--data", str(Path(self.data).resolve())] if self.data is not None else []
-        base_ckpt = Path(self.load_checkpoint).resolve()
-        return out, logs, data, base_ckpt, base_ckpt.parent.parent / "config.yml"
+from gsticker_plugin.evaluation.sticker_runs import StickerRunConfig, psnr_watermarked_vs_clean, run_step, train_sticker
+from gsticker_plugin.machine import config_under, console_script, recolor_into
 
 
 @dataclass
@@ -76,61 +43,6 @@ class BenchGeometryConfig(StickerRunConfig):
     """Run the ns-verify-owner stage (``--no-verify``: only training, PSNR and recolor numbers)."""
     psnr_views: int = 10
     """Test views for the watermarked-vs-clean PSNR."""
-
-
-def _run(cmd: List[str], log: Path, ok=(0,)) -> Dict[str, Any]:
-    return run_logged(cmd, log, ok, what="bench step")
-
-
-def train_sticker(
-    cfg: StickerRunConfig, out: Path, base_ckpt: Path, data: List[str], logs: Path
-) -> Optional[Dict[str, Any]]:
-    """``ns-train geometrysticker`` into ``out/bench/geometrysticker/watermarked`` (skipped, returning None, when
-    its checkpoint and key exist)."""
-    wm = out / "bench" / "geometrysticker" / "watermarked"
-    if wm.with_name("watermarked.gskey").exists() and list((wm / "nerfstudio_models").glob("step-*.ckpt")):
-        print("    (exists)")
-        return None
-    return _run(
-        sticker_train_argv(
-            out,
-            "bench",
-            cfg.steps,
-            cfg.owner_id,
-            wm.with_name("watermarked.gskey"),
-            "--steps-per-save",
-            str(cfg.steps),
-            "--pipeline.pool-train-views",
-            str(cfg.pool_views),
-            "--pipeline.pool-novel-views",
-            str(cfg.pool_views),
-            "--pipeline.monitor-views",
-            "4",
-            "--pipeline.steps-per-monitor",
-            "50",
-            "--pipeline.warmup-steps",
-            str(cfg.warmup_steps),
-            *(["--pipeline.message", cfg.message] if cfg.message else []),
-            "--load-checkpoint",
-            str(base_ckpt),
-            *data,
-        ),
-        logs / "train.log",
-    )
-
-
-def psnr_watermarked_vs_clean(config: Path, views: int) -> Dict[str, float]:
-    """Mean PSNR over the first ``views`` test views: sticker on vs off of the same run (for a recolored run of a
-    watermarked one: the edit on the watermarked model vs the same edit on the unwatermarked base), and each of them
-    against the ground truth."""
-    pipe = load_pipeline(config)
-    on = render_split(pipe, "test", views, sticker=True, progress=False)
-    off = render_split(pipe, "test", views, sticker=False, progress=False)
-    return {
-        "vs_clean": float(psnr_nhw3(on["rgb"], off["rgb"]).mean()),
-        "marked_vs_gt": float(psnr_nhw3(on["rgb"], on["gt"]).mean()),
-        "clean_vs_gt": float(psnr_nhw3(off["rgb"], off["gt"]).mean()),
-    }
 
 
 def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
@@ -182,7 +94,7 @@ def main(cfg: BenchGeometryConfig) -> Dict[str, Any]:
         jobs.append(("watermarked", suspects["watermarked"], "extractor"))
     for name, cfgp, decoder in jobs:
         rep_dir = out / "verify" / f"{name.replace(' ', '-')}-{decoder}"
-        run = _run(
+        run = run_step(
             [
                 console_script("ns-verify-owner"),
                 "--load-config",

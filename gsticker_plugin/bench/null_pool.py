@@ -4,7 +4,7 @@
         --output docs/experiments/bench-null-pool.md
 
 Reads the per-image rows that :mod:`gsticker_plugin.bench.unposed` wrote into each page's JSON. An unmarked image
-(a row of :data:`~gsticker_plugin.bench.unposed_page.NULL_IMAGES`) is named by its row and index, the same image on
+(a row of :data:`~gsticker_plugin.evaluation.unposed_page.NULL_IMAGES`) is named by its row and index, the same image on
 every page of one command's seeds; the first page that decoded it counts, the later readings are listed apart. The
 other keys are one page's only (every page draws the same 64 messages with the same seed, so a second page's are
 not new checks). Writes the Markdown page, its JSON and the null chart beside it.
@@ -22,7 +22,7 @@ from typing import Any, Dict, List, Tuple
 import tyro
 
 from gsticker_plugin.bench import command_lines
-from gsticker_plugin.bench.unposed_page import is_null_row, null_chart, null_summary, read_nothing, row_key
+from gsticker_plugin.evaluation.unposed_page import is_null_row, null_chart, null_summary, read_nothing, row_key
 
 
 @dataclass

@@ -21,7 +21,7 @@ from typing import Any, Dict, List, Optional
 
 import tyro
 
-from gsticker_plugin.bench.geometry import StickerRunConfig, _run, psnr_watermarked_vs_clean, train_sticker
+from gsticker_plugin.evaluation.sticker_runs import StickerRunConfig, psnr_watermarked_vs_clean, run_step, train_sticker
 from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.machine import console_script
 from gsticker_plugin.runs import checkpoint_step, latest_checkpoint
@@ -121,7 +121,7 @@ def train_nulls(cfg: BenchOwnershipConfig, out: Path, logs: Path) -> List[Dict[s
     if cfg.other_scene:
         scene = nulls / "scene"
         if not (scene / "transforms_train.json").is_file():
-            _run(
+            run_step(
                 [
                     console_script("ns-gsticker-scene"),
                     "--output-dir",
@@ -143,7 +143,7 @@ def train_nulls(cfg: BenchOwnershipConfig, out: Path, logs: Path) -> List[Dict[s
         run = nulls / name / cfg.null_preset / "base"
         if not list((run / "nerfstudio_models").glob("step-*.ckpt")):
             print(f"    training null model {name} ({cfg.null_steps} steps)", flush=True)
-            _run(
+            run_step(
                 [
                     console_script("ns-train"),
                     cfg.null_preset,

@@ -32,10 +32,10 @@ import torch
 import tyro
 
 from gsticker_plugin import compat, metrics
-from gsticker_plugin.bench.geometry import StickerRunConfig, train_sticker
 from gsticker_plugin.decoders.geometric import decode_suspect
 from gsticker_plugin.decoders.reference import load_base_reference
 from gsticker_plugin.evaluate import psnr_nhw3
+from gsticker_plugin.evaluation.sticker_runs import StickerRunConfig, train_sticker
 from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.runs import load_run
 from gsticker_plugin.views import progress_bar
