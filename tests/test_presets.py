@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from gsticker_plugin.bench import presets as bench
+from gsticker_plugin.evaluation import base_runs
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED = REPO_ROOT.parent / "shared"
@@ -145,17 +146,17 @@ def test_white_composite_and_psnr():
     rgba[0, 1] = (0, 0, 0, 0)  # transparent: white
     rgba[1, 0] = (0, 0, 0, 255)  # opaque black
     rgba[1, 1] = (0, 0, 0, 51)  # 20 % black over white
-    rgb = bench.white_composite(rgba)
+    rgb = base_runs.white_composite(rgba)
     assert rgb.shape == (2, 2, 3)
     assert torch.allclose(rgb[0, 0], torch.tensor([1.0, 0.0, 0.0]))
     assert torch.allclose(rgb[0, 1], torch.ones(3))
     assert torch.allclose(rgb[1, 0], torch.zeros(3))
     assert torch.allclose(rgb[1, 1], torch.full((3,), 0.8))
-    assert torch.equal(bench.white_composite(rgba[..., :3]), torch.from_numpy(rgba[..., :3] / np.float32(255)))
+    assert torch.equal(base_runs.white_composite(rgba[..., :3]), torch.from_numpy(rgba[..., :3] / np.float32(255)))
     a = torch.zeros(4, 4, 3)
-    assert bench.psnr(a, a + 0.1) == pytest.approx(20.0)
-    assert bench.psnr(a, a + 0.01) == pytest.approx(40.0)
-    assert bench.psnr(a, a) == math.inf
+    assert base_runs.psnr(a, a + 0.1) == pytest.approx(20.0)
+    assert base_runs.psnr(a, a + 0.01) == pytest.approx(40.0)
+    assert base_runs.psnr(a, a) == math.inf
 
 
 def test_count_parameters_excludes_lpips():
@@ -167,7 +168,7 @@ def test_count_parameters_excludes_lpips():
             self.head = torch.nn.Sequential(torch.nn.Linear(4, 2))  # 10
             self.register_buffer("aabb", torch.zeros(2, 3))  # not a parameter
 
-    assert bench.count_parameters(Model()) == 26
+    assert base_runs.count_parameters(Model()) == 26
 
 
 def test_bench_rejects_bad_input_with_one_line(tmp_path):
@@ -193,11 +194,14 @@ def test_bench_rejects_bad_input_with_one_line(tmp_path):
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith("error: ") and "transforms_train.json" in last and "transforms.json" in last, last
     assert not (tmp_path / "p.md").exists()
-    cfg = bench.BenchConfig(quick=True)
+    cfg = bench.BenchConfig(data=tmp_path, quick=True)
     assert cfg.iterations_for(3000) == 20 and cfg.test_views() == 3
-    cfg = bench.BenchConfig(quick=True, max_num_iterations=7, num_test_views=5)
+    cfg = bench.BenchConfig(data=tmp_path, quick=True, max_num_iterations=7, num_test_views=5)
     assert cfg.iterations_for(3000) == 7 and cfg.test_views() == 5
-    assert bench.BenchConfig().iterations_for(3000) == 3000 and bench.BenchConfig().test_views() == 25
+    assert (
+        bench.BenchConfig(data=tmp_path).iterations_for(3000) == 3000
+        and bench.BenchConfig(data=tmp_path).test_views() == 25
+    )
 
 
 # ----------------------------------------------------------------------------- benchmark end to end
@@ -258,10 +262,10 @@ def test_bench_quick_end_to_end(tiny_scene, tmp_path, monkeypatch):
 
     # The benchmark's PSNR agrees with the model's own metric on the same test view (same ground truth).
     monkeypatch.setenv("GSTICKER_NO_DOWNLOAD", "1")
-    pipeline = bench.load_pipeline(Path(result["config"]), checkpoint, tiny_scene)
+    pipeline = base_runs.load_pipeline(Path(result["config"]), checkpoint, tiny_scene)
     dataset = pipeline.datamanager.eval_dataset
     assert Path(dataset._dataparser_outputs.image_filenames[0]).parent.name == "test"
-    assert bench.count_parameters(pipeline.model) == result["parameters"]
+    assert base_runs.count_parameters(pipeline.model) == result["parameters"]
     with torch.no_grad():
         outputs = pipeline.model.get_outputs_for_camera(dataset.cameras[0:1])
     metrics, _ = pipeline.model.get_image_metrics_and_images(outputs, dataset[0])
@@ -279,7 +283,7 @@ def test_bench_evaluate_reproduces_shared_nerfacto_psnr(monkeypatch):
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        scored = bench.evaluate(base / "config.yml", base / "nerfstudio_models/step-000002999.ckpt", data, 2)
+        scored = base_runs.evaluate(base / "config.yml", base / "nerfstudio_models/step-000002999.ckpt", data, 2)
     finally:
         torch.set_num_threads(threads)
     assert scored["test_views"] == 2
