@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from gsticker_plugin.bench.targets import chart, page, report, summarize
+from gsticker_plugin.bench.targets import page
+from gsticker_plugin.evaluation.targets import chart, report, summarize
 
 
 def _rows(matches, psnr_clean=40.0, marked_gt=26.0, clean_gt=26.1):

@@ -21,10 +21,13 @@ from typing import Any, Dict, List, Optional
 
 import tyro
 
-from gsticker_plugin.evaluation.sticker_runs import StickerRunConfig, psnr_watermarked_vs_clean, run_step, train_sticker
+from gsticker_plugin.evaluation.sticker_runs import (
+    StickerRunConfig,
+    psnr_watermarked_vs_clean,
+    train_nulls,
+    train_sticker,
+)
 from gsticker_plugin.key import OwnerKey
-from gsticker_plugin.machine import console_script
-from gsticker_plugin.runs import checkpoint_step, latest_checkpoint
 from gsticker_plugin.verify import cli as V
 
 
@@ -106,70 +109,6 @@ def verify_run(
         "null_caveats": r.get("null_caveats", []),
         "seconds": float((report_dir / "seconds.txt").read_text()),
     }
-
-
-def train_nulls(cfg: BenchOwnershipConfig, out: Path, logs: Path) -> List[Dict[str, Any]]:
-    """The null models to train: ``[{name, config, data}]`` (each trained once, skipped when its checkpoint exists)."""
-    nulls = out / "nulls"
-    jobs = []
-    if cfg.null_seeds:
-        if cfg.data is None:
-            raise SystemExit("--null-seeds trains on the base's dataset: pass --data")
-        data = Path(cfg.data).resolve()
-        for seed in cfg.null_seeds:
-            jobs.append((f"{data.name}-seed{seed}", data, ["--machine.seed", str(seed)]))
-    if cfg.other_scene:
-        scene = nulls / "scene"
-        if not (scene / "transforms_train.json").is_file():
-            run_step(
-                [
-                    console_script("ns-gsticker-scene"),
-                    "--output-dir",
-                    str(scene),
-                    "--resolution",
-                    "100",
-                    "--num-train",
-                    "100",
-                    "--num-val",
-                    "10",
-                    "--num-test",
-                    "20",
-                ],
-                logs / "null-scene.log",
-            )
-        jobs.append(("scene", scene, []))
-    found = []
-    for name, data, extra in jobs:
-        run = nulls / name / cfg.null_preset / "base"
-        if not list((run / "nerfstudio_models").glob("step-*.ckpt")):
-            print(f"    training null model {name} ({cfg.null_steps} steps)", flush=True)
-            run_step(
-                [
-                    console_script("ns-train"),
-                    cfg.null_preset,
-                    "--machine.device-type",
-                    "cpu",
-                    "--vis",
-                    "tensorboard",
-                    *extra,
-                    "--output-dir",
-                    str(nulls),
-                    "--experiment-name",
-                    name,
-                    "--timestamp",
-                    "base",
-                    "--max-num-iterations",
-                    str(cfg.null_steps),
-                    "--steps-per-save",
-                    str(cfg.null_steps),
-                    "--data",
-                    str(data),
-                ],
-                logs / f"null-{name}.log",
-            )
-        steps = 1 + checkpoint_step(latest_checkpoint(run / "nerfstudio_models"))
-        found.append({"name": f"{name} ({cfg.null_preset}, {steps} steps)", "config": run / "config.yml", "data": data})
-    return found
 
 
 def page(res: Dict[str, Any]) -> str:
