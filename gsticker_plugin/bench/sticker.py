@@ -89,6 +89,26 @@ def write_report(cfg: StickerBenchConfig, results: List[Dict[str, object]]) -> N
     print("\n".join(lines))
 
 
+def trainer_config(cfg: StickerBenchConfig, name: str):
+    """The variant's trainer config: the shared settings, then the variant's overrides."""
+    tcfg = sticker_trainer_config(
+        cfg.load_checkpoint,
+        cfg.data,
+        Path("outputs/bench-sticker"),
+        name,
+        cfg.max_steps,
+        (cfg.pool_train_views, cfg.pool_novel_views, cfg.monitor_views),
+        "cuda" if torch.cuda.is_available() else "cpu",
+    )
+    for k, v in variant_overrides(name).items():
+        obj = tcfg.pipeline
+        *path, last = k.split(".")
+        for part in path:
+            obj = getattr(obj, part)
+        setattr(obj, last, v)
+    return tcfg
+
+
 def main(cfg: StickerBenchConfig) -> None:
     results: List[Dict[str, object]] = []
     js = cfg.output.with_suffix(".json")
@@ -96,9 +116,48 @@ def main(cfg: StickerBenchConfig) -> None:
         results = [r for r in json.loads(js.read_text()) if r["variant"] not in cfg.variants]
     for name in cfg.variants:
         print(f"== {name}", flush=True)
-        results.append(run_variant(cfg, name))
+        results.append(run_variant(cfg, name, trainer_config(cfg, name)))
         write_report(cfg, results)
 
 
 if __name__ == "__main__":
     main(tyro.cli(StickerBenchConfig))
+
+
+def variant_overrides(name: str) -> Dict[str, object]:
+    if name == "fast":
+        return {"fast_path": True}
+    if name == "naive":
+        return {"fast_path": False}
+    if name == "paper":
+        return {"fast_path": True, "heads.backbone": "vgg16"}
+    if name == "owner":  # the authors' released code: one fixed message (an honesty check, not a recommendation)
+        return {"fast_path": True, "owner_message_prob": 1.0}
+    raise ValueError(f"unknown variant {name!r}; use fast, naive, paper or owner")
+
+
+def sticker_trainer_config(
+    load_checkpoint: Path,
+    data: Optional[Path],
+    output_dir: Path,
+    experiment: str,
+    steps: int,
+    pool_views: Tuple[int, int, int],
+    device: str = "cpu",
+):
+    """An ``ns-train geometrysticker`` config for an in-process benchmark: base, data, output folder, steps and the
+    pool's (training, novel, held-out) view counts."""
+    # deferred: an ns-train entry point module, not a library
+    from method_configs.geometrysticker import geometrysticker_config
+
+    tcfg = geometrysticker_config(steps)
+    tcfg.load_checkpoint = load_checkpoint
+    tcfg.data = data
+    tcfg.machine.device_type = device
+    tcfg.output_dir = output_dir
+    tcfg.experiment_name = experiment
+    tcfg.set_timestamp()
+    p = tcfg.pipeline
+    p.pool_train_views, p.pool_novel_views, p.monitor_views = pool_views
+    p.train_heads = True  # the held-out bit accuracy is the extractor's
+    return tcfg

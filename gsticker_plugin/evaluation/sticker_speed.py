@@ -4,70 +4,16 @@ wall-clock budget with its held-out accuracy monitored."""
 from __future__ import annotations
 
 import time
-from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
-
-import torch
+from typing import Any, Dict, List, Optional
 
 
-def variant_overrides(name: str) -> Dict[str, object]:
-    if name == "fast":
-        return {"fast_path": True}
-    if name == "naive":
-        return {"fast_path": False}
-    if name == "paper":
-        return {"fast_path": True, "heads.backbone": "vgg16"}
-    if name == "owner":  # the authors' released code: one fixed message (an honesty check, not a recommendation)
-        return {"fast_path": True, "owner_message_prob": 1.0}
-    raise ValueError(f"unknown variant {name!r}; use fast, naive, paper or owner")
-
-
-def sticker_trainer_config(
-    load_checkpoint: Path,
-    data: Optional[Path],
-    output_dir: Path,
-    experiment: str,
-    steps: int,
-    pool_views: Tuple[int, int, int],
-    device: str = "cpu",
-):
-    """An ``ns-train geometrysticker`` config for an in-process benchmark: base, data, output folder, steps and the
-    pool's (training, novel, held-out) view counts."""
-    # deferred: an ns-train entry point module, not a library
-    from method_configs.geometrysticker import geometrysticker_config
-
-    tcfg = geometrysticker_config(steps)
-    tcfg.load_checkpoint = load_checkpoint
-    tcfg.data = data
-    tcfg.machine.device_type = device
-    tcfg.output_dir = output_dir
-    tcfg.experiment_name = experiment
-    tcfg.set_timestamp()
-    p = tcfg.pipeline
-    p.pool_train_views, p.pool_novel_views, p.monitor_views = pool_views
-    p.train_heads = True  # the held-out bit accuracy is the extractor's
-    return tcfg
-
-
-def run_variant(cfg: Any, name: str) -> Dict[str, object]:
-    tcfg = sticker_trainer_config(
-        cfg.load_checkpoint,
-        cfg.data,
-        Path("outputs/bench-sticker"),
-        name,
-        cfg.max_steps,
-        (cfg.pool_train_views, cfg.pool_novel_views, cfg.monitor_views),
-        "cuda" if torch.cuda.is_available() else "cpu",
-    )
+def run_variant(cfg: Any, name: str, tcfg) -> Dict[str, object]:
+    """Train ``tcfg`` (an ``ns-train geometrysticker`` config) in process for ``cfg.seconds`` of wall clock or
+    ``cfg.max_steps`` steps, its pool cached at ``cfg.pool_cache``; the held-out curve every
+    ``cfg.steps_per_monitor`` steps and the time to 99 % held-out bit accuracy."""
     p = tcfg.pipeline
     p.steps_per_monitor = cfg.steps_per_monitor
     p.pool_cache = cfg.pool_cache
-    for k, v in variant_overrides(name).items():
-        obj = p
-        *path, last = k.split(".")
-        for part in path:
-            obj = getattr(obj, part)
-        setattr(obj, last, v)
     if cfg.pool_cache is not None:
         cfg.pool_cache.parent.mkdir(parents=True, exist_ok=True)
     trainer = tcfg.setup(local_rank=0, world_size=1)
