@@ -61,6 +61,18 @@ class GeometryStickerTrainerConfig(TrainerConfig):
     _target: Type = field(default_factory=lambda: GeometryStickerTrainer)
     pipeline: GeometryStickerPipelineConfig = field(default_factory=GeometryStickerPipelineConfig)
 
+    def set_experiment_name(self) -> None:
+        """Unless ``--experiment-name`` or ``--data`` says otherwise, the base run's experiment name: the shared run
+        goes beside the base (``outputs/EXPERIMENT/METHOD/TIMESTAMP``), not under "unnamed"."""
+        if self.experiment_name is None and self.data is None and self.pipeline.datamanager.data is None:
+            try:
+                ckpt = runs.resolve_checkpoint(self.load_checkpoint, self.load_dir, self.load_step)
+                if ckpt is not None:
+                    self.experiment_name = runs.run_config_path(ckpt).parent.parent.parent.name
+            except GStickerError:
+                pass  # setup() names the problem in one line
+        super().set_experiment_name()
+
 
 def step_key_path(key_path: Path, step: int) -> Path:
     """The owner key of checkpoint ``step`` (written beside the key with --save-only-latest-checkpoint False)."""

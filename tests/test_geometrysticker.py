@@ -961,3 +961,22 @@ def test_bad_input_through_the_ns_train_console_script(bad_inputs, work):
         cwd=work,
     )
     _check_one_line_error(case, proc.returncode, proc.stdout, proc.stderr, bad_inputs["dir"] / "out" / case)
+
+
+def test_the_shared_run_goes_under_the_base_runs_experiment_name_unless_one_is_given(tmp_path):
+    from gsticker_plugin.trainer import GeometryStickerTrainerConfig
+
+    run = tmp_path / "outputs" / "myscene" / "nerfacto" / "base"
+    (run / "nerfstudio_models").mkdir(parents=True)
+    (run / "config.yml").write_text("")
+    ckpt = run / "nerfstudio_models" / "step-000000599.ckpt"
+    ckpt.write_bytes(b"")
+    cfg = GeometryStickerTrainerConfig(load_checkpoint=ckpt)
+    cfg.set_experiment_name()
+    assert cfg.experiment_name == "myscene"
+    given = GeometryStickerTrainerConfig(load_checkpoint=ckpt, experiment_name="mine")
+    given.set_experiment_name()
+    assert given.experiment_name == "mine"
+    missing = GeometryStickerTrainerConfig(load_checkpoint=tmp_path / "nope.ckpt")
+    missing.set_experiment_name()  # no traceback here: setup() reports the missing checkpoint in one line
+    assert missing.experiment_name == "unnamed"
