@@ -154,6 +154,33 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     """Optional file to keep the rendered pool in (reused when base checkpoint, cameras and sizes match)."""
 
 
+def warmup_ramp(step: int, warmup_steps: int) -> float:
+    """The losses' ramp at ``step``: 0 for the first ``warmup_steps`` steps, then linear up to 1 over as many.
+
+    Examples:
+        >>> [warmup_ramp(s, 2) for s in range(5)]
+        [0.0, 0.0, 0.5, 1.0, 1.0]
+    """
+    return min(1.0, max(0.0, (step + 1 - warmup_steps) / max(1, warmup_steps)))
+
+
+def content_loss(mse: Tensor, target_psnr: float, mark_psnr: Optional[float]) -> Tensor:
+    """The content loss of a mark whose render differs from the base's by ``mse``.
+
+    With ``b = 10^(-target_psnr/10)`` (the budget) and ``p = 10^(-mark_psnr/10)`` (the operating point)::
+
+        mark_psnr None:  mse / b + 10 relu(mse / b - 1)          (one-sided: pulls every mark toward zero)
+        otherwise:       |mse - p| / b + 10 relu(mse / b - 1)    (two-sided: zero at the operating point)
+
+    the second term eleven times steeper past the budget.
+    """
+    budget = 10.0 ** (-target_psnr / 10.0)
+    over = 10.0 * F.relu(mse / budget - 1.0)
+    if mark_psnr is None:
+        return mse / budget + over
+    return (mse - 10.0 ** (-mark_psnr / 10.0)).abs() / budget + over
+
+
 def is_distributed(world_size: int) -> bool:
     """True when ``world_size`` > 1 processes share an initialized torch.distributed process group."""
     return world_size > 1 and dist.is_available() and dist.is_initialized()
@@ -455,9 +482,8 @@ class GeometryStickerPipeline(VanillaPipeline):
 
     def ramp(self, step: int) -> float:
         """Warm-up: 0 for ``warmup_steps`` (no content or conditioning loss, no distortions), then up to 1 over as
-        many steps."""
-        w = self.config.warmup_steps
-        return min(1.0, max(0.0, (step + 1 - w) / max(1, w)))
+        many steps (:func:`warmup_ramp`)."""
+        return warmup_ramp(step, self.config.warmup_steps)
 
     def losses(
         self, marked: Tensor, clean: Tensor, psi: Tensor, messages: Tensor, step: int = 10**9
@@ -466,12 +492,7 @@ class GeometryStickerPipeline(VanillaPipeline):
         assert heads is not None
         cfg = self.config
         mse = F.mse_loss(marked, clean)
-        budget = 10.0 ** (-cfg.target_psnr / 10.0)
-        if cfg.mark_psnr is None:
-            content = mse / budget + 10.0 * F.relu(mse / budget - 1.0)
-        else:  # two-sided around the operating point, steep past the budget
-            point = 10.0 ** (-cfg.mark_psnr / 10.0)
-            content = (mse - point).abs() / budget + 10.0 * F.relu(mse / budget - 1.0)
+        content = content_loss(mse, cfg.target_psnr, cfg.mark_psnr)
         ramp = self.ramp(step)
         losses = {
             "content_loss": cfg.content_weight * ramp * content,
