@@ -308,3 +308,55 @@ def tiny_view_and_wrap(k=6, seed=0):
     # the cached clean image is the clean composite (as cache_view records it)
     view.image = render_signs(view, wrap, torch.zeros(k), bg)
     return view, wrap, bg
+
+
+def one_error_line(err: str) -> str:
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert lines and lines[-1].startswith("error: "), err
+    assert sum(1 for ln in lines if ln.startswith("error: ")) == 1, err
+    return lines[-1]
+
+
+def small_key(message=None, **kw):
+    """A key with 8-wide heads and a small bilinear sticker (weights from seed 0), message random unless given."""
+    import torch
+
+    from gsticker_plugin.heads import HeadConfig, Heads
+    from gsticker_plugin.key import OwnerKey, random_message
+    from gsticker_plugin.sticker import Sticker
+
+    cfg = HeadConfig(width=8, depth=2)
+    torch.manual_seed(0)
+    heads = Heads(cfg, 48)
+    sticker = Sticker(48, 2, 16, 2, 0.5, "bilinear")
+    msg = random_message() if message is None else message
+    return OwnerKey(
+        owner_id="alice",
+        message=msg,
+        heads_config=vars(cfg),
+        heads_state=heads.state_dict(),
+        base={"checkpoint_sha256": "ab" * 32},
+        geometry={"sticker_state": sticker.state_dict(), "null": None},
+        **kw,
+    )
+
+
+def field_mark_key(**mark):
+    """A field-mark key of owner alice (settings overridden by ``mark``)."""
+    from gsticker_plugin.key import OwnerKey, message_from_owner_id
+
+    return OwnerKey(
+        owner_id="alice",
+        message=message_from_owner_id("alice"),
+        heads_config={},
+        heads_state={},
+        base={"checkpoint_sha256": "ab" * 32},
+        field_mark={
+            "table": "_model.t",
+            "levels": [0, 1],
+            "pattern_seed": 7,
+            "amplitude": 0.01,
+            "init_scale": 0.001,
+            **mark,
+        },
+    )

@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 import torch
+from conftest import field_mark_key
 
 from gsticker_plugin.heads import HeadConfig, Heads
 from gsticker_plugin.key import OwnerKey, message_from_owner_id
@@ -36,24 +37,6 @@ def test_key_with_numpy_state_loads_without_allow_list(tmp_path):
     loaded = OwnerKey.load(path)
     assert torch.equal(loaded.training_state["arr"], torch.arange(3))
     assert torch.equal(loaded.message, key.message)
-
-
-def field_mark_key(**mark) -> OwnerKey:
-    return OwnerKey(
-        owner_id="alice",
-        message=message_from_owner_id("alice"),
-        heads_config={},
-        heads_state={},
-        base={"checkpoint_sha256": "ab" * 32},
-        field_mark={
-            "table": "_model.t",
-            "levels": [0, 1],
-            "pattern_seed": 7,
-            "amplitude": 0.01,
-            "init_scale": 0.001,
-            **mark,
-        },
-    )
 
 
 def test_a_field_mark_key_reads_back_with_its_mark(tmp_path):

@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import REPO_ROOT  # noqa: E402
 
 from gsticker_plugin.bench import presets as bench
 from gsticker_plugin.evaluation import base_runs
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED = REPO_ROOT.parent / "shared"
 PRESETS = ("gsticker-nerfacto-small", "gsticker-tensorf-small", "gsticker-vanilla-nerf-small")
 

@@ -832,8 +832,7 @@ def test_load_run_keeps_stock_nerfacto_in_process(shared_dir):
 
 
 def test_a_field_mark_key_is_read_by_the_geometric_decoder_from_a_model_and_the_image_decoder_from_images(tmp_path):
-    from test_key import field_mark_key
-    from test_ownership import small_key
+    from conftest import field_mark_key, small_key
 
     from gsticker_plugin.errors import GStickerError
     from gsticker_plugin.verify.check import choose_decoder

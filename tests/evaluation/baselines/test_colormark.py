@@ -21,7 +21,8 @@ import pytest
 import torch
 import yaml
 from conftest import CPU_ARGS, NERFACTO_TINY, TINY_POOL_ARGS
-from test_geometry import MESSAGE, _train  # the tiny-run recipe shared with the geometry tests
+from conftest import TINY_MESSAGE as MESSAGE
+from conftest import ns_train as _train
 
 from gsticker_plugin import runs as RUNS
 from gsticker_plugin import views as VW

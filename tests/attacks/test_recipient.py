@@ -17,8 +17,7 @@ from typing import Dict
 import pytest
 import torch
 import yaml
-from conftest import CPU_ARGS, TINY_MESSAGE, TINY_STICKER_ARGS, subprocess_env
-from test_ownership import small_key
+from conftest import CPU_ARGS, TINY_MESSAGE, TINY_STICKER_ARGS, small_key, subprocess_env
 
 from gsticker_plugin import runs
 from gsticker_plugin.attacks import recipient as R

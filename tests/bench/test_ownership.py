@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import CPU_ARGS, TINY_POOL_ARGS
+from conftest import CPU_ARGS, TINY_POOL_ARGS, small_key
 
 from gsticker_plugin.errors import GStickerError
-from gsticker_plugin.heads import HeadConfig, Heads
 from gsticker_plugin.key import (
     KEY_VERSION,
     OwnerKey,
@@ -21,23 +20,6 @@ from gsticker_plugin.key import (
     random_message,
 )
 from gsticker_plugin.sticker import FoldedSticker, Sticker
-
-
-def small_key(message=None, **kw) -> OwnerKey:
-    cfg = HeadConfig(width=8, depth=2)
-    torch.manual_seed(0)
-    heads = Heads(cfg, 48)
-    sticker = Sticker(48, 2, 16, 2, 0.5, "bilinear")
-    msg = random_message() if message is None else message
-    return OwnerKey(
-        owner_id="alice",
-        message=msg,
-        heads_config=vars(cfg),
-        heads_state=heads.state_dict(),
-        base={"checkpoint_sha256": "ab" * 32},
-        geometry={"sticker_state": sticker.state_dict(), "null": None},
-        **kw,
-    )
 
 
 @pytest.mark.parametrize("kind", ["bilinear", "concat"])
@@ -123,7 +105,7 @@ import sys  # noqa: E402
 import zipfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from test_geometry import one_error_line  # noqa: E402  (the tests' shared one-line-error check)
+from conftest import one_error_line  # noqa: E402
 
 from gsticker_plugin.decoders import fit as FIT  # noqa: E402
 from gsticker_plugin.key import bits_to_str  # noqa: E402

@@ -21,7 +21,7 @@ from typing import Dict, List
 
 import pytest
 import torch
-from conftest import CPU_ARGS, NERFACTO_TINY, TINY_MESSAGE, copy_key, synthetic_reference_view
+from conftest import CPU_ARGS, NERFACTO_TINY, TINY_MESSAGE, copy_key, one_error_line, synthetic_reference_view
 
 from gsticker_plugin import runs as RUNS
 from gsticker_plugin import sticker as S
@@ -48,13 +48,6 @@ def run_cli(argv: List[str], capsys):
     status = V.main([*argv, "--no-progress"] if argv[:1] != ["export-key"] else argv)
     cap = capsys.readouterr()
     return status, cap.out, cap.err
-
-
-def one_error_line(err: str) -> str:
-    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
-    assert lines and lines[-1].startswith("error: "), err
-    assert sum(1 for ln in lines if ln.startswith("error: ")) == 1, err
-    return lines[-1]
 
 
 def report_of(out_dir: Path) -> dict:

@@ -16,9 +16,12 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import console_script, subprocess_env
+from conftest import (
+    REPO_ROOT,  # noqa: E402
+    console_script,
+    subprocess_env,
+)
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 SMOKE = REPO_ROOT / "method_configs" / "eval" / "smoke.yaml"
 BIN = Path(sys.executable).parent
 
