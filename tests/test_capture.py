@@ -19,9 +19,9 @@ from conftest import CPU_ARGS, STICKER_SEED_ARGS, TINY_MESSAGE, console_script, 
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
+from gsticker_plugin import cameras as C
 from gsticker_plugin import fastpath as F
 from gsticker_plugin import scene
-from gsticker_plugin.decoders import image as I
 from gsticker_plugin.verify import cli as V
 
 
@@ -100,10 +100,10 @@ def test_transforms_file_maps_to_run_coordinates_as_nerfstudio_data_does(tmp_pat
     }
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     outputs = NerfstudioDataParserConfig(data=tmp_path, eval_mode="all").setup().get_dataparser_outputs("train")
-    pose_map = I.PoseMap(outputs.dataparser_transform, float(outputs.dataparser_scale))
-    read = I.read_cameras_file(tmp_path / "transforms.json")
+    pose_map = C.PoseMap(outputs.dataparser_transform, float(outputs.dataparser_scale))
+    read = C.read_cameras_file(tmp_path / "transforms.json")
     for i in range(6):
-        cam = I.camera_for_image(read[f"images/f_{i}"], 24, 32, pose_map)
+        cam = C.camera_for_image(read[f"images/f_{i}"], 24, 32, pose_map)
         assert torch.allclose(cam.camera_to_worlds[0], outputs.cameras.camera_to_worlds[i], atol=1e-5), i
         assert math.isclose(float(cam.fx), float(outputs.cameras.fx[i]), rel_tol=1e-6)
 

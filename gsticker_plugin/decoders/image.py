@@ -31,29 +31,28 @@ be read. :func:`gsticker_plugin.verify` keeps the blind extractor for those.
 from __future__ import annotations
 
 import contextlib
-import json
-import math
 import sys
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import torch
 import torch.nn.functional as F
 from jaxtyping import Float, Int
-from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from torch import Tensor
 
 from gsticker_plugin.attacks import ATTACKS, gaussian_blur, resize, rotate
 from gsticker_plugin.background import Background
+from gsticker_plugin.cameras import (
+    PoseMap,
+    camera_for_image,
+    match_frame,
+)
 from gsticker_plugin.decoders.cover import covered_pixels
 from gsticker_plugin.decoders.fit import (
     fit_and_decide,
-    fit_message,
     fit_summary,
-    jacobian,
     per_ray_jacobian,
     tie_generator,
 )
@@ -276,66 +275,6 @@ def reads_value(image: Float[Tensor, "H W 3"], base: Float[Tensor, "3 H W"], mar
     rgb_err = float(((x - b) ** 2).mean())
     value_err = float(((x.amax(dim=-1) - b.amax(dim=-1)) ** 2).mean())
     return rgb_err > 0 and value_err < margin * rgb_err
-
-
-def leaked_key_attack(
-    ref: ImageReferenceView,
-    sticker: Sticker,
-    image: Float[Tensor, "H W 3"],
-    psnr_budget: float,
-    steps: int = 100,
-    margin: float = 0.25,
-) -> Float[Tensor, "H W 3"]:
-    """White-box removal by someone who holds the owner key (sticker, gates) and the base (the shared model with
-    the sticker off): projected gradient descent on this decoder, at a PSNR budget.
-
-    The attacker fits the message as the decoder does (``s0``), linearizes the decoder there (``J``: the image
-    change per unit of ``s``) and looks for the perturbation ``delta`` with ``|delta|^2 <= 3 H W 10^(-budget/10)``
-    (PSNR of the attacked image against the given one >= ``psnr_budget`` before rounding and clamping) that drives
-    every fitted bit across zero: ``min sum_i relu(margin + sign(s0_i) s_i(delta))``. Only ``delta`` in ``J``'s
-    column space moves the least-squares fit, so with ``J = Q R`` it is ``delta = Q u``, ``s(delta) = s0 + R^-1 u``
-    and the L2 ball is ``|u| <= eps``: PGD on ``u`` with an exact projection. Pixels outside the decoder's rays are
-    left alone. Deterministic; the result is clamped to [0, 1] (quantize it as a saved file would be).
-    """
-
-    if psnr_budget <= 0:
-        raise GStickerError(f"leaked_key: a PSNR budget in dB > 0, got {psnr_budget}")
-    v = ref.view
-    rays = v.rays
-    out = image.float().clone()
-    if rays.numel() == 0:
-        return out
-    target = (image_at_rays(out, rays, v.hw) - ref.base_rgb).reshape(-1)
-    predict = lambda x: predict_image_change(ref, sticker, x)  # noqa: E731
-    fit = fit_message(predict, target, sticker.num_bits, jac=lambda x: image_change_jacobian(ref, sticker, x))
-    s0 = fit.signs.double()
-    jac = image_change_jacobian(ref, sticker, fit.signs)
-    if jac is None:
-        jac = jacobian(lambda x: predict(x).reshape(-1), fit.signs)
-    q, r = torch.linalg.qr(jac.double())
-    keep = torch.diagonal(r).abs() > 1e-9 * float(torch.diagonal(r).abs().max().clamp_min(1e-30))
-    q, r = q[:, keep], r[keep][:, keep]  # bits the image does not determine: the attacker has nothing to move
-    h, w = v.hw
-    eps = (3.0 * h * w * 10.0 ** (-psnr_budget / 10.0)) ** 0.5
-    sign = torch.sign(s0[keep])
-    rinv = torch.linalg.inv(r)
-    u = torch.zeros(q.shape[1], dtype=torch.float64)
-    lr = eps / 10.0
-    for _ in range(steps):
-        u.requires_grad_(True)
-        loss = torch.relu(margin + sign * (s0[keep] + rinv @ u)).sum()
-        (grad,) = torch.autograd.grad(loss, u)
-        with torch.no_grad():
-            gn = grad.norm()
-            if gn == 0:  # every bit already across zero with the margin
-                break
-            u = u - lr * grad / gn
-            n = u.norm()
-            u = u * (eps / n) if n > eps else u
-    delta = (q @ u.detach()).reshape(-1, 3).float()
-    flat = out.reshape(-1, 3)
-    flat[rays] = flat[rays] + delta
-    return out.clamp(0.0, 1.0)
 
 
 # ================================================================================================================
@@ -626,150 +565,6 @@ def decode_posed_images(
 # ================================================================================================================
 # cameras of suspect images (ns-verify-owner --images DIR --cameras transforms.json)
 # ================================================================================================================
-
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp", ".webp", ".hdr", ".tga", ".ppm"}
-INTRINSIC_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
-
-
-def frame_name(path: str) -> str:
-    """A frame's or an image's name for matching: posix path without a leading ``./`` and without an image suffix."""
-    p = str(path).replace("\\", "/")
-    while p.startswith("./"):
-        p = p[2:]
-    for s in IMAGE_SUFFIXES:
-        if p.lower().endswith(s):
-            return p[: -len(s)]
-    return p
-
-
-def read_cameras_file(path) -> Dict[str, Dict[str, Any]]:
-    """The frames of a Blender-style transforms JSON (``transforms_test.json``: ``camera_angle_x`` and per frame
-    ``file_path`` and a 4x4 OpenGL camera-to-world ``transform_matrix``; nerfstudio's intrinsics ``fl_x, fl_y, cx,
-    cy, w, h`` are read too, at the top level or per frame). Returns ``{frame name: {"c2w": [4 4], "intrinsics":
-    {...}}}``, named by :func:`frame_name` of ``file_path``. One-line errors for what cannot be used."""
-    path = Path(path)
-    if not path.is_file():
-        raise GStickerError(f"--cameras {path} does not exist; pass the transforms JSON of the suspect images' cameras")
-    try:
-        meta = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise GStickerError(
-            f"--cameras {path} is not readable JSON ({type(e).__name__}: {str(e)[:80]}); pass a "
-            "transforms JSON (Blender format)"
-        ) from None
-    frames = meta.get("frames") if isinstance(meta, dict) else None
-    if not isinstance(frames, list) or not frames:
-        raise GStickerError(
-            f"--cameras {path} has no 'frames' list; pass a transforms JSON (Blender format: "
-            "camera_angle_x and frames with file_path and transform_matrix)"
-        )
-    top = {k: meta[k] for k in INTRINSIC_KEYS if k in meta}
-    applied = applied_transform_of(meta, path)
-    out: Dict[str, Dict[str, Any]] = {}
-    for i, fr in enumerate(frames):
-        try:
-            name = frame_name(fr["file_path"])
-            c2w = torch.tensor(fr["transform_matrix"], dtype=torch.float32)
-        except (KeyError, TypeError, ValueError) as e:
-            raise GStickerError(
-                f"--cameras {path}: frame {i} lacks a usable file_path/transform_matrix ({type(e).__name__}: {e})"
-            ) from None
-        if tuple(c2w.shape) == (3, 4):
-            c2w = torch.cat([c2w, torch.tensor([[0.0, 0.0, 0.0, 1.0]])])
-        if tuple(c2w.shape) != (4, 4) or not bool(torch.isfinite(c2w).all()):
-            raise GStickerError(
-                f"--cameras {path}: frame {i} ({name}) has a transform_matrix of shape "
-                f"{tuple(c2w.shape)} or non-finite values; it must be a 4x4 camera-to-world matrix"
-            )
-        intr = {**top, **{k: fr[k] for k in INTRINSIC_KEYS if k in fr}}
-        if "camera_angle_x" not in intr and "fl_x" not in intr:
-            raise GStickerError(f"--cameras {path}: frame {i} ({name}) has no intrinsics (camera_angle_x or fl_x)")
-        if "fl_x" in intr and not ("w" in intr and "h" in intr):
-            raise GStickerError(
-                f"--cameras {path}: frame {i} ({name}) gives fl_x without the image size w, h it refers to"
-            )
-        out[name] = {"c2w": c2w, "intrinsics": intr, "applied": applied}
-    return out
-
-
-def applied_transform_of(meta: Dict[str, Any], path) -> Tuple[Tensor, float]:
-    """A nerfstudio transforms file's ``applied_transform`` (3x4 -> 4x4) and ``applied_scale``: what its poses already
-    underwent from the original capture coordinates (identity and 1 when absent)."""
-    a = torch.eye(4)
-    if "applied_transform" in meta:
-        try:
-            a[:3] = torch.tensor(meta["applied_transform"], dtype=torch.float32).reshape(3, 4)
-        except (TypeError, ValueError, RuntimeError) as e:
-            raise GStickerError(
-                f"--cameras {path}: applied_transform is not a 3x4 matrix ({type(e).__name__})"
-            ) from None
-    return a, float(meta.get("applied_scale", 1.0))
-
-
-def match_frame(image_name: str, frames: Dict[str, Dict[str, Any]]) -> Optional[str]:
-    """The frame of an image (its path relative to the images folder): the same name, else the same last
-    component when exactly one frame has it (``r_0.png`` <-> ``./test/r_0``)."""
-    name = frame_name(image_name)
-    if name in frames:
-        return name
-    last = name.rsplit("/", 1)[-1]
-    hits = [f for f in frames if f.rsplit("/", 1)[-1] == last]
-    return hits[0] if len(hits) == 1 else None
-
-
-@dataclass(frozen=True)
-class PoseMap:
-    """How a base run's dataparser maps the poses of its data files to run coordinates: ``c2w -> transform @ c2w``,
-    then the translation times ``scale`` (nerfstudio's ``dataparser_transforms.json``)."""
-
-    transform: Float[Tensor, "3 4"]
-    scale: float
-
-    def apply(self, c2w: Float[Tensor, "4 4"], applied: Optional[Tuple[Tensor, float]] = None) -> Float[Tensor, "3 4"]:
-        """``c2w`` of a transforms file in run coordinates; ``applied``: the file's own applied transform and scale
-        (:func:`applied_transform_of`), which the run's transform already includes."""
-        t = torch.cat([self.transform.float(), torch.tensor([[0.0, 0.0, 0.0, 1.0]])])
-        scale = self.scale
-        if applied is not None:
-            t = t @ torch.linalg.inv(applied[0])
-            scale = scale / applied[1]
-        out = (t @ c2w.float())[:3].clone()
-        out[:, 3] *= scale
-        return out
-
-
-def camera_for_image(frame: Dict[str, Any], height: int, width: int, pose_map: Optional[PoseMap] = None):
-    """A nerfstudio camera for an image of ``height x width`` px taken at ``frame`` (:func:`read_cameras_file`):
-    the intrinsics scaled to the image's size, the pose put in the base run's coordinates by ``pose_map``
-    (:func:`base_pose_map`; None: the file's own coordinates)."""
-
-    intr = frame["intrinsics"]
-    if "fl_x" in intr:
-        w0, h0 = float(intr["w"]), float(intr["h"])
-        if abs(w0 / h0 - width / height) > 0.01 * (w0 / h0):
-            raise GStickerError(
-                f"a {width}x{height} image for a camera of {int(w0)}x{int(h0)} px (another aspect "
-                "ratio): crop or pad it back to the camera's frame"
-            )
-        sx, sy = width / w0, height / h0
-        fx = float(intr["fl_x"]) * sx
-        fy = float(intr.get("fl_y", intr["fl_x"])) * sy
-        cx, cy = float(intr.get("cx", w0 / 2)) * sx, float(intr.get("cy", h0 / 2)) * sy
-    else:
-        fx = 0.5 * width / math.tan(0.5 * float(intr["camera_angle_x"]))
-        fy = 0.5 * height / math.tan(0.5 * float(intr["camera_angle_y"])) if "camera_angle_y" in intr else fx
-        cx, cy = width / 2.0, height / 2.0
-    c2w = (pose_map or PoseMap(torch.eye(4)[:3], 1.0)).apply(frame["c2w"], frame.get("applied"))
-    return Cameras(
-        camera_to_worlds=c2w[None],
-        fx=fx,
-        fy=fy,
-        cx=cx,
-        cy=cy,
-        width=int(width),
-        height=int(height),
-        camera_type=CameraType.PERSPECTIVE,
-    )
 
 
 POSE_DATAPARSERS = (BlenderDataParserConfig, NerfstudioDataParserConfig)

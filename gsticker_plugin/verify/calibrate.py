@@ -12,9 +12,10 @@ from typing import Any, Dict, List
 import torch
 
 from gsticker_plugin import metrics
+from gsticker_plugin.cameras import read_cameras_file
 from gsticker_plugin.decoders.blind import decode_views
 from gsticker_plugin.decoders.geometric import decode_suspect
-from gsticker_plugin.decoders.image import decode_images_at_cameras, read_cameras_file
+from gsticker_plugin.decoders.image import decode_images_at_cameras
 from gsticker_plugin.decoders.reference import (
     data_if_missing,
     load_base_reference,

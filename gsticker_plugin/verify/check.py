@@ -12,6 +12,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import torch
 
 from gsticker_plugin.attacks import parse_attack_spec
+from gsticker_plugin.cameras import read_cameras_file
 from gsticker_plugin.decoders import fieldimage as field_images
 from gsticker_plugin.decoders import fieldmark as field_decoder
 from gsticker_plugin.decoders.blind import decode_views
@@ -20,7 +21,6 @@ from gsticker_plugin.decoders.image import (
     base_pose_map,
     decode_images_at_cameras,
     posed_views,
-    read_cameras_file,
 )
 from gsticker_plugin.decoders.pose import PoseSearch
 from gsticker_plugin.decoders.reference import (

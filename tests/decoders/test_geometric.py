@@ -700,7 +700,7 @@ def test_verify_images_at_known_cameras_with_the_image_decoder(runs, ws, capsys,
     in the key and ``verify`` then uses; bad input is one line."""
     import imageio.v2 as imageio
 
-    from gsticker_plugin.decoders.image import camera_for_image, match_frame, read_cameras_file
+    from gsticker_plugin.cameras import camera_for_image, match_frame, read_cameras_file
 
     frames = read_cameras_file(tiny_scene / "transforms_test.json")
     assert sorted(frames) == ["test/r_0", "test/r_1"] and match_frame("r_1.png", frames) == "test/r_1"

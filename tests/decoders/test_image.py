@@ -10,6 +10,7 @@ import pytest
 import torch
 from conftest import synthetic_reference_view
 
+from gsticker_plugin.attacks.leaked_key import leaked_key_attack
 from gsticker_plugin.decoders import cover as C
 from gsticker_plugin.decoders import fit as FIT
 from gsticker_plugin.decoders import image as I
@@ -85,7 +86,7 @@ def test_leaked_key_attack_keeps_its_psnr_budget_and_flips_the_bits_once_the_bud
     mark_psnr = float(-10 * torch.log10(((marked - ref.base_rgb) ** 2).mean()))
     bits = {}
     for budget in (mark_psnr + 30.0, mark_psnr - 12.0):
-        x = I.leaked_key_attack(ref, st, image, budget)
+        x = leaked_key_attack(ref, st, image, budget)
         assert x.shape == image.shape and float(x.min()) >= 0 and float(x.max()) <= 1
         psnr = float(-10 * torch.log10(((x - image) ** 2).mean()))
         assert psnr >= budget - 1e-3
@@ -93,7 +94,7 @@ def test_leaked_key_attack_keeps_its_psnr_budget_and_flips_the_bits_once_the_bud
     weak, strong = bits[mark_psnr + 30.0], bits[mark_psnr - 12.0]
     assert int((weak == msg).sum()) >= 47 and int((strong == msg).sum()) <= 8
     with pytest.raises(GStickerError, match="PSNR budget"):
-        I.leaked_key_attack(ref, st, image, 0.0)
+        leaked_key_attack(ref, st, image, 0.0)
 
 
 def test_an_image_of_another_size_is_one_line_naming_the_fix():
@@ -197,65 +198,6 @@ def test_the_fit_with_the_smaller_residual_is_kept_when_a_degradation_was_matche
     one = torch.Generator().manual_seed(0)
     I.decode_degraded_view(ref, st, blurred, blur, one)
     assert torch.equal(gen.get_state(), one.get_state())
-
-
-def test_cameras_file_frames_names_and_intrinsics_at_the_image_size(tmp_path):
-    """--cameras: frames named by file_path without ./ and extension, images matched by name (or by a unique last
-    component), Blender's camera_angle_x and nerfstudio's fl_x/w/h scaled to the image's size, one-line errors."""
-    import json
-    import math
-
-    c2w = [[1, 0, 0, 0.5], [0, 1, 0, -1], [0, 0, 1, 4], [0, 0, 0, 1]]
-    path = tmp_path / "transforms.json"
-    path.write_text(
-        json.dumps(
-            {
-                "camera_angle_x": 0.6,
-                "frames": [
-                    {"file_path": "./test/r_0", "transform_matrix": c2w},
-                    {"file_path": "./train/r_0.png", "transform_matrix": c2w},
-                    {
-                        "file_path": "shots/a.jpg",
-                        "transform_matrix": c2w[:3],
-                        "fl_x": 100.0,
-                        "fl_y": 90.0,
-                        "cx": 40.0,
-                        "cy": 30.0,
-                        "w": 80,
-                        "h": 60,
-                    },
-                ],
-            }
-        )
-    )
-    frames = I.read_cameras_file(path)
-    assert sorted(frames) == ["shots/a", "test/r_0", "train/r_0"]
-    assert I.match_frame("test/r_0.png", frames) == "test/r_0" and I.match_frame("a.PNG", frames) == "shots/a"
-    assert I.match_frame("r_0.png", frames) is None  # two frames end in r_0: ambiguous, not guessed
-    assert I.frame_name("./x/y.z.png") == "x/y.z"
-    cam = I.camera_for_image(frames["test/r_0"], 50, 100, I.PoseMap(torch.eye(4)[:3], 2.0))
-    assert math.isclose(float(cam.fx), 0.5 * 100 / math.tan(0.3), rel_tol=1e-6) and float(cam.fy) == float(cam.fx)
-    assert (float(cam.cx), float(cam.cy), int(cam.width), int(cam.height)) == (50.0, 25.0, 100, 50)
-    assert torch.allclose(cam.camera_to_worlds[0, :, 3], torch.tensor([1.0, -2.0, 8.0]))  # translation scaled
-    cam = I.camera_for_image(frames["shots/a"], 30, 40)  # half the w, h the intrinsics refer to
-    assert [float(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy)] == [50.0, 45.0, 20.0, 15.0]
-    with pytest.raises(GStickerError, match="aspect ratio"):
-        I.camera_for_image(frames["shots/a"], 40, 40)
-    for text, msg in (
-        ("not json", "not readable JSON"),
-        (json.dumps({"frames": []}), "no 'frames' list"),
-        (json.dumps({"frames": [{"file_path": "a", "transform_matrix": c2w}]}), "no intrinsics"),
-        (
-            json.dumps({"camera_angle_x": 1, "frames": [{"file_path": "a", "transform_matrix": [[1]]}]}),
-            "4x4 camera-to-world",
-        ),
-        (json.dumps({"frames": [{"file_path": "a", "transform_matrix": c2w, "fl_x": 9}]}), "w, h"),
-    ):
-        path.write_text(text)
-        with pytest.raises(GStickerError, match=msg):
-            I.read_cameras_file(path)
-    with pytest.raises(GStickerError, match="does not exist"):
-        I.read_cameras_file(tmp_path / "missing.json")
 
 
 def test_a_hue_shifted_image_is_read_by_its_value_channel():
