@@ -431,8 +431,9 @@ def image_view(
         saved = table.data
         try:
             table.data = stacked
-            with torch.no_grad():
-                ek[live] = original(x[live]).reshape(int(live.sum()), -1, k, f)
+            if live.any():  # a chunk of rays may cross no live sample at all
+                with torch.no_grad():
+                    ek[live] = original(x[live]).reshape(int(live.sum()), -1, k, f)
         finally:
             table.data = saved
         s = state["s"]

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import List, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -89,6 +89,54 @@ def _resize(image: Tensor, height: int, width: int) -> Tensor:
     return F.interpolate(image[None, None], size=(height, width), mode="bilinear", align_corners=False)[0, 0]
 
 
+def coarse_framings(
+    picture: Float[Tensor, "H W 3"],
+    renders: Float[Tensor, "N h w 3"],
+    zooms: Sequence[float] = DEFAULT_ZOOMS,
+    side: int = 32,
+    min_overlap: float = 0.5,
+) -> List[Framing]:
+    """For each render, the framing of ``picture`` against it to about one working pixel: for every zoom (picture px
+    per render px) and every integer offset, the normalized cross-correlation of the grey levels over the overlap,
+    which must cover ``min_overlap`` of the smaller of the two; the best pair wins. Picture and zoomed render are
+    worked at a size whose larger side is ``side`` px; every render is correlated in one batched convolution per
+    zoom. Isotropic (``sx == sy``): :func:`refine_framing` frees the aspect."""
+    pic = _gray(picture)
+    ren = renders.float().mean(dim=-1) if renders.dim() == 4 else renders.float()
+    n_r, h0, w0 = ren.shape
+    ph, pw = pic.shape
+    best_score = torch.full((n_r,), float("-inf"))
+    best = [Framing(1.0, 1.0, 0.0, 0.0, float("-inf")) for _ in range(n_r)]
+    for z in zooms:
+        k = side / max(ph, pw, h0 * z, w0 * z)  # working px per picture px
+        sh, sw = max(4, round(ph * k)), max(4, round(pw * k))
+        rh, rw = max(4, round(h0 * z * k)), max(4, round(w0 * z * k))
+        ps = _resize(pic, sh, sw)
+        rs = F.interpolate(ren[:, None], size=(rh, rw), mode="area" if rh <= h0 else "bilinear")
+        need = min_overlap * min(sh * sw, rh * rw)
+        pad = F.pad(ps[None, None], (rw - 1, rw - 1, rh - 1, rh - 1))
+        ones = F.pad(torch.ones(1, 1, sh, sw), (rw - 1, rw - 1, rh - 1, rh - 1))
+        kones = torch.ones(1, 1, rh, rw)
+        n = F.conv2d(ones, kones)[0]  # [1 Y X]
+        s_p = F.conv2d(pad, kones)[0]
+        s_pp = F.conv2d(pad * pad, kones)[0]
+        s_r = F.conv2d(ones, rs)[0]  # [N Y X]
+        s_rr = F.conv2d(ones, rs * rs)[0]
+        s_pr = F.conv2d(pad, rs)[0]
+        nn = n.clamp_min(1)
+        cov = s_pr - s_p * s_r / nn
+        var = (s_pp - s_p**2 / nn).clamp_min(0) * (s_rr - s_r**2 / nn).clamp_min(0)
+        score = torch.where((n >= need) & (var > 1e-12), cov / var.clamp_min(1e-12).sqrt(), torch.tensor(-2.0))
+        flat = score.reshape(n_r, -1)
+        top, idx = flat.max(dim=1)
+        for i in torch.nonzero(top > best_score).reshape(-1).tolist():
+            y, x = divmod(int(idx[i]), score.shape[2])
+            # the render's top-left at (x - (rw - 1), y - (rh - 1)) working px; the render's px at z picture px
+            best[i] = Framing(rw / k / w0, rh / k / h0, (x - (rw - 1)) / k, (y - (rh - 1)) / k, float(top[i]))
+            best_score[i] = top[i]
+    return best
+
+
 def coarse_framing(
     picture: Float[Tensor, "H W 3"],
     render: Float[Tensor, "h w 3"],
@@ -96,39 +144,8 @@ def coarse_framing(
     side: int = 32,
     min_overlap: float = 0.5,
 ) -> Framing:
-    """The framing of ``picture`` against ``render`` to about one search pixel: for every zoom (picture px per render
-    px) and every integer offset at a working size of ``side`` px (the picture's longer side), the normalized
-    cross-correlation of the grey levels over the overlap, which must cover ``min_overlap`` of the smaller of the two;
-    the best pair wins. Isotropic (``sx == sy``): :func:`refine_framing` frees the aspect."""
-    pic, ren = _gray(picture), _gray(render)
-    ph, pw = pic.shape
-    k = side / max(ph, pw)  # working px per picture px
-    sh, sw = max(4, round(ph * k)), max(4, round(pw * k))
-    ps = _resize(pic, sh, sw)
-    best = Framing(1.0, 1.0, 0.0, 0.0, float("-inf"))
-    for z in zooms:
-        rh, rw = max(4, round(ren.shape[0] * z * k)), max(4, round(ren.shape[1] * z * k))
-        rs = _resize(ren, rh, rw)
-        # correlate every offset of the framed render against the picture: the picture zero-padded by the render size
-        need = min_overlap * min(sh * sw, rh * rw)
-        pad = F.pad(ps[None, None], (rw - 1, rw - 1, rh - 1, rh - 1))
-        ones = F.pad(torch.ones(1, 1, sh, sw), (rw - 1, rw - 1, rh - 1, rh - 1))
-        kern, kones = rs[None, None], torch.ones(1, 1, rh, rw)
-        n = F.conv2d(ones, kones)[0, 0]
-        s_p = F.conv2d(pad, kones)[0, 0]
-        s_pp = F.conv2d(pad * pad, kones)[0, 0]
-        s_r = F.conv2d(ones, kern)[0, 0]
-        s_rr = F.conv2d(ones, kern * kern)[0, 0]
-        s_pr = F.conv2d(pad, kern)[0, 0]
-        cov = s_pr - s_p * s_r / n.clamp_min(1)
-        var = (s_pp - s_p**2 / n.clamp_min(1)).clamp_min(0) * (s_rr - s_r**2 / n.clamp_min(1)).clamp_min(0)
-        score = torch.where((n >= need) & (var > 1e-12), cov / var.clamp_min(1e-12).sqrt(), torch.tensor(-2.0))
-        i = int(torch.argmax(score))
-        y, x = divmod(i, score.shape[1])
-        if float(score[y, x]) > best.score:
-            # render's top-left at (x - (rw - 1), y - (rh - 1)) working px; back to picture px
-            best = Framing(z, z, (x - (rw - 1)) / k, (y - (rh - 1)) / k, float(score[y, x]))
-    return best
+    """:func:`coarse_framings` of one render."""
+    return coarse_framings(picture, render[None], zooms, side, min_overlap)[0]
 
 
 def refine_framing(
