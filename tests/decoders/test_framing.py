@@ -15,7 +15,9 @@ def _render(seed: int = 0, size: int = 80) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     x = torch.rand(1, 3, size // 8, size // 8, generator=g)
     x = F.interpolate(x, size=(size, size), mode="bicubic", align_corners=False)
-    x = x + 0.15 * F.interpolate(torch.rand(1, 3, size // 3, size // 3, generator=g), size=(size, size), mode="bilinear")
+    x = x + 0.15 * F.interpolate(
+        torch.rand(1, 3, size // 3, size // 3, generator=g), size=(size, size), mode="bilinear"
+    )
     return x[0].permute(1, 2, 0).clamp(0, 1)
 
 
