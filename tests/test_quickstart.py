@@ -36,7 +36,7 @@ def test_readme_and_getting_started_give_the_same_quick_start():
 def test_the_quick_start_copied_verbatim_reaches_an_owned_verdict_on_the_cpu(tmp_path):
     home = tmp_path / "home"
     home.mkdir()
-    env = subprocess_env(2, HOME=str(home), PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
+    env = subprocess_env(1, HOME=str(home), PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
     for name in ("XDG_DATA_HOME", "GSTICKER_KEYS_DIR", "GSTICKER_IDENTITY"):
         env.pop(name, None)
     env["CUDA_VISIBLE_DEVICES"] = ""  # a CPU-only machine: the presets must pick the CPU themselves
