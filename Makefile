@@ -1,5 +1,5 @@
 # `make demo` (the whole story on a small scene), `make test` (lint, then every test), `make test-fast` (no
-# training or subprocess runs, under 5 minutes) and `make lint` (ruff: pyflakes, import order, format).
+# training or subprocess runs, about 2 minutes) and `make lint` (ruff: pyflakes, import order, format).
 PY ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin

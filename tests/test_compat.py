@@ -80,6 +80,7 @@ LPIPS_SCRIPT = """
 """
 
 
+@pytest.mark.slow  # starts subprocesses
 def test_lpips_offline_fallback_reports_nan_once_and_keeps_stock_layout(tmp_path):
     out = _run(LPIPS_SCRIPT, TORCH_HOME=str(tmp_path / "torch"), GSTICKER_NO_DOWNLOAD="1")
     assert out["hub"].startswith(str(tmp_path))
@@ -91,6 +92,7 @@ def test_lpips_offline_fallback_reports_nan_once_and_keeps_stock_layout(tmp_path
     assert not (tmp_path / "torch" / "hub" / "checkpoints" / ALEXNET_FILE).exists()
 
 
+@pytest.mark.slow  # starts subprocesses
 def test_lpips_with_cached_backbone_takes_the_stock_path(tmp_path):
     import torchvision
 
@@ -145,6 +147,7 @@ def test_numpy_checkpoint_types_are_only_numpy():
     assert np.dtype in types and type(np.dtype(np.float64)) in types
 
 
+@pytest.mark.slow  # starts subprocesses
 def test_self_made_numpy_checkpoint_needs_compat_and_loads_after(tmp_path):
     path = tmp_path / "tiny.ckpt"
     torch.save({"step": 7, "state": {"lr": np.float64(0.25), "t": torch.arange(3.0)}}, path)
@@ -154,6 +157,7 @@ def test_self_made_numpy_checkpoint_needs_compat_and_loads_after(tmp_path):
     assert out["value"] == "np.float64(0.25)"
 
 
+@pytest.mark.slow  # starts subprocesses
 def test_weights_only_stays_on_after_apply(tmp_path):
     """Only numpy types are allowed: any other pickled object is still refused after ``compat.apply()``."""
     path = tmp_path / "evil.ckpt"
@@ -163,6 +167,7 @@ def test_weights_only_stays_on_after_apply(tmp_path):
     assert out["after"].startswith("UnpicklingError"), "compat.apply() must not turn weights_only off"
 
 
+@pytest.mark.slow  # starts subprocesses
 def test_shared_nerfacto_checkpoint_loads_with_weights_only_after_apply():
     ckpt = NERFACTO_BASE / "nerfstudio_models" / "step-000002999.ckpt"
     if not ckpt.is_file():

@@ -13,6 +13,7 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
 from conftest import console_script, subprocess_env
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -26,6 +27,7 @@ METHODS = (
 )
 
 
+@pytest.mark.slow  # starts subprocesses
 def test_ns_train_help_lists_plugin_methods():
     proc = subprocess.run(
         [str(console_script("ns-train")), "--help"],
@@ -100,6 +102,7 @@ def test_ns_gsticker_scene_help():
     assert "--output-dir" in proc.stdout and "--resolution" in proc.stdout
 
 
+@pytest.mark.slow  # starts subprocesses
 def test_importing_method_configs_needs_no_cuda_and_no_network():
     """``import method_configs.presets`` (what Nerfstudio does for every ns-* command) opens no socket, touches
     no GPU, builds no model and tries no LPIPS download; it costs little beyond importing Nerfstudio itself."""

@@ -171,6 +171,7 @@ def test_count_parameters_excludes_lpips():
     assert base_runs.count_parameters(Model()) == 26
 
 
+@pytest.mark.slow  # starts subprocesses
 def test_bench_rejects_bad_input_with_one_line(tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()

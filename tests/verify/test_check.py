@@ -555,6 +555,7 @@ def test_usage_errors_and_help(alice, dirs, ws, capsys):
     assert status == 0 and "--random-images" in stdout and "--append" in stdout
 
 
+@pytest.mark.slow  # starts subprocesses
 def test_console_script_exit_codes(alice, dirs, ws):
     script = BIN / "ns-verify-owner"
     if not script.exists():
