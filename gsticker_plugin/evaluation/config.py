@@ -185,7 +185,7 @@ class Protocol:
     distortions: List[DistortionRow] = field(default_factory=list)
     curves: Dict[str, List[float]] = field(default_factory=dict)
     """Where-it-breaks curves: attack name -> strengths; ``leaked_key`` -> PSNR budgets in dB (PGD on the image
-    decoder by someone holding the owner key and the base: ``gsticker_plugin.attacks.leaked_key.leaked_key_attack``)."""
+    decoder by someone holding the owner key and the base: ``gsticker_plugin.evaluation.leaked_key.leaked_key_attack``)."""
     recolor: Optional[RecolorSpec] = field(default_factory=RecolorSpec)
     false_positives: FalsePositiveSpec = field(default_factory=FalsePositiveSpec)
     geometry: Optional[GeometrySpec] = field(default_factory=GeometrySpec)

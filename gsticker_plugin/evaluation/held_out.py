@@ -15,11 +15,11 @@ from jaxtyping import Float
 from torch import Tensor
 
 from gsticker_plugin import metrics
-from gsticker_plugin.attacks.leaked_key import leaked_key_attack
 from gsticker_plugin.attacks.spec import apply_attacks
 from gsticker_plugin.decoders.image import decode_posed_images, image_reference
 from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker
 from gsticker_plugin.evaluate import final_rgb
+from gsticker_plugin.evaluation.leaked_key import leaked_key_attack
 from gsticker_plugin.metrics import as_8_bit
 from gsticker_plugin.runs import load_run
 from gsticker_plugin.views import random_views
@@ -133,7 +133,7 @@ def purified_renders(cfg: Any, key, ref, steps: int, cameras, marked, clean) -> 
 
 def leaked_key_renders(key, ref, budget: float, cameras, marked, clean, work_dir: Path) -> torch.Tensor:
     """8-bit: each marked render after the leaked-key PGD at its true camera and a PSNR budget of ``budget`` dB
-    (:func:`gsticker_plugin.attacks.leaked_key.leaked_key_attack`: what a holder of the owner key and the base can do);
+    (:func:`gsticker_plugin.evaluation.leaked_key.leaked_key_attack`: what a holder of the owner key and the base can do);
     the informed image decoder's reading at the true cameras and the renders' PSNR go to ``work_dir/pgd.json``."""
     st, bg = cpu_sticker(ref.model), ref.model.background_color()
     views = [(f"pgd/{i}", cameras[i : i + 1]) for i in range(len(marked))]

@@ -476,7 +476,7 @@ def threat_lines(
         "toward the owner's base renders by the share (what a holder of the base, i.e. of the owner key, can do; "
         "without the key the recipient has no unmarked render to blend toward). *pgd*: each marked render attacked by "
         "projected gradient descent on the informed image decoder at its true camera within a PSNR budget (dB), the "
-        "leaked-key attack (`attacks.leaked_key.leaked_key_attack`), read without the camera and, beside it, by the "
+        "leaked-key attack (`evaluation.leaked_key.leaked_key_attack`), read without the camera and, beside it, by the "
         "informed image decoder given the true camera. PSNR is against the shared marked renders at the held-out "
         "views.",
         "",

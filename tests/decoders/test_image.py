@@ -10,11 +10,11 @@ import pytest
 import torch
 from conftest import synthetic_reference_view
 
-from gsticker_plugin.attacks.leaked_key import leaked_key_attack
 from gsticker_plugin.decoders import cover as C
 from gsticker_plugin.decoders import fit as FIT
 from gsticker_plugin.decoders import image as I
 from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.evaluation.leaked_key import leaked_key_attack
 from gsticker_plugin.key import parse_message
 from gsticker_plugin.sticker import Sticker, composite, message_to_signs
 

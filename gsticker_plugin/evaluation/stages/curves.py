@@ -10,10 +10,10 @@ from typing import Any, Dict
 import torch
 from torch import Tensor
 
-from gsticker_plugin.attacks.leaked_key import leaked_key_attack
 from gsticker_plugin.decoders.image import image_reference
 from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker
 from gsticker_plugin.evaluation.config import LEAKED_KEY
+from gsticker_plugin.evaluation.leaked_key import leaked_key_attack
 from gsticker_plugin.evaluation.workspace import Workspace, describe_spec, over_seeds
 from gsticker_plugin.metrics import as_8_bit
 from gsticker_plugin.views import progress_bar
