@@ -13,8 +13,7 @@ so the picture is the render of a camera with the same pose and intrinsics ::
 :func:`coarse_framing` finds the framing to a pixel by normalized cross-correlation over a set of zooms and every
 offset that keeps enough overlap; :func:`refine_framing` refines it to a fraction of a pixel by Gauss-Newton on
 ``(log sx, log sy, tx, ty)``, a gain and offset of the colours solved in closed form at each step (a recoloured or
-re-exposed copy frames the same way). Pure functions of tensors; :func:`framed_camera` turns a framing into a
-Nerfstudio camera.
+re-exposed copy frames the same way). Pure functions of tensors; :meth:`Framing.intrinsics` gives the picture's camera.
 """
 
 from __future__ import annotations
@@ -231,30 +230,3 @@ def find_framing(
 ) -> Framing:
     """:func:`coarse_framing`, then :func:`refine_framing`."""
     return refine_framing(picture, render, coarse_framing(picture, render, zooms))
-
-
-def framed_camera(camera, framing: Framing, height: int, width: int):
-    """A copy of the Nerfstudio ``camera`` (one camera, the render's intrinsics) framed like the picture:
-    ``height x width`` px with :meth:`Framing.intrinsics`."""
-    from nerfstudio.cameras.cameras import Cameras
-
-    fx, fy, cx, cy = framing.intrinsics(
-        float(camera.fx.reshape(-1)[0]),
-        float(camera.fy.reshape(-1)[0]),
-        float(camera.cx.reshape(-1)[0]),
-        float(camera.cy.reshape(-1)[0]),
-    )
-
-    def like(x: float) -> Tensor:
-        return torch.full_like(camera.fx, x)
-
-    return Cameras(
-        camera_to_worlds=camera.camera_to_worlds,
-        fx=like(fx),
-        fy=like(fy),
-        cx=like(cx),
-        cy=like(cy),
-        width=torch.full_like(camera.width, width),
-        height=torch.full_like(camera.height, height),
-        camera_type=camera.camera_type,
-    )
