@@ -32,11 +32,22 @@ def frame_name(path: str) -> str:
     return p
 
 
-def read_cameras_file(path) -> Dict[str, Dict[str, Any]]:
+@dataclass(frozen=True)
+class Frame:
+    """One camera of a transforms JSON: its 4x4 OpenGL camera-to-world ``c2w`` in the file's coordinates, its
+    ``intrinsics`` (the file's ``camera_angle_x/y`` or ``fl_x, fl_y, cx, cy, w, h``, per frame over the file's top
+    level) and the file's ``applied`` transform and scale (:func:`applied_transform_of`)."""
+
+    c2w: Float[Tensor, "4 4"]
+    intrinsics: Dict[str, Any]
+    applied: Tuple[Tensor, float]
+
+
+def read_cameras_file(path) -> Dict[str, Frame]:
     """The frames of a Blender-style transforms JSON (``transforms_test.json``: ``camera_angle_x`` and per frame
     ``file_path`` and a 4x4 OpenGL camera-to-world ``transform_matrix``; nerfstudio's intrinsics ``fl_x, fl_y, cx,
-    cy, w, h`` are read too, at the top level or per frame). Returns ``{frame name: {"c2w": [4 4], "intrinsics":
-    {...}}}``, named by :func:`frame_name` of ``file_path``. One-line errors for what cannot be used."""
+    cy, w, h`` are read too, at the top level or per frame). Returns each :class:`Frame` by :func:`frame_name` of
+    its ``file_path``. One-line errors for what cannot be used."""
     path = Path(path)
     if not path.is_file():
         raise GStickerError(f"--cameras {path} does not exist; pass the transforms JSON of the suspect images' cameras")
@@ -55,7 +66,7 @@ def read_cameras_file(path) -> Dict[str, Dict[str, Any]]:
         )
     top = {k: meta[k] for k in INTRINSIC_KEYS if k in meta}
     applied = applied_transform_of(meta, path)
-    out: Dict[str, Dict[str, Any]] = {}
+    out: Dict[str, Frame] = {}
     for i, fr in enumerate(frames):
         try:
             name = frame_name(fr["file_path"])
@@ -78,7 +89,7 @@ def read_cameras_file(path) -> Dict[str, Dict[str, Any]]:
             raise GStickerError(
                 f"--cameras {path}: frame {i} ({name}) gives fl_x without the image size w, h it refers to"
             )
-        out[name] = {"c2w": c2w, "intrinsics": intr, "applied": applied}
+        out[name] = Frame(c2w=c2w, intrinsics=intr, applied=applied)
     return out
 
 
@@ -96,7 +107,7 @@ def applied_transform_of(meta: Dict[str, Any], path) -> Tuple[Tensor, float]:
     return a, float(meta.get("applied_scale", 1.0))
 
 
-def match_frame(image_name: str, frames: Dict[str, Dict[str, Any]]) -> Optional[str]:
+def match_frame(image_name: str, frames: Dict[str, Frame]) -> Optional[str]:
     """The frame of an image (its path relative to the images folder): the same name, else the same last
     component when exactly one frame has it (``r_0.png`` <-> ``./test/r_0``)."""
     name = frame_name(image_name)
@@ -128,12 +139,12 @@ class PoseMap:
         return out
 
 
-def camera_for_image(frame: Dict[str, Any], height: int, width: int, pose_map: Optional[PoseMap] = None):
+def camera_for_image(frame: Frame, height: int, width: int, pose_map: Optional[PoseMap] = None):
     """A nerfstudio camera for an image of ``height x width`` px taken at ``frame`` (:func:`read_cameras_file`):
     the intrinsics scaled to the image's size, the pose put in the base run's coordinates by ``pose_map``
     (:func:`base_pose_map`; None: the file's own coordinates)."""
 
-    intr = frame["intrinsics"]
+    intr = frame.intrinsics
     if "fl_x" in intr:
         w0, h0 = float(intr["w"]), float(intr["h"])
         if abs(w0 / h0 - width / height) > 0.01 * (w0 / h0):
@@ -149,7 +160,7 @@ def camera_for_image(frame: Dict[str, Any], height: int, width: int, pose_map: O
         fx = 0.5 * width / math.tan(0.5 * float(intr["camera_angle_x"]))
         fy = 0.5 * height / math.tan(0.5 * float(intr["camera_angle_y"])) if "camera_angle_y" in intr else fx
         cx, cy = width / 2.0, height / 2.0
-    c2w = (pose_map or PoseMap(torch.eye(4)[:3], 1.0)).apply(frame["c2w"], frame.get("applied"))
+    c2w = (pose_map or PoseMap(torch.eye(4)[:3], 1.0)).apply(frame.c2w, frame.applied)
     return Cameras(
         camera_to_worlds=c2w[None],
         fx=fx,

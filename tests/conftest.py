@@ -5,6 +5,9 @@ session with the plugin's own scene generator. ``tiny_base`` (a 2-step nerfacto 
 (a 10-step geometrysticker run on that base carrying ``TINY_MESSAGE``) are trained once per session by the real
 ``ns-train``; modules that rewrite a key get their own copy (:func:`copy_key`). ``shared_dir``: the project's
 shared data folder (``../shared`` beside the repository root), or a skip when it is missing.
+
+Under pytest-xdist (``make test`` runs two workers, a test file per worker) each worker uses one thread, and the
+session's scene and tiny runs are built once for all workers (:func:`built_once`).
 """
 
 from __future__ import annotations
@@ -15,9 +18,15 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Dict, List, Sequence
+from typing import Callable, Dict, List, Sequence
 
 import pytest
+from filelock import FileLock
+
+WORKER = os.environ.get("PYTEST_XDIST_WORKER")
+if WORKER:  # two workers on the CPU's cores: one thread each, inherited by their ns-* subprocesses
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 # Host quirk: after pyvista/VTK has rendered off screen in a process (Mesa's llvmpipe loads its LLVM), the first
 # import of triton's libtriton in that process segfaults -- and torch._dynamo imports triton through
@@ -130,10 +139,33 @@ def owner_keys_dir(tmp_path_factory) -> Path:
         os.environ["GSTICKER_KEYS_DIR"] = old
 
 
+def built_once(tmp_path_factory, name: str, build: Callable[[Path], Path]) -> Path:
+    """``build(folder)`` run once per test session, also across pytest-xdist workers (the first worker builds
+    under a file lock in the session's shared temporary folder, the others wait and read what it built)."""
+    root = tmp_path_factory.getbasetemp()
+    if WORKER:
+        root = root.parent
+    folder = root / f"built-{name}"
+    done = folder / ".built"
+    with FileLock(str(root / f"built-{name}.lock")):
+        if done.is_file():
+            return Path(done.read_text())
+        if folder.exists():
+            shutil.rmtree(folder)  # a worker that failed half way
+        folder.mkdir(parents=True)
+        out = build(folder)
+        done.write_text(str(out))
+    return out
+
+
 @pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory) -> Path:
     """A tiny generated scene (32 px; 6 train, 2 val, 2 test views; seed 0), made once per test session."""
-    out = tmp_path_factory.mktemp("tiny_scene") / "scene"
+    return built_once(tmp_path_factory, "tiny_scene", make_tiny_scene)
+
+
+def make_tiny_scene(folder: Path) -> Path:
+    out = folder / "scene"
     # In a subprocess: no OpenGL context (nor VTK's libraries) in the test process.
     cmd = [
         sys.executable,
@@ -195,21 +227,25 @@ def train_tiny_nerfacto(scene: Path, ws: Path, steps: int) -> Path:
 @pytest.fixture(scope="session")
 def tiny_base(tiny_scene, tmp_path_factory) -> Path:
     """config.yml of a 2-step nerfacto base on the tiny scene (read-only: copy it before changing it)."""
-    return train_tiny_nerfacto(tiny_scene, tmp_path_factory.mktemp("tiny_base"), 2)
+    return built_once(tmp_path_factory, "tiny_base", lambda ws: train_tiny_nerfacto(tiny_scene, ws, 2))
 
 
 @pytest.fixture(scope="session")
 def tiny_trained_base(tiny_scene, tmp_path_factory) -> Path:
     """config.yml of a 100-step nerfacto base on the tiny scene (some geometry for the field mark to ride on;
     read-only)."""
-    return train_tiny_nerfacto(tiny_scene, tmp_path_factory.mktemp("tiny_trained_base"), 100)
+    return built_once(tmp_path_factory, "tiny_trained_base", lambda ws: train_tiny_nerfacto(tiny_scene, ws, 100))
 
 
 @pytest.fixture(scope="session")
 def tiny_sticker(tiny_base, tmp_path_factory) -> Dict[str, Path]:
     """A 10-step geometrysticker run on ``tiny_base`` carrying ``TINY_MESSAGE``: ``{base, run, key}`` (config.yml
     paths and the owner key; read-only: :func:`copy_key` before calibrating or exporting into a key)."""
-    ws = tmp_path_factory.mktemp("tiny_sticker")
+    run = built_once(tmp_path_factory, "tiny_sticker", lambda ws: train_tiny_sticker(tiny_base, ws))
+    return {"base": tiny_base, "run": run, "key": run.parent.parent / "run.gskey"}
+
+
+def train_tiny_sticker(tiny_base: Path, ws: Path) -> Path:
     ckpt = max((tiny_base.parent / "nerfstudio_models").glob("step-*.ckpt"))
     key = ws / "gs" / "geometrysticker" / "run.gskey"
     ns_train(
@@ -232,7 +268,7 @@ def tiny_sticker(tiny_base, tmp_path_factory) -> Dict[str, Path]:
         ],
         ws,
     )
-    return {"base": tiny_base, "run": ws / "gs" / "geometrysticker" / "run" / "config.yml", "key": key}
+    return ws / "gs" / "geometrysticker" / "run" / "config.yml"
 
 
 # Fixtures that train with ns-train, render a scene or run an ns-* command: a test that uses one (directly or through

@@ -36,7 +36,7 @@ from gsticker_plugin.decoders.pose import (
     pose_columns,
     search_renders,
 )
-from gsticker_plugin.decoders.result import decoded
+from gsticker_plugin.decoders.result import Decoded, decoded
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.views import progress_bar
 
@@ -96,7 +96,7 @@ def decode_images(
     names: Optional[Sequence[str]] = None,
     progress: bool = False,
     renders: Optional[Dict[Tuple[int, int], Any]] = None,
-) -> Dict[str, Any]:
+) -> Decoded:
     """Decode ``images`` (``[H W 3]`` in [0, 1]) of the owner's scene against the field-mark ``reference``
     (:func:`gsticker_plugin.decoders.fieldmark.load_field_reference`): at the given ``cameras`` (one per image, a
     one-camera ``Cameras``; None: found by the camera search), then the fit with the pose Jacobian. ``renders``: the

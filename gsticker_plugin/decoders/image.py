@@ -44,11 +44,7 @@ from torch import Tensor
 
 from gsticker_plugin.attacks import ATTACKS, gaussian_blur, resize, rotate
 from gsticker_plugin.background import Background
-from gsticker_plugin.cameras import (
-    PoseMap,
-    camera_for_image,
-    match_frame,
-)
+from gsticker_plugin.cameras import Frame, PoseMap, camera_for_image, match_frame
 from gsticker_plugin.decoders.cover import covered_pixels
 from gsticker_plugin.decoders.fit import (
     fit_and_decide,
@@ -58,7 +54,7 @@ from gsticker_plugin.decoders.fit import (
 )
 from gsticker_plugin.decoders.geometric import marked_density
 from gsticker_plugin.decoders.reference import any_reference_view, cpu_sticker
-from gsticker_plugin.decoders.result import decoded
+from gsticker_plugin.decoders.result import Decoded, decoded
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import OwnerKey
 from gsticker_plugin.sticker import Sticker, render_weights
@@ -522,7 +518,7 @@ def decode_posed_images(
     progress: bool = False,
     degradations: Optional[str] = "match",
     value_mode: bool = True,
-) -> Dict[str, Any]:
+) -> Decoded:
     """Decode ``images[i]``, taken at ``cameras[i] = (name, camera)`` of the owner's scene, with the informed image
     decoder. ``images``: a ``[V H W 3]`` tensor or a list of ``[H W 3]`` images (sizes may differ, each its camera's).
 
@@ -587,9 +583,7 @@ def base_pose_map(reference) -> PoseMap:
     return PoseMap(outputs.dataparser_transform.detach().float().cpu(), float(outputs.dataparser_scale))
 
 
-def posed_views(
-    views: Views, frames: Dict[str, Dict[str, Any]], pose_map: PoseMap
-) -> Tuple[Views, List[Tuple[str, Any]]]:
+def posed_views(views: Views, frames: Dict[str, Frame], pose_map: PoseMap) -> Tuple[Views, List[Tuple[str, Any]]]:
     """The images that have a camera in ``frames`` (:func:`gsticker_plugin.decoders.image.read_cameras_file`), each
     with a camera of its own size; the others are added to ``skipped``."""
 
@@ -625,8 +619,8 @@ def posed_views(
 
 
 def decode_images_at_cameras(
-    key: OwnerKey, ref, views: Views, frames: Dict[str, Dict[str, Any]], seed: int, progress: bool
-) -> Tuple[Views, Dict[str, Any]]:
+    key: OwnerKey, ref, views: Views, frames: Dict[str, Frame], seed: int, progress: bool
+) -> Tuple[Views, Decoded]:
     """The informed image decoder on the images of ``views`` that have a camera in ``frames``, against the owner's
     base ``ref`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`): the posed views and the decoded bits."""
 

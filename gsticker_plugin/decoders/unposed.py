@@ -48,7 +48,7 @@ from gsticker_plugin.decoders.pose import (
     search_renders,
 )
 from gsticker_plugin.decoders.reference import ReferenceView, any_reference_view, cpu_sticker
-from gsticker_plugin.decoders.result import decoded
+from gsticker_plugin.decoders.result import Decoded, decoded
 from gsticker_plugin.sticker import render_weights
 from gsticker_plugin.views import progress_bar
 
@@ -281,7 +281,7 @@ def decode_unposed_images(
     blur: bool = True,
     turn: bool = True,
     jpeg: bool = True,
-) -> Dict[str, Any]:
+) -> Decoded:
     """Decode ``images`` (``[H W 3]`` each, cameras unknown) of the owner's scene against the owner's base
     ``reference`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`): camera search, then the image fit
     with the pose Jacobian. ``value_mode``: read an image whose V matches the base render far better than its RGB

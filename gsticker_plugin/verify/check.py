@@ -7,7 +7,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import torch
 
@@ -28,12 +28,14 @@ from gsticker_plugin.decoders.reference import (
     missing_geometry_message,
     recorded_base_config,
 )
+from gsticker_plugin.decoders.result import Decoded
 from gsticker_plugin.decoders.unposed import decode_unposed_images
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import KEY_SUFFIX, OwnerKey, commitment, signature_valid
 from gsticker_plugin.runs import load_run, pick_device
 from gsticker_plugin.verify.configs import EXIT_NOT_SHOWN, EXIT_OWNED, VerifyConfig
 from gsticker_plugin.verify.report import write_figure, write_json
+from gsticker_plugin.verify.results import Commitment, DecoderInfo, KeyResult, Report
 from gsticker_plugin.verify.stats import correct_keys, key_result
 from gsticker_plugin.views import (
     Views,
@@ -43,35 +45,8 @@ from gsticker_plugin.views import (
     progress_bar,
 )
 
-# ================================================================================================================
-# configuration
-# ================================================================================================================
-
-
-# ================================================================================================================
-# views
-# ================================================================================================================
-
-
-# ---------------------------------------------------------------------------------------------------- images
-
-
-# ---------------------------------------------------------------------------------------------------- models
-
-
-# ================================================================================================================
-# decoding and statistics
-# ================================================================================================================
-
-
-# ================================================================================================================
-# report
-# ================================================================================================================
-
-
-# ================================================================================================================
-# commands
-# ================================================================================================================
+DecoderRun = Tuple[List[KeyResult], Views, DecoderInfo]
+"""A decoder's run over every key: per-key results, the views it read, the report's decoder entry."""
 
 
 def _load_keys(key: Optional[Path], keys: Optional[Path], allow_legacy: bool = False) -> List[Tuple[Path, OwnerKey]]:
@@ -161,14 +136,14 @@ def choose_field_decoder(config: VerifyConfig, marked: List[Path], num_keys: int
 def _informed_result(
     key: OwnerKey,
     path: Path,
-    dec: Dict[str, Any],
+    dec: Decoded,
     views: Views,
     config: VerifyConfig,
     decoder: str,
     ref,
     notes: List[str],
     bases: List[str],
-) -> Dict[str, Any]:
+) -> KeyResult:
     """:func:`key_result` of an informed decoder, with the owner's base run it read against (its notes and path
     are added to ``notes`` and ``bases``)."""
     r = key_result(key, path, dec, views, config.fpr, config.min_share, decoder=decoder)
@@ -183,7 +158,7 @@ OTHER_SCENE_AGREEMENT = 0.5
 another scene."""
 
 
-def median_agreement(dec: Dict[str, Any]) -> float:
+def median_agreement(dec: Decoded) -> float:
     """The median over views of the geometric decoder's scene agreement (views with no surface ray left out; NaN when
     none has one)."""
     vals = sorted(
@@ -194,14 +169,17 @@ def median_agreement(dec: Dict[str, Any]) -> float:
     return float(vals[len(vals) // 2]) if vals else float("nan")
 
 
-def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device):
+def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device) -> DecoderRun:
     """Geometric decoding of the suspect run for every key (each against its own base run)."""
 
     with contextlib.redirect_stdout(sys.stderr):
         run_cfg, pipeline, ckpt = load_run(config.load_config, data=config.data, device=device)
     warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
     model = pipeline.model
-    results, views, bases, notes = [], None, [], []
+    results: List[KeyResult] = []
+    views: Optional[Views] = None
+    bases: List[str] = []
+    notes: List[str] = []
     for path, key in keys:
         dec, vlist, ref = _decode_geometry(config, path, key, model, device)
         kv = Views(
@@ -231,7 +209,16 @@ def _verify_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], de
         views = views or kv
         del ref
     signals = sorted({tuple(g["signals"]) for r in results for g in (v["geometry"] for v in r["per_view"])})
-    return results, views, {"bases": bases, "signals": [list(s) for s in signals], "notes": notes}
+    info: DecoderInfo = {
+        "kind": "geometry",
+        "informed": True,
+        "description": "",
+        "notes": notes,
+        "bases": bases,
+        "signals": [list(s) for s in signals],
+    }
+    assert views is not None
+    return results, views, info
 
 
 def _decode_geometry(config: VerifyConfig, path: Path, key: OwnerKey, model, device: torch.device):
@@ -250,12 +237,15 @@ def _decode_geometry(config: VerifyConfig, path: Path, key: OwnerKey, model, dev
 
 def _verify_images_informed(
     config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], views: Views, device: torch.device
-):
+) -> DecoderRun:
     """The informed image decoder for every key (each against its own base run): on the images that have a camera in
     --cameras, or, without it, on every image of the base's aspect ratio at a camera found against the base."""
 
     frames = read_cameras_file(config.cameras) if config.cameras is not None else None
-    results, used, bases, notes = [], None, [], []
+    results: List[KeyResult] = []
+    used: Optional[Views] = None
+    bases: List[str] = []
+    notes: List[str] = []
     for path, key in keys:
         if key.field_mark:
             posed, dec, ref = _field_images(config, path, key, views, frames, device)
@@ -282,8 +272,16 @@ def _verify_images_informed(
         results.append(_informed_result(key, path, dec, posed, config, "image", ref, notes, bases))
         used = used or posed
         del ref
-    cameras = str(config.cameras) if config.cameras is not None else "estimated"
-    return results, used, {"bases": bases, "cameras": cameras, "notes": notes}
+    info: DecoderInfo = {
+        "kind": "image",
+        "informed": True,
+        "description": "",
+        "notes": notes,
+        "bases": bases,
+        "cameras": str(config.cameras) if config.cameras is not None else "estimated",
+    }
+    assert used is not None
+    return results, used, info
 
 
 def _field_images(config: VerifyConfig, path: Path, key: OwnerKey, views: Views, frames, device: torch.device):
@@ -354,24 +352,23 @@ def _mark_name(keys: List[Tuple[Path, OwnerKey]]) -> str:
     return "field mark" if any(k.field_mark for _, k in keys) else "sticker"
 
 
-def _run_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device):
+def _run_geometry(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device) -> DecoderRun:
     """The geometric decoder on the suspect model: ``(results, views, decoder info)``."""
     results, views, info = _verify_geometry(config, keys, device)
-    notes = info.pop("notes")
     if config.attack.strip():
-        notes.append(
+        info["notes"].append(
             f"--attack {config.attack!r} not applied: attacks are image-level distortions, and the "
             "geometric decoder reads the model's geometry, not images"
         )
-    signals = " + ".join(sorted({n.replace("_", " ") for sig in info["signals"] for n in sig}))
-    description = (
+    signals = " + ".join(sorted({n.replace("_", " ") for sig in info.get("signals", []) for n in sig}))
+    info["description"] = (
         f"informed: fits the key's {_mark_name(keys)} to the suspect's geometry ({signals}) against the owner's "
         "unwatermarked base run; model-level only"
     )
-    return results, views, {"kind": "geometry", "informed": True, **info, "description": description, "notes": notes}
+    return results, views, info
 
 
-def _run_images(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device):
+def _run_images(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device) -> DecoderRun:
     """The informed image decoder on --images: ``(results, views, decoder info)``."""
     views = images_views(config.images, config.max_side, config.min_side, config.max_pixels, config.progress)
     apply_attack(views, config.attack, config.seed)
@@ -379,14 +376,14 @@ def _run_images(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device:
     cameras = (
         "--cameras" if config.cameras is not None else "found against the base; its error fitted beside the message"
     )
-    description = (
+    info["description"] = (
         f"informed: fits the key's {_mark_name(keys)} to each image's colour change from the owner's unwatermarked "
         f"base rendered at the image's camera ({cameras})"
     )
-    return results, views, {"kind": "image", "informed": True, **info, "description": description}
+    return results, views, info
 
 
-def _run_extractor(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device):
+def _run_extractor(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], device: torch.device) -> DecoderRun:
     """The blind extractor on a model's renders or on --images: ``(results, views, decoder info)``."""
     leaning = [str(p) for p, k in keys if k.owner_message_prob > 0]
     if leaning:
@@ -410,7 +407,7 @@ def _run_extractor(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], devi
     if not views.views:
         raise GStickerError("no view to decode; nothing to base a verdict on")
     apply_attack(views, config.attack, config.seed)
-    results = []
+    results: List[KeyResult] = []
     for path, key in progress_bar(keys, "decoding", config.progress and len(keys) > 1):
         dec = decode_views(key, views, device)
         results.append(key_result(key, path, dec, views, config.fpr, config.min_share))
@@ -418,14 +415,18 @@ def _run_extractor(config: VerifyConfig, keys: List[Tuple[Path, OwnerKey]], devi
         results[-1]["soft_score_pvalue"] = dec["soft_pvalue_pooled"]
     what = "renders" if views.kind == "model" else "images"
     description = f"blind: the key's extractor reads the message from RGB {what}"
-    return results, views, {"kind": "extractor", "informed": False, "description": description}
+    return results, views, {"kind": "extractor", "informed": False, "description": description, "notes": []}
 
 
-DECODERS = {"geometry": _run_geometry, "image": _run_images, "extractor": _run_extractor}
+DECODERS: Dict[str, Callable[[VerifyConfig, List[Tuple[Path, OwnerKey]], torch.device], DecoderRun]] = {
+    "geometry": _run_geometry,
+    "image": _run_images,
+    "extractor": _run_extractor,
+}
 """Each decoder's run: ``(config, keys, device) -> (per-key results, the views read, the report's decoder entry)``."""
 
 
-def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
+def verify(config: VerifyConfig) -> Tuple[int, Report]:
     """Run ``verify``; returns (exit status, report). Raises GStickerError for bad input."""
     _check_inputs(config)
     keys = _load_keys(config.key, config.keys, config.allow_legacy)
@@ -433,13 +434,20 @@ def verify(config: VerifyConfig) -> Tuple[int, Dict[str, Any]]:
     device = pick_device(config.device)
     decoder, notes = choose_decoder(config, keys)
     results, views, decoder_info = DECODERS[decoder](config, keys, device)
-    decoder_info["notes"] = notes + decoder_info.get("notes", [])
+    decoder_info["notes"] = notes + decoder_info["notes"]
     report = _report(config, keys, views, results, decoder_info, committed)
     _write_report(config, report, views, keys, results)
     return report["exit_status"], report
 
 
-def _report(config: VerifyConfig, keys, views: Views, results, decoder_info, committed) -> Dict[str, Any]:
+def _report(
+    config: VerifyConfig,
+    keys,
+    views: Views,
+    results: List[KeyResult],
+    decoder_info: DecoderInfo,
+    committed: Optional[Commitment],
+) -> Report:
     """The report: input, settings, decoder, per-key results and the verdict."""
     owned = [r["owner_id"] for r in results if r["owned"]]
     return {
@@ -472,7 +480,7 @@ def _report(config: VerifyConfig, keys, views: Views, results, decoder_info, com
     }
 
 
-def _write_report(config: VerifyConfig, report: Dict[str, Any], views: Views, keys, results) -> None:
+def _write_report(config: VerifyConfig, report: Report, views: Views, keys, results: List[KeyResult]) -> None:
     """report.json (and report.png) in --output; one-line error when the folder is not writable."""
     out = Path(config.output)
     try:
@@ -499,7 +507,7 @@ def _hex_arg(given: str, option: str, what: str) -> str:
 
 def check_commitment(
     given: Optional[str], keys: List[Tuple[Path, OwnerKey]], public_key: Optional[str] = None
-) -> Optional[Dict[str, Any]]:
+) -> Optional[Commitment]:
     """``--commitment HEX`` (and ``--public-key HEX``) against the one key given: None without them; a mismatch is an
     error. The public key must have signed the key's commitment."""
     if given is None and public_key is None:
@@ -508,7 +516,7 @@ def check_commitment(
         raise GStickerError("--commitment and --public-key check one key: pass it with --key KEY.gskey, not --keys")
     path, key = keys[0]
     own = commitment(key)
-    out: Dict[str, Any] = {"key": str(path), "matches": True}
+    out: Commitment = {"key": str(path), "matches": True}
     if given is not None:
         hex_ = _hex_arg(given, "--commitment", "commitment")
         if own != hex_:

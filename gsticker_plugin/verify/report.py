@@ -6,12 +6,13 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Dict, Optional
+from typing import Any, Optional
 
 import torch
 
 from gsticker_plugin import metrics
 from gsticker_plugin.key import OwnerKey
+from gsticker_plugin.verify.results import KeyResult, Report
 from gsticker_plugin.verify.stats import decoder_null
 from gsticker_plugin.views import Views
 
@@ -25,14 +26,15 @@ def _fmt_p(p: float) -> str:
     return f"{p:.2g}" if p >= 1e-3 or p == 0 else f"{p:.1e}"
 
 
-def nothing_read(key_report: Dict[str, Any]) -> int:
+def nothing_read(key_report: KeyResult) -> int:
     """Images of a key's result whose every bit the informed image decoder left undetermined (its fit read no ray)."""
     return sum(
         (v.get("image_fit") or {}).get("undetermined", 0) >= key_report["num_bits"] for v in key_report["per_view"]
     )
 
 
-def summary_text(report: Dict[str, Any]) -> str:
+def summary_text(report: Report) -> str:
+    """The text summary printed before anything else: the verdict, the input, the decoder and each key's result."""
     lines = []
     owners = report["owned_by"]
     if report["verdict"] == "owned":
@@ -123,7 +125,7 @@ def summary_text(report: Dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def write_figure(path: Path, report: Dict[str, Any], views: Views, key: Optional[OwnerKey]) -> None:
+def write_figure(path: Path, report: Report, views: Views, key: Optional[OwnerKey]) -> None:
     # deferred: only charts need it, slow to import
     import matplotlib
 

@@ -7,7 +7,9 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional
 
 from gsticker_plugin import metrics
+from gsticker_plugin.decoders.result import Decoded
 from gsticker_plugin.key import OwnerKey, bits_to_str
+from gsticker_plugin.verify.results import KeyResult, MultipleTesting, NullSummary, Thresholds, ViewResult
 from gsticker_plugin.views import Views
 
 NULL_FORMAT_VERSION = 1
@@ -24,7 +26,7 @@ def decoder_null(key: OwnerKey, decoder: str) -> Optional[Dict[str, Any]]:
     return key.null
 
 
-def null_summary(key: OwnerKey, fpr: float, decoder: str = "extractor") -> Optional[Dict[str, Any]]:
+def null_summary(key: OwnerKey, fpr: float, decoder: str = "extractor") -> Optional[NullSummary]:
     """The key's stored empirical null for ``decoder``, and the per-view threshold it implies at ``fpr``."""
     null = decoder_null(key, decoder)
     if not null or not null.get("matches"):
@@ -57,12 +59,14 @@ def null_summary(key: OwnerKey, fpr: float, decoder: str = "extractor") -> Optio
 def key_result(
     key: OwnerKey,
     key_path: Path,
-    dec: Dict[str, Any],
+    dec: Decoded,
     views: Views,
     fpr: float,
     min_share: float,
     decoder: str = "extractor",
-) -> Dict[str, Any]:
+) -> KeyResult:
+    """One key's result on the decoded views: the per-view threshold (the stricter of the binomial and the key's
+    measured null), each view's pass, the view vote and the verdict."""
     k = key.num_bits
     m_theo = metrics.min_matches_for_fpr(k, fpr)
     emp = null_summary(key, fpr, decoder)
@@ -77,43 +81,46 @@ def key_result(
     t_stat = metrics.vote_statistic(matches, min_share)
     per_view_fpr_used = metrics.binomial_tail_pvalue(m_star, k)
     if emp is not None:
-        exceed = sum(1 for x in decoder_null(key, decoder)["matches"] if int(x) >= m_star)
+        exceed = sum(1 for x in (decoder_null(key, decoder) or {})["matches"] if int(x) >= m_star)
         emp["exceed_at_used_threshold"] = exceed
         emp["exceed_upper95_at_used_threshold"] = metrics.clopper_pearson_upper(exceed, emp["n"])
     scores = dec.get("scores")
     geo = dec.get("geometry")
     img_fit = dec.get("image")
-    per_view = []
+    per_view: List[ViewResult] = []
     for i, v in enumerate(views.views):
-        per_view.append(
-            {
-                "name": v.name,
-                "matches": int(matches[i]),
-                "num_bits": k,
-                "bit_accuracy": float(dec["bit_acc"][i]),
-                "pvalue": float(dec["pvalues"][i]),
-                "score": float(scores[i]) if scores is not None else None,
-                "passed": bool(passed[i]),
-                "decoded": bits_to_str(dec["bits"][i]),
-                **({"note": v.note} if v.note else {}),
-                **({"geometry": geo[i]} if geo is not None else {}),
-                **({"image_fit": img_fit[i]} if img_fit is not None else {}),
-            }
-        )
+        vr: ViewResult = {
+            "name": v.name,
+            "matches": int(matches[i]),
+            "num_bits": k,
+            "bit_accuracy": float(dec["bit_acc"][i]),
+            "pvalue": float(dec["pvalues"][i]),
+            "score": float(scores[i]) if scores is not None else None,
+            "passed": bool(passed[i]),
+            "decoded": bits_to_str(dec["bits"][i]),
+        }
+        if v.note:
+            vr["note"] = v.note
+        if geo is not None:
+            vr["geometry"] = geo[i]
+        if img_fit is not None:
+            vr["image_fit"] = img_fit[i]
+        per_view.append(vr)
     mlist = sorted(int(x) for x in matches.tolist())
-    return {
+    thresholds: Thresholds = {
+        "theoretical": m_theo,
+        "empirical": m_emp,
+        "used": m_star,
+        "per_view_fpr_target": fpr,
+        "per_view_fpr_at_used": per_view_fpr_used,
+    }
+    result: KeyResult = {
         "key": str(key_path),
         "owner_id": key.owner_id or Path(key_path).stem,
         "num_bits": k,
         "verdict": "owned" if vote.passed else "not shown",
         "owned": bool(vote.passed),
-        "thresholds": {
-            "theoretical": m_theo,
-            "empirical": m_emp,
-            "used": m_star,
-            "per_view_fpr_target": fpr,
-            "per_view_fpr_at_used": per_view_fpr_used,
-        },
+        "thresholds": thresholds,
         "views": n,
         "views_passing": int(sum(passed)),
         "share_passing": vote.share,
@@ -133,22 +140,18 @@ def key_result(
         "null_caveats": key.null_caveats(),
         "message_source": key.message_source,
         "empirical_null": emp,
-        **(
-            {
-                "null_note": (
-                    f"the key's empirical null was measured with the extractor and does not apply to the "
-                    f"{'geometric' if decoder == 'geometry' else 'image'} decoder; run `ns-verify-owner "
-                    f"calibrate --decode {decoder}` to measure its own"
-                )
-            }
-            if decoder in ("geometry", "image") and emp is None and key.null
-            else {}
-        ),
         "per_view": per_view,
     }
+    if decoder in ("geometry", "image") and emp is None and key.null:
+        result["null_note"] = (
+            f"the key's empirical null was measured with the extractor and does not apply to the "
+            f"{'geometric' if decoder == 'geometry' else 'image'} decoder; run `ns-verify-owner "
+            f"calibrate --decode {decoder}` to measure its own"
+        )
+    return result
 
 
-def correct_keys(results: List[Dict[str, Any]], fpr: float, min_share: float, correction: str) -> Dict[str, Any]:
+def correct_keys(results: List[KeyResult], fpr: float, min_share: float, correction: str) -> MultipleTesting:
     """Several keys: correct the model-level p-values and re-decide each key at the family-wise level."""
     alpha = metrics.combined_fpr_bound(fpr, min_share)
     pv = [r["model_pvalue"] for r in results]
