@@ -1,0 +1,136 @@
+"""Seconds and renders per picture of the camera search's two refinements (``python -m gsticker_plugin.bench.pose_refine``).
+
+The shared run of ``bench.shared`` rendered at a few test views of its scene (8-bit PNG), each read without cameras
+by :func:`gsticker_plugin.decoders.fieldimage.decode_images` once per refinement of the camera search
+(:attr:`gsticker_plugin.decoders.pose.PoseSearch.refine`): ``render`` (a base render per Gauss-Newton step) and
+``warp`` (the picture warped onto a held render). The candidates' renders are made once per size, before either is
+timed. Per picture: matches, the camera's error, seconds and base renders. The default views are the decoder's
+development views (test views 1 to 3, 5), none of the frozen evaluations' views.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, Tuple
+
+import torch
+import tyro
+
+from gsticker_plugin.bench import command_lines, provenance, write_page
+from gsticker_plugin.bench.shared_images import read_png, write_png
+from gsticker_plugin.machine import config_under
+
+
+@dataclass
+class Args:
+    data: Path
+    """The base's dataset folder."""
+    shared_dir: Path = Path("outputs/bench-shared")
+    """bench.shared's work folder: its owner.gskey and shared run (runs/)."""
+    work_dir: Path = Path("outputs/bench-pose-refine")
+    views: Tuple[int, ...] = (1, 2, 3, 5)
+    """Test views rendered and read."""
+    refines: Tuple[str, ...] = ("render", "warp")
+    seed: int = 20261207
+    """Decoding seed."""
+    output: Path = Path("docs/experiments/bench-pose-refine.md")
+    page_only: bool = False
+    """Rewrite the page from OUTPUT's JSON (no measuring)."""
+
+
+class RenderCount:
+    """Counts the base renders (batched ray-bundle passes) asked of ``model``."""
+
+    def __init__(self, model) -> None:
+        self.count = 0
+        inner = model.get_outputs_for_camera_ray_bundle
+
+        def counted(bundle):
+            self.count += 1
+            return inner(bundle)
+
+        model.get_outputs_for_camera_ray_bundle = counted
+
+
+def measure(args: Args) -> Dict[str, Any]:
+    from gsticker_plugin.decoders.fieldimage import decode_images
+    from gsticker_plugin.decoders.fieldmark import load_field_reference
+    from gsticker_plugin.decoders.pose import PoseSearch, search_renders
+    from gsticker_plugin.key import OwnerKey
+    from gsticker_plugin.runs import load_run
+
+    dev = torch.device("cpu")
+    key_path = args.shared_dir / "owner.gskey"
+    key = OwnerKey.load(key_path)
+    ref = load_field_reference(key, key_path, None, args.data, dev)
+    cameras = ref.pipeline.datamanager.eval_dataset.cameras
+    shared = load_run(config_under(args.shared_dir / "runs"), data=args.data, device=dev)[1].model.eval()
+    counter = RenderCount(ref.model)
+    rows = []
+    renders: Dict[Tuple[int, int], Any] = {}
+    for vi in args.views:
+        png = args.work_dir / f"test-{vi:03d}.png"
+        if not png.is_file():
+            with torch.no_grad():
+                write_png(png, shared.get_outputs_for_camera(cameras[vi : vi + 1].to(dev))["rgb"].float().cpu())
+        image = read_png(png)
+        hw = (int(image.shape[0]), int(image.shape[1]))
+        if hw not in renders:
+            renders[hw] = search_renders(ref, PoseSearch(), hw, value=True)
+        for refine in args.refines:
+            counter.count = 0
+            t0 = time.time()
+            dec = decode_images(key, ref, [image], args.seed, search=PoseSearch(refine=refine), renders=renders)
+            d = dec["image"][0]
+            true = cameras.camera_to_worlds[vi].float()
+            rows.append(
+                {
+                    "view": vi,
+                    "refine": refine,
+                    "matches": int(dec["matches"][0]),
+                    "camera_error": float((torch.tensor(d["c2w"]) - true).abs().max()),
+                    "pose_rms": d["pose_rms"],
+                    "seconds": time.time() - t0,
+                    "renders": counter.count,
+                }
+            )
+            print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
+    return {"views": list(args.views), "rows": rows, **provenance("gsticker_plugin.bench.pose_refine")}
+
+
+def page(res: Dict[str, Any]) -> str:
+    lines = command_lines(
+        "The camera search's refinements: seconds and renders per picture",
+        f"{res['date']}, {res['machine']['cpu']}",
+        res["json"],
+        res["command"],
+    )
+    lines += [
+        f"Pictures of the shared run at test views {', '.join(map(str, res['views']))} (the decoder's development "
+        "views), read without cameras once per refinement; the candidates' renders made beforehand. Camera error: the "
+        "largest entry of found minus true camera-to-world matrix. Renders: batched base renders after the candidates'.",
+        "",
+        "| view | refine | matches | camera error | seconds | renders |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in res["rows"]:
+        lines.append(
+            f"| {r['view']} | {r['refine']} | {r['matches']}/48 | {r['camera_error']:.1e} | {r['seconds']:.0f} | "
+            f"{r['renders']} |"
+        )
+    lines.append("")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    args = tyro.cli(Args)
+    res = json.loads(args.output.with_suffix(".json").read_text()) if args.page_only else measure(args)
+    write_page(args.output, res, page)
+
+
+if __name__ == "__main__":
+    main()
