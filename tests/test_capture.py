@@ -286,10 +286,10 @@ def test_the_default_field_mark_of_a_capture_base_is_owned_from_the_model_and_it
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     shared = ws / "cap" / "nerfacto" / "field" / "config.yml"
     capsys.readouterr()  # run_parallel's timing line
-    views = ("--num-views", "8")
+    views = ("--num-views", "4")
     status, stdout, rep = _verify(capsys, ws / "rep-field", "--load-config", str(shared), "--key", str(key), *views)
     assert status == 0 and stdout.startswith("VERDICT: OWNED"), stdout[-2000:]
-    assert min(v["matches"] for v in rep["keys"][0]["per_view"][:4]) >= 41  # the run's own cameras
+    assert min(v["matches"] for v in rep["keys"][0]["per_view"][:2]) >= 41  # the run's own cameras
     from gsticker_plugin.recolor import cli as recolor
 
     dest = ws / "recolored-field"

@@ -2,8 +2,9 @@
 
 The shared run of ``bench.shared`` rendered at a few test views of its scene (8-bit PNG), each read without cameras
 by :func:`gsticker_plugin.decoders.fieldimage.decode_images` once per refinement of the camera search
-(:attr:`gsticker_plugin.decoders.pose.PoseSearch.refine`): ``render`` (a base render per Gauss-Newton step) and
-``warp`` (the picture warped onto a held render). The candidates' renders are made once per size, before either is
+(:attr:`gsticker_plugin.decoders.pose.PoseSearch.refine`): ``render`` (a base render per Gauss-Newton step),
+``warp`` (the picture warped onto a held render) and ``mixed`` (warp, then the finest stage rendering per step).
+Rows go to ``WORK/rows.jsonl`` as they are measured (a rerun continues). The candidates' renders are made once per size, before either is
 timed. Per picture: matches, the camera's error, seconds and base renders. The default views are the decoder's
 development views (test views 1 to 3, 5), none of the frozen evaluations' views.
 """
@@ -34,7 +35,7 @@ class Args:
     work_dir: Path = Path("outputs/bench-pose-refine")
     views: Tuple[int, ...] = (1, 2, 3, 5)
     """Test views rendered and read."""
-    refines: Tuple[str, ...] = ("render", "warp")
+    refines: Tuple[str, ...] = ("render", "warp", "mixed")
     seed: int = 20261207
     """Decoding seed."""
     output: Path = Path("docs/experiments/bench-pose-refine.md")
@@ -70,7 +71,10 @@ def measure(args: Args) -> Dict[str, Any]:
     cameras = ref.pipeline.datamanager.eval_dataset.cameras
     shared = load_run(config_under(args.shared_dir / "runs"), data=args.data, device=dev)[1].model.eval()
     counter = RenderCount(ref.model)
-    rows = []
+    args.work_dir.mkdir(parents=True, exist_ok=True)
+    rows_path = args.work_dir / "rows.jsonl"
+    rows = [json.loads(line) for line in rows_path.read_text().splitlines()] if rows_path.is_file() else []
+    done = {(r["view"], r["refine"]) for r in rows}
     renders: Dict[Tuple[int, int], Any] = {}
     for vi in args.views:
         png = args.work_dir / f"test-{vi:03d}.png"
@@ -82,6 +86,8 @@ def measure(args: Args) -> Dict[str, Any]:
         if hw not in renders:
             renders[hw] = search_renders(ref, PoseSearch(), hw, value=True)
         for refine in args.refines:
+            if (vi, refine) in done:
+                continue
             counter.count = 0
             t0 = time.time()
             dec = decode_images(key, ref, [image], args.seed, search=PoseSearch(refine=refine), renders=renders)
@@ -98,7 +104,10 @@ def measure(args: Args) -> Dict[str, Any]:
                     "renders": counter.count,
                 }
             )
+            with rows_path.open("a") as f:
+                f.write(json.dumps(rows[-1]) + "\n")
             print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
+    rows = [r for r in rows if r["view"] in args.views and r["refine"] in args.refines]
     return {"views": list(args.views), "rows": rows, **provenance("gsticker_plugin.bench.pose_refine")}
 
 

@@ -10,7 +10,7 @@ resolution. It uses the image and the owner's base only, never the owner's messa
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
@@ -465,8 +465,9 @@ class PoseSearch:
     extend: int = 8
     """An accepted Gauss-Newton step is tried at up to this many times its length (:func:`lk_refine`)."""
     refine: str = "render"
-    """How a stage steps: ``render`` (:func:`lk_refine`, a render per step) or ``warp`` (:func:`warp_refine`, the image
-    warped onto a held render, ``warp_renders`` renders per stage)."""
+    """How a stage steps: ``render`` (:func:`lk_refine`, a render per step), ``warp`` (:func:`warp_refine`, the image
+    warped onto a held render, ``warp_renders`` renders per stage) or ``mixed`` (``warp`` for every stage but the
+    finest, which renders per step: the picture's bilinear resampling is not a render at the moved camera)."""
     warp_renders: int = 2
     """Renders per stage with ``refine="warp"``."""
     seed: int = 0
@@ -519,8 +520,10 @@ def estimate_camera(
         history.append({"candidate": b, **record(cam, rms, n_it, search.blurs[0])})
         first.append((b, cam, rms, n_it))
     b, cam, rms, total = min(first, key=lambda f: f[2])
-    for blur, its in zip(search.blurs, search.iterations):
-        cam, rms, n_it = refine_stage(model, image, cam, value, search, blur, its)
+    for i, (blur, its) in enumerate(zip(search.blurs, search.iterations)):
+        last = i == len(search.blurs) - 1
+        stage = replace(search, refine="render") if search.refine == "mixed" and last else search
+        cam, rms, n_it = refine_stage(model, image, cam, value, stage, blur, its)
         history.append({"candidate": b, **record(cam, rms, n_it, blur)})
         total += n_it
     return PoseFit(camera=cam, rms=rms, score=float(scores[b].max()), iterations=total, history=history)
@@ -552,7 +555,7 @@ def refine_stage(
     f = 2 if sigma >= 2 * search.half_size_blur else 1
     lh, lw = max(1, h // f), max(1, w // f)
     target = channel_of(image.float() if f == 1 else area_resize(image, lh, lw), value)
-    if search.refine == "warp" and render_blur == 0.0:
+    if search.refine in ("warp", "mixed") and render_blur == 0.0:
         cam, rms, n_it = warp_refine(
             model, scaled_camera(camera, lh, lw), target, value, iterations, sigma / f, search.warp_renders, trim=trim
         )
