@@ -524,10 +524,10 @@ def check_commitment(
                 f"{path} does not match the commitment {hex_[:16]}... (its own is {own[:16]}...): this is "
                 "not the key that was committed to; pass the committed key"
             )
-        out.update(
-            given=hex_,
-            meaning="sha256 over a secret salt and the key's message, sticker, heads and base checksum: the key "
-            "existed when this value was published or timestamped",
+        out["given"] = hex_
+        out["meaning"] = (
+            "sha256 over a secret salt and the key's message, sticker, heads and base checksum: the key "
+            "existed when this value was published or timestamped"
         )
     if public_key is not None:
         pub = _hex_arg(public_key, "--public-key", "public key")
@@ -541,5 +541,5 @@ def check_commitment(
                 f"{path} was not signed by the public key {pub[:16]}...: its commitment's signature does not verify; "
                 "this is not that owner's key"
             )
-        out.update(public_key=pub, signed=True)
+        out["public_key"], out["signed"] = pub, True
     return out

@@ -104,19 +104,23 @@ def summary_text(report: Report) -> str:
             f"    model-level p-value {_fmt_p(r['model_pvalue'])}; FPR of this verdict <= "
             f"{r['model_fpr_bound']:.2g} under any dependence between views"
         )
-        if "adjusted_pvalue" in r:
-            line += f"; {report['multiple_testing']['correction']}-adjusted p {_fmt_p(r['adjusted_pvalue'])}"
-        lines.append(line)
-    if report.get("commitment"):
-        c = report["commitment"]
-        if c.get("given"):
-            lines.append(
-                f"  commitment {c['given'][:16]}... matches the key: it existed when this commitment was published"
-            )
-        if c.get("signed"):
-            lines.append(f"  signed by the public key {c['public_key'][:16]}...: its identity's holder made this key")
-    if report.get("multiple_testing"):
         mt = report["multiple_testing"]
+        if "adjusted_pvalue" in r and mt is not None:
+            line += f"; {mt['correction']}-adjusted p {_fmt_p(r['adjusted_pvalue'])}"
+        lines.append(line)
+    committed = report.get("commitment")
+    if committed:
+        if "given" in committed:
+            lines.append(
+                f"  commitment {committed['given'][:16]}... matches the key: it existed when this commitment was "
+                "published"
+            )
+        if "public_key" in committed:
+            lines.append(
+                f"  signed by the public key {committed['public_key'][:16]}...: its identity's holder made this key"
+            )
+    mt = report.get("multiple_testing")
+    if mt:
         lines.append(
             f"  {mt['keys']} keys tested, {mt['correction']} correction; family-wise FPR <= {mt['family_wise_fpr']:.2g}"
         )
