@@ -28,6 +28,9 @@ import tyro
 from gsticker_plugin.bench import command_lines, provenance, suspect_summary, write_page
 from gsticker_plugin.machine import config_under
 
+FROZEN_REFINE = "render"
+"""The camera search's refinement as it was when the run was frozen (a Gauss-Newton step renders the base)."""
+
 
 @dataclass
 class Args:
@@ -69,10 +72,12 @@ def read_png(path: Path) -> torch.Tensor:
 def measure(args: Args) -> Dict[str, Any]:
     from gsticker_plugin.decoders.fieldimage import decode_images
     from gsticker_plugin.decoders.fieldmark import load_field_reference
+    from gsticker_plugin.decoders.pose import PoseSearch
     from gsticker_plugin.key import OwnerKey
     from gsticker_plugin.runs import load_run
 
     dev = torch.device("cpu")
+    search = PoseSearch(refine=FROZEN_REFINE)
     key_path = args.shared_dir / "owner.gskey"
     key = OwnerKey.load(key_path)
     suspects = [("shared run", config_under(args.shared_dir / "runs")), ("unmarked base", args.base)]
@@ -103,7 +108,7 @@ def measure(args: Args) -> Dict[str, Any]:
                     out = models[label].get_outputs_for_camera(cameras[vi : vi + 1].to(dev))
                 write_png(png, out["rgb"].float().cpu())
             t0 = time.time()
-            dec = decode_images(key, ref, [read_png(png)], args.seed, renders=renders)
+            dec = decode_images(key, ref, [read_png(png)], args.seed, search=search, renders=renders)
             d = dec["image"][0]
             row = {
                 "suspect": label,
