@@ -464,7 +464,7 @@ class PoseSearch:
     """Stages blurred by at least twice this many px run at half the image's size."""
     extend: int = 8
     """An accepted Gauss-Newton step is tried at up to this many times its length (:func:`lk_refine`)."""
-    refine: str = "render"
+    refine: str = "mixed"
     """How a stage steps: ``render`` (:func:`lk_refine`, a render per step), ``warp`` (:func:`warp_refine`, the image
     warped onto a held render, ``warp_renders`` renders per stage) or ``mixed`` (``warp`` for every stage but the
     finest, which renders per step: the picture's bilinear resampling is not a render at the moved camera)."""

@@ -104,7 +104,7 @@ def summary_text(report: Report) -> str:
             f"    model-level p-value {_fmt_p(r['model_pvalue'])}; FPR of this verdict <= "
             f"{r['model_fpr_bound']:.2g} under any dependence between views"
         )
-        mt = report["multiple_testing"]
+        mt = report.get("multiple_testing")
         if "adjusted_pvalue" in r and mt is not None:
             line += f"; {mt['correction']}-adjusted p {_fmt_p(r['adjusted_pvalue'])}"
         lines.append(line)
