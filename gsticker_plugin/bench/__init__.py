@@ -62,6 +62,18 @@ def write_page(output: Path, res: Dict[str, Any], page: Callable[[Dict[str, Any]
     print(f"wrote {output}")
 
 
+def bench_main(
+    args_type: type, measure: Callable[[Any], Dict[str, Any]], page: Callable[[Dict[str, Any]], str]
+) -> None:
+    """A bench's command: its arguments ``args_type`` (with ``output`` and ``page_only``) from the command line, then
+    ``measure(args)`` (or, with ``--page-only``, OUTPUT's JSON read back) written as the page and its JSON."""
+    import tyro
+
+    args = tyro.cli(args_type)
+    res = json.loads(args.output.with_suffix(".json").read_text()) if args.page_only else measure(args)
+    write_page(args.output, res, page)
+
+
 def suspect_summary(rows: List[Dict[str, Any]], threshold: int, num_bits: int = 48) -> Dict[str, Any]:
     """One suspect's rows (each with ``matches``) as ns-verify-owner would judge them: views, views passing at
     ``threshold``, bit accuracy, min / median / max matches and the verdict (OWNED when half the views pass)."""

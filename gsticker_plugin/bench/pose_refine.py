@@ -19,9 +19,8 @@ from pathlib import Path
 from typing import Any, Dict, Tuple
 
 import torch
-import tyro
 
-from gsticker_plugin.bench import command_lines, provenance, write_page
+from gsticker_plugin.bench import bench_main, command_lines, provenance
 from gsticker_plugin.bench.shared_images import read_png, write_png
 from gsticker_plugin.machine import config_under
 
@@ -136,9 +135,7 @@ def page(res: Dict[str, Any]) -> str:
 
 
 def main() -> None:
-    args = tyro.cli(Args)
-    res = json.loads(args.output.with_suffix(".json").read_text()) if args.page_only else measure(args)
-    write_page(args.output, res, page)
+    bench_main(Args, measure, page)
 
 
 if __name__ == "__main__":

@@ -23,9 +23,8 @@ from typing import Any, Dict, Tuple
 
 import numpy as np
 import torch
-import tyro
 
-from gsticker_plugin.bench import command_lines, provenance, suspect_summary, write_page
+from gsticker_plugin.bench import bench_main, command_lines, provenance, suspect_summary
 from gsticker_plugin.machine import config_under
 
 FROZEN_REFINE = "render"
@@ -193,9 +192,7 @@ def page(res: Dict[str, Any]) -> str:
 
 
 def main() -> None:
-    args = tyro.cli(Args)
-    res = json.loads(args.output.with_suffix(".json").read_text()) if args.page_only else measure(args)
-    write_page(args.output, res, page)
+    bench_main(Args, measure, page)
 
 
 if __name__ == "__main__":

@@ -195,6 +195,15 @@ def content_window(acc: Float[Tensor, "H W 1"], margin: int) -> Window:
     )
 
 
+def cauchy_weights(r: Tensor, robust: bool = True) -> Tensor:
+    """Cauchy weights of the residuals ``r`` at three times their robust scale (1.4826 x the median absolute value);
+    all ones when not ``robust``."""
+    if not robust:
+        return torch.ones_like(r)
+    scale = 1.4826 * float(r.abs().median()) + 1e-3
+    return 1.0 / (1.0 + (r / (3.0 * scale)) ** 2)
+
+
 def lk_refine(
     model,
     camera: Cameras,
@@ -236,12 +245,6 @@ def lk_refine(
     img = smoothed(channel_of(out["rgb"][0], value).double(), rsigma)
     r0 = y - img
 
-    def weights(r: Tensor) -> Tensor:
-        if not robust:
-            return torch.ones_like(r)
-        scale = 1.4826 * float(r.abs().median()) + 1e-3
-        return 1.0 / (1.0 + (r / (3.0 * scale)) ** 2)
-
     it = 0
     for it in range(1, iterations + 1):
         pts = surface_points(cur, out["expected_depth"][0], out["accumulation"][0], window)
@@ -250,7 +253,7 @@ def lk_refine(
         c = img.shape[-1]
         j = -(g_row.reshape(-1, c, 1) * dp[:, None, 0, :] + g_col.reshape(-1, c, 1) * dp[:, None, 1, :])
         j = j.reshape(-1, 6)
-        wr = weights(r0).reshape(-1)
+        wr = cauchy_weights(r0, robust).reshape(-1)
         rr = r0.reshape(-1)
         a = (j * wr[:, None]).T @ j
         g = (j * wr[:, None]).T @ rr
@@ -323,12 +326,6 @@ def warp_refine(
     c = y.shape[-1]
     cur, rms, total = camera, float("nan"), 0
 
-    def weights(r: Tensor) -> Tensor:
-        if not robust:
-            return torch.ones_like(r)
-        scale = 1.4826 * float(r.abs().median()) + 1e-3
-        return 1.0 / (1.0 + (r / (3.0 * scale)) ** 2)
-
     for _ in range(max(1, renders)):
         out = render_cameras(model, cur, ("rgb", "expected_depth", "accumulation"))
         ref = smoothed(channel_of(out["rgb"][0], value).double(), sigma).reshape(-1, c)
@@ -344,7 +341,7 @@ def warp_refine(
         for _ in range(iterations):
             dp = torch.func.jacfwd(pixels)(delta)  # [P 2 6]
             j = grads[:, :c, None] * dp[:, None, 0, :] + grads[:, c:, None] * dp[:, None, 1, :]  # [P C 6]
-            wr = (weights(r0) * inside[:, None]).reshape(-1)
+            wr = (cauchy_weights(r0, robust) * inside[:, None]).reshape(-1)
             j, rr = j.reshape(-1, 6), r0.reshape(-1)
             a = (j * wr[:, None]).T @ j
             g = (j * wr[:, None]).T @ rr
