@@ -1,6 +1,7 @@
 """Benchmark commands: each measures and writes a docs page with its JSON beside it."""
 
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -40,12 +41,12 @@ def command_lines(title: str, when: str, json_name: str, command: str) -> List[s
 
 
 def provenance(module: str) -> Dict[str, Any]:
-    """What a page records of its run: the command (``python -m MODULE`` with this process's arguments), the date and
+    """What a page records of its run: the command (``python -m MODULE`` with this process's arguments, quoted for a shell), the date and
     the machine."""
     from gsticker_plugin.machine import machine_info  # deferred: imports torch
 
     return {
-        "command": f"python -m {module} " + " ".join(sys.argv[1:]),
+        "command": f"python -m {module} " + shlex.join(sys.argv[1:]),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": machine_info(),
     }

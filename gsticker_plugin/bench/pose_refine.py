@@ -40,6 +40,8 @@ class Args:
     output: Path = Path("docs/experiments/bench-pose-refine.md")
     page_only: bool = False
     """Rewrite the page from OUTPUT's JSON (no measuring)."""
+    note: str = ""
+    """A line for the page under the table (e.g. what else ran on the machine)."""
 
 
 class RenderCount:
@@ -76,6 +78,8 @@ def measure(args: Args) -> Dict[str, Any]:
     done = {(r["view"], r["refine"]) for r in rows}
     renders: Dict[Tuple[int, int], Any] = {}
     for vi in args.views:
+        if all((vi, refine) in done for refine in args.refines):
+            continue
         png = args.work_dir / f"test-{vi:03d}.png"
         if not png.is_file():
             with torch.no_grad():
@@ -107,7 +111,12 @@ def measure(args: Args) -> Dict[str, Any]:
                 f.write(json.dumps(rows[-1]) + "\n")
             print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     rows = [r for r in rows if r["view"] in args.views and r["refine"] in args.refines]
-    return {"views": list(args.views), "rows": rows, **provenance("gsticker_plugin.bench.pose_refine")}
+    return {
+        "views": list(args.views),
+        "rows": rows,
+        "note": args.note,
+        **provenance("gsticker_plugin.bench.pose_refine"),
+    }
 
 
 def page(res: Dict[str, Any]) -> str:
@@ -120,7 +129,8 @@ def page(res: Dict[str, Any]) -> str:
     lines += [
         f"Pictures of the shared run at test views {', '.join(map(str, res['views']))} (the decoder's development "
         "views), read without cameras once per refinement; the candidates' renders made beforehand. Camera error: the "
-        "largest entry of found minus true camera-to-world matrix. Renders: batched base renders after the candidates'.",
+        "largest entry of found minus true camera-to-world matrix. Renders: batched base renders after the candidates' "
+        "(they do not depend on the machine's load). Seconds: wall clock, compare them within a view.",
         "",
         "| view | refine | matches | camera error | seconds | renders |",
         "|---|---|---|---|---|---|",
@@ -131,6 +141,8 @@ def page(res: Dict[str, Any]) -> str:
             f"{r['renders']} |"
         )
     lines.append("")
+    if res.get("note"):
+        lines += [res["note"], ""]
     return "\n".join(lines)
 
 
