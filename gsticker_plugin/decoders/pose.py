@@ -461,10 +461,12 @@ class PoseSearch:
     """Stages blurred by at least twice this many px run at half the image's size."""
     extend: int = 8
     """An accepted Gauss-Newton step is tried at up to this many times its length (:func:`lk_refine`)."""
-    refine: str = "mixed"
-    """How a stage steps: ``render`` (:func:`lk_refine`, a render per step), ``warp`` (:func:`warp_refine`, the image
-    warped onto a held render, ``warp_renders`` renders per stage) or ``mixed`` (``warp`` for every stage but the
-    finest, which renders per step: the picture's bilinear resampling is not a render at the moved camera)."""
+    refine: str = "render"
+    """How a stage steps: ``render`` (:func:`lk_refine`, a render per step; the default), ``warp``
+    (:func:`warp_refine`, the image warped onto a held render, ``warp_renders`` renders per stage) or ``mixed``
+    (``warp`` for every stage but the finest, which renders per step: the picture's bilinear resampling is not a render
+    at the moved camera). ``warp`` and ``mixed`` halve the renders of 100 px pictures but miss 32 px ones
+    (docs/experiments/verify-notes.md)."""
     warp_renders: int = 2
     """Renders per stage with ``refine="warp"``."""
     seed: int = 0
