@@ -465,8 +465,8 @@ class PoseSearch:
     """How a stage steps: ``render`` (:func:`lk_refine`, a render per step; the default), ``warp``
     (:func:`warp_refine`, the image warped onto a held render, ``warp_renders`` renders per stage) or ``mixed``
     (``warp`` for every stage but the finest, which renders per step: the picture's bilinear resampling is not a render
-    at the moved camera). ``warp`` and ``mixed`` halve the renders of 100 px pictures but miss 32 px ones
-    (docs/experiments/verify-notes.md)."""
+    at the moved camera). ``warp`` and ``mixed`` halve the renders of lego100 pictures but miss the tests' 32 px
+    pictures of a 100-step base, whose depth they trust (docs/experiments/verify-notes.md)."""
     warp_renders: int = 2
     """Renders per stage with ``refine="warp"``."""
     seed: int = 0
