@@ -125,6 +125,15 @@ def copy_key(key: Path, folder: Path) -> Path:
 
 
 @pytest.fixture(scope="session", autouse=True)
+def one_thread_per_worker() -> None:
+    """Under pytest-xdist each worker computes on one thread (also when torch was imported before this file)."""
+    if WORKER:
+        import torch
+
+        torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="session", autouse=True)
 def owner_keys_dir(tmp_path_factory) -> Path:
     """Owner keys written by default go to a per-session folder, never the user's own keys folder."""
     import os
