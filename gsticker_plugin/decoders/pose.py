@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -461,15 +461,19 @@ class PoseSearch:
     """Stages blurred by at least twice this many px run at half the image's size."""
     extend: int = 8
     """An accepted Gauss-Newton step is tried at up to this many times its length (:func:`lk_refine`)."""
-    refine: str = "render"
+    refine: Literal["render", "warp", "mixed"] = "render"
     """How a stage steps: ``render`` (:func:`lk_refine`, a render per step; the default), ``warp``
     (:func:`warp_refine`, the image warped onto a held render, ``warp_renders`` renders per stage) or ``mixed``
     (``warp`` for every stage but the finest, which renders per step: the picture's bilinear resampling is not a render
     at the moved camera). ``warp`` and ``mixed`` halve the renders of lego100 pictures but miss the tests' 32 px
     pictures of a 100-step base, whose depth they trust (docs/experiments/verify-notes.md)."""
     warp_renders: int = 2
-    """Renders per stage with ``refine="warp"``."""
+    """Renders per warped stage (``refine`` ``warp`` or ``mixed``)."""
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.refine not in ("render", "warp", "mixed"):
+            raise ValueError(f"PoseSearch.refine must be render, warp or mixed, got {self.refine!r}")
 
 
 def estimate_camera(

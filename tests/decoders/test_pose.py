@@ -309,3 +309,10 @@ def test_the_warp_refinement_follows_a_pose_change_that_moves_the_picture_by_pix
     assert rotation_deg(a, start.camera_to_worlds[0]) > 1.0
     assert rotation_deg(a, b) < 0.01 and float((a[:, 3] - b[:, 3]).norm()) < 1e-3, (rms, its)
     assert model.renders == 2 and rms < 1e-3
+
+
+def test_an_unknown_refinement_is_refused_rather_than_run_as_the_default():
+    import pytest
+
+    with pytest.raises(ValueError, match="render, warp or mixed"):
+        P.PoseSearch(refine="wrap")  # type: ignore[arg-type]
