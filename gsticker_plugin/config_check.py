@@ -8,9 +8,16 @@ accepted only when, for every config object in it,
 * a config object sits in a field whose declared type allows its class (a dataparser where a dataparser goes);
 * every class or function it holds is what that field holds in the class's own defaults or in an installed
   Nerfstudio method's config (the *census*): a dataparser config's ``_target`` is its own dataparser, never
-  another function of a trusted package.
+  another function of a trusted package; a lambda or a local function (whose name is not unique) is never accepted.
 
 Plain values (numbers, strings, paths, enums, tuples, lists and dicts of them) are not code and pass.
+
+The census names code by ``module:qualname``. Taking it imports every installed method (seconds), so it is kept in
+``census-<fingerprint>.json`` in the cache folder (``$GSTICKER_CACHE_DIR``, else ``$XDG_CACHE_HOME/gsticker``, else
+``~/.cache/gsticker``), where the fingerprint is the sha256 of what the census is drawn from: the Python
+environment (prefix, version, every installed distribution and version), the ``nerfstudio.method_configs`` entry
+points, the files that define them (path, size, modification time) and ``NERFSTUDIO_METHOD_CONFIGS``. Any change
+there names another file, and the census is taken again.
 """
 
 from __future__ import annotations
@@ -18,8 +25,15 @@ from __future__ import annotations
 import dataclasses
 import enum
 import functools
+import hashlib
+import importlib.metadata
+import importlib.util
+import json
+import os
+import sys
+import tempfile
 import typing
-from pathlib import PurePath
+from pathlib import Path, PurePath
 from typing import Any, Dict, Iterator, List, Optional, Set, Tuple
 
 from nerfstudio.configs.base_config import InstantiateConfig
@@ -27,7 +41,10 @@ from nerfstudio.models.base_model import ModelConfig
 
 from gsticker_plugin.errors import GStickerError
 
-Census = Dict[Tuple[type, str], Set[Any]]
+Census = Dict[Tuple[str, str], Set[str]]
+"""(config class name, field) -> names of the classes and functions that field holds (names: :func:`code_name`)."""
+
+CENSUS_FORMAT = 1
 
 MODEL_CONFIG_FIELDS = ("base_model", "inner_model")
 """Fields typed ``Any`` for tyro's sake that hold a wrapped run's model config (the sticker's base, a recolor's
@@ -66,23 +83,104 @@ def _config_objects(value: Any, seen: Optional[Set[int]] = None) -> Iterator[Any
             yield from _config_objects(v, seen)
 
 
+def code_name(value: Any) -> str:
+    """``module:qualname`` of a class or function (of a generic alias's class)."""
+    value = _origin(value)
+    return f"{getattr(value, '__module__', '?')}:{getattr(value, '__qualname__', repr(value))}"
+
+
 def _record(census: Census, root: Any) -> None:
     for obj in _config_objects(root):
         for f in dataclasses.fields(obj):
             v = getattr(obj, f.name, None)
             if _code(v):
-                census.setdefault((type(obj), f.name), set()).add(_origin(v))
+                census.setdefault((code_name(type(obj)), f.name), set()).add(code_name(v))
 
 
-@functools.lru_cache(maxsize=1)
-def installed_census() -> Census:
-    """(config class, field) -> the classes and functions that field holds in an installed Nerfstudio method."""
+def cache_dir() -> Path:
+    """Where gsticker keeps what it derives from the installed environment."""
+    if os.environ.get("GSTICKER_CACHE_DIR"):
+        return Path(os.environ["GSTICKER_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "gsticker"
+
+
+def _file_stamp(module: str) -> List[Any]:
+    """(path, size, mtime) of the file that defines ``module`` (importing its parent packages, not it)."""
+    try:
+        spec = importlib.util.find_spec(module)
+    except (ImportError, ValueError):
+        return [module, None]
+    origin = getattr(spec, "origin", None) if spec is not None else None
+    if not origin or not os.path.isfile(origin):
+        return [module, None]
+    st = os.stat(origin)
+    return [origin, st.st_size, st.st_mtime_ns]
+
+
+def census_fingerprint() -> str:
+    """sha256 (hex) of what :func:`installed_census` is drawn from (the module's docstring lists it)."""
+    dists = sorted(
+        {(d.metadata["Name"] or "?", d.version or "?") for d in importlib.metadata.distributions()},
+        key=lambda nv: (nv[0].lower(), nv[1]),
+    )
+    points = sorted((ep.name, ep.value) for ep in importlib.metadata.entry_points(group="nerfstudio.method_configs"))
+    modules = ["nerfstudio.configs.method_configs"] + [value.split(":")[0] for _, value in points]
+    what = {
+        "format": CENSUS_FORMAT,
+        "prefix": sys.prefix,
+        "python": sys.version,
+        "distributions": dists,
+        "entry_points": points,
+        "files": [_file_stamp(m) for m in modules],
+        "env": os.environ.get("NERFSTUDIO_METHOD_CONFIGS"),
+    }
+    return hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def take_census() -> Census:
+    """The census of every installed Nerfstudio method's config (imports them all)."""
     # deferred: all_methods imports every installed method's entry point, this plugin's among them
     from nerfstudio.configs.method_configs import all_methods
 
     census: Census = {}
     for cfg in all_methods.values():
         _record(census, cfg)
+    return census
+
+
+def _read_census(path: Path) -> Optional[Census]:
+    try:
+        rows = json.loads(path.read_text())
+        return {(str(c), str(f)): {str(n) for n in names} for c, f, names in rows}
+    except (OSError, ValueError, TypeError):
+        return None
+
+
+def _write_census(path: Path, census: Census) -> None:
+    rows = sorted([c, f, sorted(names)] for (c, f), names in census.items())
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    except OSError:
+        return
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(rows, f)
+        os.replace(tmp, path)
+    except OSError:
+        Path(tmp).unlink(missing_ok=True)
+
+
+@functools.lru_cache(maxsize=1)
+def installed_census() -> Census:
+    """(config class, field) -> the classes and functions that field holds in an installed Nerfstudio method, read
+    from the cache folder when the environment is the one it was taken in (else taken, and kept there)."""
+    path = cache_dir() / f"census-{census_fingerprint()}.json"
+    census = _read_census(path)
+    if census is None:
+        census = take_census()
+        _write_census(path, census)
     return census
 
 
@@ -94,12 +192,13 @@ def _default_of(cls: type) -> Optional[Any]:
         return None
 
 
-def _allowed_code(cls: type, name: str) -> Set[Any]:
-    """What field ``name`` of config class ``cls`` may name: its default and what installed methods put there."""
-    allowed = set(installed_census().get((cls, name), set()))
+def _allowed_code(cls: type, name: str) -> Set[str]:
+    """What field ``name`` of config class ``cls`` may name (:func:`code_name`): its default and what installed
+    methods put there."""
+    allowed = set(installed_census().get((code_name(cls), name), set()))
     default = _default_of(cls)
     if default is not None and _code(getattr(default, name, None)):
-        allowed.add(_origin(getattr(default, name)))
+        allowed.add(code_name(getattr(default, name)))
     return allowed
 
 
@@ -153,7 +252,7 @@ def refusal(config: Any) -> Optional[str]:
         for name in sorted(names):
             value = getattr(obj, name, None)
             if _code(value):
-                if _origin(value) not in _allowed_code(cls, name):
+                if "<" in code_name(value) or code_name(value) not in _allowed_code(cls, name):
                     what = getattr(value, "__qualname__", repr(value))
                     return (
                         f"{cls.__name__}.{name} names {getattr(value, '__module__', '?')}.{what}, "

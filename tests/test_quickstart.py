@@ -32,12 +32,12 @@ def test_readme_and_getting_started_give_the_same_quick_start():
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(1800)  # four commands, the base's 300 steps among them
+@pytest.mark.timeout(1800)  # four commands, the base's 150 steps among them
 def test_the_quick_start_copied_verbatim_reaches_an_owned_verdict_on_the_cpu(tmp_path):
     home = tmp_path / "home"
     home.mkdir()
     env = subprocess_env(1, HOME=str(home), PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
-    for name in ("XDG_DATA_HOME", "GSTICKER_KEYS_DIR", "GSTICKER_IDENTITY"):
+    for name in ("XDG_DATA_HOME", "XDG_CACHE_HOME", "GSTICKER_KEYS_DIR", "GSTICKER_CACHE_DIR", "GSTICKER_IDENTITY"):
         env.pop(name, None)
     env["CUDA_VISIBLE_DEVICES"] = ""  # a CPU-only machine: the presets must pick the CPU themselves
     for line in quick_start(ROOT / "README.md"):

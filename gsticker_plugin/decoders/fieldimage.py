@@ -19,6 +19,7 @@ docs/experiments/verify-notes.md).
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
@@ -96,12 +97,13 @@ def decode_images(
     names: Optional[Sequence[str]] = None,
     progress: bool = False,
     renders: Optional[Dict[Tuple[int, int], Any]] = None,
+    bank: Optional[Path] = None,
 ) -> Decoded:
     """Decode ``images`` (``[H W 3]`` in [0, 1]) of the owner's scene against the field-mark ``reference``
     (:func:`gsticker_plugin.decoders.fieldmark.load_field_reference`): at the given ``cameras`` (one per image, a
     one-camera ``Cameras``; None: found by the camera search), then the fit with the pose Jacobian. ``renders``: the
-    search's candidate renders per image size, kept by a caller that decodes images one call at a time (filled here).
-    Returns the
+    search's candidate renders per image size, kept by a caller that decodes images one call at a time (filled here);
+    ``bank``: the owner key's view bank folder for them (:mod:`gsticker_plugin.decoders.viewbank`). Returns the
     decoders' shared result with, per image, its camera (``c2w``, and whether it was estimated), the fit and the
     seconds taken."""
     if FM.host_of(reference.model.field) != "hash":
@@ -116,17 +118,20 @@ def decode_images(
     bits: List[Tensor] = []
     details: List[Dict[str, Any]] = []
     for i, (name, image) in enumerate(progress_bar(list(zip(names, images)), "field-mark image decoding", progress)):
-        t0 = time.time()
         extra: Dict[str, Any] = {"camera": "given"}
+        if cameras is None:
+            hw = (int(image.shape[0]), int(image.shape[1]))
+            if hw not in renders:
+                t0 = time.time()
+                renders[hw] = search_renders(reference, search, hw, value=True, bank=bank)
+                extra["view_bank_seconds"] = time.time() - t0
+        t0 = time.time()
         if cameras is not None:
             camera = cameras[i]
         else:
-            hw = (int(image.shape[0]), int(image.shape[1]))
-            if hw not in renders:
-                renders[hw] = search_renders(reference, search, hw, value=True)
             pose = estimate_camera(reference, image, True, search, renders[hw])
             camera = pose.camera
-            extra = {"camera": "estimated", "pose_rms": pose.rms, "pose_score": pose.score}
+            extra.update(camera="estimated", pose_rms=pose.rms, pose_score=pose.score)
         d, camera, used = read_at_camera(reference, image, camera, gen, rounds)
         d.update(extra, name=name, round=used, c2w=camera.camera_to_worlds[0].tolist(), seconds=time.time() - t0)
         bits.append(d.pop("bits"))

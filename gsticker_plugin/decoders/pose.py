@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
 
 import torch
@@ -20,6 +21,7 @@ from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from gsticker_plugin.attacks.geometric import rotate
+from gsticker_plugin.decoders import viewbank as VB
 from gsticker_plugin.decoders.geometric import render_rays
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import axis_angle_matrix, novel_cameras, smoothed
@@ -577,22 +579,44 @@ def refine_stage(
     return scaled_camera(cam, h, w), rms, n_it
 
 
-def search_renders(reference, search: PoseSearch, hw: Tuple[int, int], value: bool) -> Tuple[Cameras, Tensor]:
-    """Candidates and their base renders at the search size for images of ``hw``."""
+def search_renders(
+    reference, search: PoseSearch, hw: Tuple[int, int], value: bool, bank: Optional[Path] = None
+) -> Tuple[Cameras, Tensor]:
+    """Candidates and their base renders at the search size for images of ``hw`` (only its aspect ratio matters):
+    the candidates' intrinsics scaled to the search frame. ``bank``: the owner key's view bank folder
+    (:mod:`gsticker_plugin.decoders.viewbank`), read when it holds these renders and written when it does not."""
     h, w = hw
     cands = candidate_cameras(reference, search.candidates, search.seed)
     sh = search.search_side
-    small = Cameras(
-        camera_to_worlds=cands.camera_to_worlds,
-        fx=cands.fx * sh / h,
-        fy=cands.fy * sh / h,
-        cx=cands.cx * sh / h,
-        cy=cands.cy * sh / h,
-        width=torch.full_like(cands.width, max(1, round(sh * w / h))),
-        height=torch.full_like(cands.height, sh),
-        camera_type=cands.camera_type,
-    )
-    rgb = render_cameras(reference.model, small)["rgb"]
+    sw = max(1, round(sh * w / h))
+    path = None
+    if bank is not None:
+        name = VB.bank_name(
+            reference.checkpoint,
+            reference.config_path,
+            type(reference.model).__qualname__,
+            search.candidates,
+            search.seed,
+            sh,
+            sw,
+        )
+        path = bank / f"{name}.pt"
+    rgb = VB.load_bank(path, len(cands), sh, sw) if path is not None else None
+    if rgb is None:
+        sx, sy = sw / float(cands.width[0]), sh / float(cands.height[0])
+        small = Cameras(
+            camera_to_worlds=cands.camera_to_worlds,
+            fx=cands.fx * sx,
+            fy=cands.fy * sy,
+            cx=cands.cx * sx,
+            cy=cands.cy * sy,
+            width=torch.full_like(cands.width, sw),
+            height=torch.full_like(cands.height, sh),
+            camera_type=cands.camera_type,
+        )
+        rgb = render_cameras(reference.model, small)["rgb"].float().cpu()
+        if path is not None:
+            VB.save_bank(path, rgb)
     return cands, channel_of(rgb, value).reshape(rgb.shape[0], -1)
 
 

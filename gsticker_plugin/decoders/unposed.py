@@ -13,6 +13,7 @@ import contextlib
 import dataclasses
 import math
 import time
+from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
@@ -281,13 +282,15 @@ def decode_unposed_images(
     blur: bool = True,
     turn: bool = True,
     jpeg: bool = True,
+    bank: Optional[Path] = None,
 ) -> Decoded:
     """Decode ``images`` (``[H W 3]`` each, cameras unknown) of the owner's scene against the owner's base
     ``reference`` (:func:`gsticker_plugin.decoders.reference.load_base_reference`): camera search, then the image fit
     with the pose Jacobian. ``value_mode``: read an image whose V matches the base render far better than its RGB
     by V alone (:func:`gsticker_plugin.decoders.image.reads_value`). ``rounds``: fits at most, each from the camera the
     previous one's pose step moved. ``renders``: the search's candidate renders per image size, kept by a caller that
-    decodes images one call at a time (filled here). ``line_scale``: each pose step is taken at the multiple up to this
+    decodes images one call at a time (filled here); ``bank``: the owner key's view bank folder for them
+    (:mod:`gsticker_plugin.decoders.viewbank`). ``line_scale``: each pose step is taken at the multiple up to this
     whose base render is nearest the image (:func:`gsticker_plugin.decoders.pose.line_search`; 0: as fitted).
     ``color_map``: read an image whose colours a smooth map of the base render's explains far better than the render
     itself (a recoloured copy, :func:`recolouring`) with the base's sample colours taken through that map.
@@ -307,10 +310,13 @@ def decode_unposed_images(
     details: List[Dict[str, Any]] = []
     names = list(names) if names is not None else [f"image/{i:04d}" for i in range(len(images))]
     for name, image in progress_bar(list(zip(names, images)), "camera search + image decoding", progress):
-        t0 = time.time()
         hw = (int(image.shape[0]), int(image.shape[1]))
+        bank_seconds = None
         if hw not in renders:
-            renders[hw] = search_renders(reference, search, hw, value=True)
+            t0 = time.time()
+            renders[hw] = search_renders(reference, search, hw, value=True, bank=bank)
+            bank_seconds = time.time() - t0
+        t0 = time.time()
         pose = estimate_camera(reference, image, True, search, renders[hw])
         camera, share, view = pose.camera, None, None
         degradation = Degradation()
@@ -324,7 +330,7 @@ def decode_unposed_images(
             turned = turned_reading(reference, st, image, camera, (ref, d), gen, iterations, name) if turn else None
             if turned is not None:  # a turn's resampling looks like a blur: the turn may explain it better
                 camera, d = turned
-            d.update(finding(camera, 0, pose, share, t0))
+            d.update(finding(camera, 0, pose, share, t0, bank_seconds))
             bits.append(d.pop("bits"))
             details.append(d)
             continue
@@ -388,16 +394,21 @@ def decode_unposed_images(
             turned = turned_reading(reference, st, image, camera, (ref, d), gen, iterations, name)
             if turned is not None:  # a level render turned after rendering explains the image better
                 (camera, d), used = turned, 0
-        d.update(finding(camera, used, pose, share, t0))
+        d.update(finding(camera, used, pose, share, t0, bank_seconds))
         bits.append(d.pop("bits"))
         details.append(d)
     return decoded(key, bits, "image", details)
 
 
-def finding(camera, used: int, pose, share: Optional[float], t0: float) -> Dict[str, Any]:
+def finding(
+    camera, used: int, pose, share: Optional[float], t0: float, bank_seconds: Optional[float] = None
+) -> Dict[str, Any]:
     """What a decoded image's result records of its camera: the camera found (``c2w``), the fit round it came from
-    (0: read through a blur or a turn at the camera), the search's fit and the seconds since ``t0``."""
+    (0: read through a blur or a turn at the camera), the search's fit, the seconds since ``t0`` and, for the image
+    that loaded or rendered the search's candidates, the seconds that took (``view_bank_seconds``)."""
+    extra = {} if bank_seconds is None else {"view_bank_seconds": bank_seconds}
     return {
+        **extra,
         "camera": "estimated",
         "c2w": camera.camera_to_worlds[0].tolist(),
         "round": used,

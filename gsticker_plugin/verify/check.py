@@ -30,6 +30,7 @@ from gsticker_plugin.decoders.reference import (
 )
 from gsticker_plugin.decoders.result import Decoded
 from gsticker_plugin.decoders.unposed import decode_unposed_images
+from gsticker_plugin.decoders.viewbank import bank_folder
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import KEY_SUFFIX, OwnerKey, commitment, signature_valid
 from gsticker_plugin.runs import load_run, pick_device
@@ -267,6 +268,7 @@ def _verify_images_informed(
                     progress=config.progress,
                     names=[v.name for v in posed.views],
                     search=PoseSearch(rolls=tuple(config.rolls)),
+                    bank=bank_folder(path) if config.view_bank else None,
                 )
             posed.details["cameras_of"] = "found by a camera search against the owner's base"
         results.append(_informed_result(key, path, dec, posed, config, "image", ref, notes, bases))
@@ -304,6 +306,7 @@ def _field_images(config: VerifyConfig, path: Path, key: OwnerKey, views: Views,
             cameras=cameras,
             search=PoseSearch(rolls=tuple(config.rolls)),
             names=[v.name for v in posed.views],
+            bank=bank_folder(path) if config.view_bank and cameras is None else None,
             progress=config.progress,
         )
     return posed, dec, ref

@@ -49,6 +49,10 @@ class VerifyConfig:
     """--images without --cameras: turns of each image about its centre (degrees) tried by the camera search, e.g.
     -30 -20 -10 0 10 20 30 for images that may have been rotated after rendering (each one adds the search's
     candidates again: slower)."""
+    view_bank: bool = True
+    """--images without --cameras: keep the camera search's renders of the owner's base beside the key
+    (KEY.viewbank/, named by a hash of the base and the search) and reuse them on later calls; --no-view-bank
+    renders them on every call."""
     base_config: Optional[Path] = None
     """The owner's base run (config.yml) for --decode geometry, when the path recorded in the key moved."""
     base_data: Optional[Path] = None
