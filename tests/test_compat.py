@@ -228,3 +228,24 @@ def test_eval_setup_loads_shared_tensorf_and_renders(monkeypatch):
 @pytest.mark.slow
 def test_eval_setup_loads_shared_nerfacto_and_renders(monkeypatch):
     _assert_rendered_object(*_render_first_train_view(NERFACTO_BASE, monkeypatch))
+
+
+def test_external_method_placeholders_built_by_the_method_list_stay_silent_and_others_offer_the_install(
+    monkeypatch, capsys
+):
+    """Fix 3: the caller test that replaces ``inspect.stack()`` keeps the stock behaviour both ways."""
+    from nerfstudio.configs import external_methods as E
+
+    from gsticker_plugin import compat
+
+    compat.apply()
+    assert getattr(E.ExternalMethodDummyTrainerConfig.__post_init__, "_gsticker_fast", False)
+    configs, _ = E.get_external_methods()  # builds every placeholder: no prompt, no exit
+    assert len(configs) > 10
+    asked = []
+    monkeypatch.setattr(E.Confirm, "ask", lambda *a, **k: asked.append(a) or False)
+    method = next(iter(configs.values())).method
+    with pytest.raises(SystemExit) as stop:  # what `ns-train <external method>` builds: the install offer
+        E.ExternalMethodDummyTrainerConfig(method_name="x", method=method)
+    assert stop.value.code == 0 and (asked or not method.pip_package)
+    assert "you must install it first" in capsys.readouterr().out
