@@ -148,6 +148,7 @@ def measure(args: Args) -> Dict[str, Any]:
     rows = [json.loads(line) for line in rows_path.read_text().splitlines()]
     return {
         "train": trained,
+        "method": ref.method,
         "psnr_vs_base_train_views": key.field_mark["psnr_vs_base"],
         "shared_run": str(shared_cfg),
         "suspects": [s[0] for s in suspects],
@@ -167,14 +168,14 @@ def summary(res: Dict[str, Any], label: str) -> Dict[str, Any]:
 
 def page(res: Dict[str, Any]) -> str:
     lines = command_lines(
-        "The shared run: a stock nerfacto with the mark in its field, read back",
+        f"The shared run: a stock {res.get('method', 'nerfacto')} with the mark in its field, read back",
         f"{res['date']}, {res['machine']['cpu']}",
         res["json"],
         res["command"],
     )
     lines += [
         f"`ns-train geometrysticker` wrote the shared run in {res['train']['seconds']:.0f} s (wall, everything: loading "
-        f"the base, marking its hash table, measuring {res['psnr_vs_base_train_views']:.1f} dB render PSNR vs the base "
+        f"the base, marking its {'planes' if res.get('method') == 'tensorf' else 'hash table'}, measuring {res['psnr_vs_base_train_views']:.1f} dB render PSNR vs the base "
         "on 4 training views, writing the key and the run). Each suspect below is loaded like any suspect and read "
         f"by the field-mark decoder; a view passes at >= {res['threshold']}/48 (per-view FPR 1e-6), a suspect is "
         "OWNED when half its views pass.",
