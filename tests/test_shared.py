@@ -20,6 +20,7 @@ from conftest import BIN, CPU_ARGS, TINY_MESSAGE, ns_train, subprocess_env
 
 from gsticker_plugin import fieldmark as FM
 from gsticker_plugin import runs
+from gsticker_plugin.decoders.viewbank import bank_folder
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import OwnerKey, default_key_path, parse_message
 from gsticker_plugin.shared import as_stock_method, marked_pipeline_state, stock_method_name
@@ -194,16 +195,24 @@ def verify_images(images: Path, key: Path, out: Path) -> dict:
 
 
 def test_ns_verify_owner_reads_pictures_of_the_shared_run_without_cameras_and_nothing_from_the_bases(shared, tmp_path):
-    """Stock ns-render's PNGs of the shared run's test views, read with no camera file: the camera found against the
-    owner's base, then the field-mark image fit; the base's own pictures read nothing."""
+    """A stock ns-render PNG of the shared run's first test view, read with no camera file: the camera found against
+    the owner's base, then the field-mark image fit; the base's own picture reads nothing. The camera search's base
+    renders are kept beside the key by the first call and read by the second."""
     verdicts = {}
+    bank = bank_folder(shared["key"])
     for name, config in (("shared", shared["run"]), ("base", shared["base"])):
         cmd = [str(BIN / "ns-render"), "dataset", "--load-config", str(config), "--split", "test"]
         cmd += ["--output-path", str(tmp_path / name), "--rendered-output-names", "rgb", "--image-format", "png"]
         proc = subprocess.run(cmd, capture_output=True, text=True, env=subprocess_env(1), cwd=tmp_path, timeout=600)
         assert proc.returncode == 0, proc.stderr[-3000:]
-        rep = verify_images(tmp_path / name / "test" / "rgb", shared["key"], tmp_path / f"report-{name}")
-        assert rep["decoder"]["kind"] == "image" and rep["input"]["views"] == 2 and not rep["input"]["skipped"]
+        pictures = sorted((tmp_path / name / "test" / "rgb").glob("*.png"))
+        for extra in pictures[1:]:
+            extra.unlink()
+        before = {p: p.stat().st_mtime_ns for p in bank.glob("*.pt")}
+        rep = verify_images(pictures[0].parent, shared["key"], tmp_path / f"report-{name}")
+        assert rep["decoder"]["kind"] == "image" and rep["input"]["views"] == 1 and not rep["input"]["skipped"]
         verdicts[name] = (rep["verdict"], [v["matches"] for v in rep["keys"][0]["per_view"]])
+        after = {p: p.stat().st_mtime_ns for p in bank.glob("*.pt")}
+        assert len(after) == 1 and (name == "shared" or after == before), (before, after)
     assert verdicts["shared"][0] == "owned" and min(verdicts["shared"][1]) >= 41, verdicts
     assert verdicts["base"][0] == "not shown" and max(verdicts["base"][1]) < 41, verdicts

@@ -757,10 +757,9 @@ def test_verify_images_at_known_cameras_with_the_image_decoder(runs, ws, capsys,
     unposed = ws / "suspect-unposed"
     unposed.mkdir()
     train_cams = ref.pipeline.datamanager.train_dataset.cameras
-    for i in range(2):
-        with torch.no_grad(), pipe.model.sticker_enabled(False):
-            rgb = pipe.model.get_outputs_for_camera(train_cams[i : i + 1])["rgb"].clamp(0, 1)
-        imageio.imwrite(unposed / f"train_{i}.png", (rgb * 255).round().to(torch.uint8).numpy())
+    with torch.no_grad(), pipe.model.sticker_enabled(False):
+        rgb = pipe.model.get_outputs_for_camera(train_cams[0:1])["rgb"].clamp(0, 1)
+    imageio.imwrite(unposed / "train_0.png", (rgb * 255).round().to(torch.uint8).numpy())
     imageio.imwrite(unposed / "black.png", torch.zeros(32, 32, 3, dtype=torch.uint8).numpy())
     imageio.imwrite(unposed / "wide.png", torch.zeros(32, 48, 3, dtype=torch.uint8).numpy())  # another aspect ratio
     status, stdout, err = run_cli(
@@ -771,7 +770,7 @@ def test_verify_images_at_known_cameras_with_the_image_decoder(runs, ws, capsys,
     views = {v["name"]: v for v in r["per_view"]}
     assert rep["decoder"]["kind"] == "image" and rep["decoder"]["cameras"] == "estimated", (stdout, err[-1500:])
     assert status == 1 and max(v["matches"] for v in views.values()) < 41, views
-    assert all(views[f"train_{i}.png"]["image_fit"]["pose_rms"] < 0.02 for i in range(2)), views
+    assert views["train_0.png"]["image_fit"]["pose_rms"] < 0.02, views
     skipped = {x["name"]: x["reason"] for x in rep["input"]["skipped"]}
     assert "wide.png" not in views and "aspect ratio" in skipped["wide.png"], skipped
     for argv, msg in (
