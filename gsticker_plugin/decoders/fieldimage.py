@@ -105,7 +105,8 @@ def decode_images(
     search's candidate renders per image size, kept by a caller that decodes images one call at a time (filled here);
     ``bank``: the owner key's view bank folder for them (:mod:`gsticker_plugin.decoders.viewbank`). Returns the
     decoders' shared result with, per image, its camera (``c2w``, and whether it was estimated), the fit and the
-    seconds taken."""
+    seconds taken (``seconds`` in all, ``search_seconds`` of them finding the camera; ``view_bank_seconds``, apart,
+    on the first image of a size: loading or rendering the search's candidates)."""
     if FM.host_of(reference.model.field) != "hash":
         raise GStickerError(
             "pictures of a TensoRF shared run are not read yet; verify the model itself with --load-config "
@@ -131,7 +132,7 @@ def decode_images(
         else:
             pose = estimate_camera(reference, image, True, search, renders[hw])
             camera = pose.camera
-            extra.update(camera="estimated", pose_rms=pose.rms, pose_score=pose.score)
+            extra.update(camera="estimated", pose_rms=pose.rms, pose_score=pose.score, search_seconds=time.time() - t0)
         d, camera, used = read_at_camera(reference, image, camera, gen, rounds)
         d.update(extra, name=name, round=used, c2w=camera.camera_to_worlds[0].tolist(), seconds=time.time() - t0)
         bits.append(d.pop("bits"))

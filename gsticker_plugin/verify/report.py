@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import statistics
 from pathlib import Path
 from typing import Any, Optional
 
@@ -30,6 +31,21 @@ def nothing_read(key_report: KeyResult) -> int:
     """Images of a key's result whose every bit the informed image decoder left undetermined (its fit read no ray)."""
     return sum(
         (v.get("image_fit") or {}).get("undetermined", 0) >= key_report["num_bits"] for v in key_report["per_view"]
+    )
+
+
+def timing_line(key_report: KeyResult) -> str:
+    """Seconds of the image decoder's stages, when it found the cameras ('' otherwise): the view bank apart, then the
+    median per image of the camera search and of the whole decode."""
+    fits = [v.get("image_fit") or {} for v in key_report["per_view"]]
+    searched = [f["search_seconds"] for f in fits if "search_seconds" in f]
+    if not searched:
+        return ""
+    bank = sum(f.get("view_bank_seconds", 0.0) for f in fits)
+    whole = statistics.median(f.get("seconds", 0.0) for f in fits)
+    return (
+        f"    seconds: view bank {bank:.1f} (once), then per image median {whole:.1f} of which the camera search "
+        f"{statistics.median(searched):.1f}"
     )
 
 
@@ -95,6 +111,9 @@ def summary_text(report: Report) -> str:
                 else f"classifier not used ({DECODER_NAMES[r.get('decoder', 'geometry')]})"
             )
         )
+        timing = timing_line(r)
+        if timing:
+            lines.append(timing)
         if r.get("soft_score_pvalue") is not None:
             lines.append(
                 f"    soft correlation score over all views: p <= {_fmt_p(r['soft_score_pvalue'])} (Hoeffding over the "

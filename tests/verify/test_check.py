@@ -257,6 +257,19 @@ def test_the_summary_names_views_with_nothing_to_read_instead_of_a_bare_zero():
     assert "1 view(s) with nothing to read" in summary_text(report)
     key["per_view"][1]["image_fit"]["undetermined"] = 47
     assert nothing_read(key) == 0 and "nothing to read" not in summary_text(report)
+    assert "seconds:" not in summary_text(report)  # cameras given: no search to time
+
+
+def test_the_summary_gives_the_seconds_of_the_view_bank_apart_from_each_images_camera_search():
+    from gsticker_plugin.verify.report import timing_line
+
+    fits = [
+        {"seconds": 30.0, "search_seconds": 20.0, "view_bank_seconds": 12.5},
+        {"seconds": 10.0, "search_seconds": 6.0},
+        {"seconds": 14.0, "search_seconds": 8.0},
+    ]
+    line = timing_line({"per_view": [{"image_fit": f} for f in fits]})
+    assert line.strip() == "seconds: view bank 12.5 (once), then per image median 14.0 of which the camera search 8.0"
 
 
 # ---------------------------------------------------------------------------------------------- hand-built key
