@@ -90,7 +90,7 @@ def make_runs(args: Args) -> List[Tuple[str, Path, Path]]:
             run_logged(cmd, work / "base.log", what="tiny base")
         base = latest_checkpoint(base_models)
         for i in range(args.tiny):
-            sticker(f"tiny{i}", base, TINY_STICKER)
+            sticker(f"tiny{i}", base, TINY_STICKER if args.mark == "sticker" else [])
     if args.lego:
         if args.lego_checkpoint is None or args.lego_data is None:
             raise SystemExit("error: --lego runs need --lego-checkpoint and --lego-data")

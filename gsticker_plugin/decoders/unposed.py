@@ -318,6 +318,10 @@ def decode_unposed_images(
             bank_seconds = time.time() - t0
         t0 = time.time()
         pose = estimate_camera(reference, image, True, search, renders[hw])
+        timing = {
+            "search_seconds": time.time() - t0,
+            **({} if bank_seconds is None else {"view_bank_seconds": bank_seconds}),
+        }
         camera, share, view = pose.camera, None, None
         degradation = Degradation()
         if blur:  # before the colour map: a map of the samples explains part of a blur too
@@ -330,7 +334,7 @@ def decode_unposed_images(
             turned = turned_reading(reference, st, image, camera, (ref, d), gen, iterations, name) if turn else None
             if turned is not None:  # a turn's resampling looks like a blur: the turn may explain it better
                 camera, d = turned
-            d.update(finding(camera, 0, pose, share, t0, bank_seconds))
+            d.update(finding(camera, 0, pose, share, t0), **timing)
             bits.append(d.pop("bits"))
             details.append(d)
             continue
@@ -394,21 +398,16 @@ def decode_unposed_images(
             turned = turned_reading(reference, st, image, camera, (ref, d), gen, iterations, name)
             if turned is not None:  # a level render turned after rendering explains the image better
                 (camera, d), used = turned, 0
-        d.update(finding(camera, used, pose, share, t0, bank_seconds))
+        d.update(finding(camera, used, pose, share, t0), **timing)
         bits.append(d.pop("bits"))
         details.append(d)
     return decoded(key, bits, "image", details)
 
 
-def finding(
-    camera, used: int, pose, share: Optional[float], t0: float, bank_seconds: Optional[float] = None
-) -> Dict[str, Any]:
+def finding(camera, used: int, pose, share: Optional[float], t0: float) -> Dict[str, Any]:
     """What a decoded image's result records of its camera: the camera found (``c2w``), the fit round it came from
-    (0: read through a blur or a turn at the camera), the search's fit, the seconds since ``t0`` and, for the image
-    that loaded or rendered the search's candidates, the seconds that took (``view_bank_seconds``)."""
-    extra = {} if bank_seconds is None else {"view_bank_seconds": bank_seconds}
+    (0: read through a blur or a turn at the camera), the search's fit and the seconds since ``t0``."""
     return {
-        **extra,
         "camera": "estimated",
         "c2w": camera.camera_to_worlds[0].tolist(),
         "round": used,
