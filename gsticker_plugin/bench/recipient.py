@@ -159,72 +159,69 @@ def attack_field_run(config: Path, key_path: Path, seeds: int) -> Dict[str, Any]
     }
 
 
-def summary_line(rows: List[Dict[str, Any]], chance: str) -> str:
-    best = [r["best"] for r in rows]
-    return (
-        f"Recipient's best over {len(rows)} runs: mean {sum(best) / len(best):.1f}/48, min {min(best)}, max "
-        f"{max(best)}, {sum(b >= 36 for b in best)} at 36 or more {chance}. Owner's control: mean "
-        f"{sum(r['owner_control'] for r in rows) / len(rows):.1f}/48."
-    )
-
-
-def field_page(res: Dict[str, Any], args: Args) -> str:
-    rows = res["rows"]
-    lines = [
-        *command_lines(
-            "The recipient's message reading from field-marked shared runs",
-            res["date"],
-            args.output.with_suffix(".json").name,
-            res["command"],
-        ),
-        "A recipient holds the shared run: a stock nerfacto whose hash table is the base's plus the owner's message "
-        "mixed with per-bit patterns. Without the base's table, the recipient's reading of bit k is the sign of the "
-        "shared table's correlation with pattern k, the patterns regenerated from a guessed seed: the run's "
-        f"`machine.seed` and seeds 0-{args.seeds - 1}; the best guess is the one that reads the most bits (the "
-        "recipient cannot tell which that is without the message: an upper bound). The owner's control reads the "
-        "same way with the key's pattern seed: what the recipient would read if that seed leaked.",
-        "",
-        "| run | recipient at machine.seed | recipient, best guess (seed) | owner's control (secret seed) |",
-        "|---|---|---|---|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['label']} | {r['at_machine_seed']}/48 | {r['best']}/48 (seed {r['best_seed']}) | "
-            f"{r['owner_control']}/48 |"
-        )
-    return "\n".join([*lines, "", summary_line(rows, "(one guess is chance: Binomial(48, 1/2), mean 24, sd 3.5)"), ""])
-
-
 def page(res: Dict[str, Any], args: Args) -> str:
-    rows = res["rows"]
-    lines = [
-        *command_lines(
+    rows, field = res["rows"], args.mark == "field"
+    if field:
+        title, how = (
+            "The recipient's message reading from field-marked shared runs",
+            (
+                "A recipient holds the shared run: a stock nerfacto whose hash table is the base's plus the owner's "
+                "message mixed with per-bit patterns. Without the base's table, the recipient's reading of bit k is the "
+                "sign of the shared table's correlation with pattern k, the patterns regenerated from a guessed seed: the "
+                f"run's `machine.seed` and seeds 0-{args.seeds - 1}; the best guess is the one that reads the most bits "
+                "(the recipient cannot tell which that is without the message: an upper bound). The owner's control "
+                "reads the same way with the key's pattern seed: what the recipient would read if that seed leaked."
+            ),
+        )
+        runs = (
+            "10 tiny runs, `ns-train geometrysticker --pipeline.mark field` on a 100-step nerfacto base of a generated "
+            "32 px scene, and lego100 runs on the shared nerfacto-small base; each draws its own message and pattern "
+            "seed with `secrets`"
+        )
+    else:
+        title, how = (
             "The recipient's message recovery from shared runs",
-            res["date"],
-            args.output.with_suffix(".json").name,
-            res["command"],
-        ),
-        "A recipient holds the shared run (config.yml and checkpoint). The folded sticker's output weights are the "
-        "owner's message mixed with the per-bit patterns. The recipient rebuilds the pipeline from the shared "
-        "config as `ns-train` does after seeding every generator, with the sticker drawn from the global generator "
-        "at its place in the build (how it was initialised before it had a secret seed of its own), at the run's "
-        f"`machine.seed` and at seeds 0-{args.seeds - 1}, and keeps the least-squares fit with the smallest "
-        "residual (`gsticker_plugin.attacks.recipient`). The owner's control column is the same fit with the "
-        "patterns of the key's secret sticker seed: what the recipient would read if that seed leaked.",
+            (
+                "A recipient holds the shared run (config.yml and checkpoint). The folded sticker's output weights are "
+                "the owner's message mixed with the per-bit patterns. The recipient rebuilds the pipeline from the shared "
+                "config as `ns-train` does after seeding every generator, with the sticker drawn from the global "
+                "generator at its place in the build (how it was initialised before it had a secret seed of its own), at "
+                f"the run's `machine.seed` and at seeds 0-{args.seeds - 1}, and keeps the least-squares fit with the "
+                "smallest residual (`gsticker_plugin.attacks.recipient`). The owner's control column is the same fit with "
+                "the patterns of the key's secret sticker seed: what the recipient would read if that seed leaked."
+            ),
+        )
+        runs = (
+            "10 tiny runs, `ns-train geometrysticker` for 10 steps on a 2-step nerfacto base of a generated 32 px "
+            "scene, and lego100 runs of 300 steps on the shared nerfacto-small base (heads off); each draws its own "
+            "message and sticker seed with `secrets`"
+        )
+    lines = [
+        *command_lines(title, res["date"], args.output.with_suffix(".json").name, res["command"]),
+        how,
         "",
-        "The runs (`--work-dir`): 10 tiny runs, `ns-train geometrysticker` for 10 steps on a 2-step nerfacto base of "
-        "a generated 32 px scene, and lego100 runs of 300 steps on the shared nerfacto-small base (heads off); each "
-        "draws its own message and sticker seed with `secrets`; `machine.seed` is the default, 42, in every one.",
+        f"The runs (`--work-dir`): {runs}; `machine.seed` is the default, 42, in every one.",
         "",
-        "| run | recipient at machine.seed | recipient, best fit (seed) | owner's control (secret seed) |",
+        f"| run | recipient at machine.seed | recipient, best {'guess' if field else 'fit'} (seed) | owner's control "
+        "(secret seed) |",
         "|---|---|---|---|",
     ]
     for r in rows:
+        fit = "" if field else f", residual {r['best_residual']:.2f}"
+        own = "" if field else f" (residual {r['owner_control_residual']:.3f})"
         lines.append(
-            f"| {r['label']} | {r['at_machine_seed']}/48 | {r['best']}/48 (seed {r['best_seed']}, residual "
-            f"{r['best_residual']:.2f}) | {r['owner_control']}/48 (residual {r['owner_control_residual']:.3f}) |"
+            f"| {r['label']} | {r['at_machine_seed']}/48 | {r['best']}/48 (seed {r['best_seed']}{fit}) | "
+            f"{r['owner_control']}/48{own} |"
         )
-    return "\n".join([*lines, "", summary_line(rows, "(chance: Binomial(48, 1/2), mean 24, sd 3.5)"), ""])
+    best = [r["best"] for r in rows]
+    lines += [
+        "",
+        f"Recipient's best over {len(rows)} runs: mean {sum(best) / len(best):.1f}/48, min {min(best)}, max "
+        f"{max(best)}, {sum(b >= 36 for b in best)} at 36 or more (one reading is chance: Binomial(48, 1/2), mean "
+        f"24, sd 3.5). Owner's control: mean {sum(r['owner_control'] for r in rows) / len(rows):.1f}/48.",
+        "",
+    ]
+    return "\n".join(lines)
 
 
 def main(args: Args) -> None:
@@ -240,7 +237,7 @@ def main(args: Args) -> None:
         rows.append({"label": label, "config": str(cfg), **attack(cfg, key, args.seeds)})
         print(f"{label}: {rows[-1]}", file=sys.stderr)
     res = {**provenance("gsticker_plugin.bench.recipient"), "seconds": time.time() - t0, "rows": rows}
-    write_page(args.output, res, lambda r: (page if args.mark == "sticker" else field_page)(r, args))
+    write_page(args.output, res, lambda r: page(r, args))
 
 
 if __name__ == "__main__":
