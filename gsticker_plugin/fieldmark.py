@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence, Tuple
 
@@ -84,6 +85,24 @@ def signs_of(message: Tensor) -> Tensor:
     return message.float() * 2.0 - 1.0
 
 
+def hash_corners(encoder: nn.Module, x: Float[Tensor, "N 3"]) -> Tuple[Tensor, Tensor]:
+    """The table rows the torch hash encoding interpolates at ``x`` (``[N L 8]``, rows of its stacked table) and their
+    trilinear weights (``[N L 8]``, summing to 1): the corners and weights of Nerfstudio's
+    ``HashEncoding.pytorch_fwd``, so ``enc(x)[n, l] = sum_c w[n, l, c] T[rows[n, l, c]]``."""
+    scaled = x[:, None, :] * encoder.scalings.view(-1, 1).to(x)  # [N L 3]
+    ceil, floor = torch.ceil(scaled).int(), torch.floor(scaled).int()
+    offset = scaled - floor
+    rows, weights = [], []
+    for corner in range(8):
+        up = [(corner >> (2 - d)) & 1 for d in range(3)]  # 1: the ceiling along axis d
+        rows.append(encoder.hash_fn(torch.stack([(ceil if u else floor)[..., d] for d, u in enumerate(up)], -1)))
+        w = torch.ones_like(offset[..., 0])
+        for d, u in enumerate(up):
+            w = w * (offset[..., d] if u else 1 - offset[..., d])
+        weights.append(w)
+    return torch.stack(rows, -1).long(), torch.stack(weights, -1)
+
+
 def sample_features(
     encoder: nn.Module,
     mlp: nn.Module,
@@ -93,27 +112,28 @@ def sample_features(
 ) -> Float[Tensor, "N K"]:
     """``d pre / d s_k`` per unit amplitude at encoder-space ``positions``: ``g(x) . enc(x; P_k) / sqrt(K)``.
 
-    The K tables are stacked side by side (``[N, K * F]``) and encoded in one pass: the encoding interpolates every
-    feature column with the same weights, so column block ``k`` of the stacked encoding is ``enc(x; P_k)``. The
-    encoder's table is restored afterwards."""
+    The encoding is linear in its table: ``enc(x; P)[l] = sum_c w_lc P[r_lc]`` over the 8 corners of each level
+    (:func:`hash_corners`), so ``g . enc(x; P_k) = sum_lc w_lc g_l . P_k[r_lc]``: a sparse matrix of the weights
+    ``w_lc g_l`` (one row per position, ``L x 8 x F`` entries) times the patterns stacked as ``[N F, K]``, never K
+    encodings."""
     k, n, f = pats.shape
-    table = encoder.hash_table
-    saved = table.data
-    stacked = pats.permute(1, 0, 2).reshape(n, k * f).to(saved)
+    by_row = pats.permute(1, 2, 0).reshape(n * f, k).contiguous().float()  # row r * F + j: feature j of table row r
     out = torch.empty(positions.shape[0], k)
     for i in range(0, positions.shape[0], chunk):
         x = positions[i : i + chunk]
         with torch.enable_grad():
             enc = encoder(x).detach().requires_grad_(True)
             (g,) = torch.autograd.grad(mlp(enc)[..., 0].sum(), enc)
-        levels = g.shape[-1] // f
-        try:
-            table.data = stacked
-            with torch.no_grad():
-                enc_k = encoder(x).reshape(-1, levels, k, f)
-        finally:
-            table.data = saved
-        out[i : i + chunk] = torch.einsum("nlkf,nlf->nk", enc_k, g.reshape(-1, levels, f)).float()
+        rows, w = hash_corners(encoder, x)  # [m L 8]
+        m, levels = rows.shape[:2]
+        values = (w[..., None] * g.reshape(m, levels, 1, f)).float().reshape(-1)
+        columns = (rows[..., None] * f + torch.arange(f)).reshape(-1)
+        per_row = levels * 8 * f
+        with warnings.catch_warnings():  # columns are table rows by construction; CSR is "beta" in torch
+            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+            crow = torch.arange(0, m * per_row + 1, per_row)
+            weights = torch.sparse_csr_tensor(crow, columns, values, size=(m, n * f), check_invariants=False)
+        out[i : i + chunk] = weights @ by_row
     return out / math.sqrt(k)
 
 

@@ -62,6 +62,35 @@ def test_sample_features_are_the_first_order_change_of_the_density_logit():
     assert torch.allclose((pre1 - pre0) / eps, feats @ s, atol=2e-3, rtol=1e-2)
 
 
+def stacked_features(enc, mlp, x, pats):
+    """``g . enc(x; P_k) / sqrt(K)`` by encoding each pattern as the encoder's own table (the definition)."""
+    k = pats.shape[0]
+    e = enc(x).detach().requires_grad_(True)
+    (g,) = torch.autograd.grad(mlp(e)[..., 0].sum(), e)
+    saved, out = enc.hash_table.data, []
+    try:
+        for pk in pats:
+            enc.hash_table.data = pk
+            with torch.no_grad():
+                out.append((enc(x) * g).sum(-1))
+    finally:
+        enc.hash_table.data = saved
+    return torch.stack(out, -1) / k**0.5
+
+
+def test_sample_features_equal_the_encoding_of_each_pattern_also_on_grid_corners_and_chunk_edges():
+    """The sparse product over the 8 corners of each level is the encoder's own interpolation of each pattern,
+    also where a position lies on the grid (ceiling and floor the same row) and across chunks."""
+    _, enc, mlp = tiny_field()
+    p = FM.patterns(enc.hash_table.shape, enc.hash_table_size, [0, 1, 2, 3], 10, seed=5)
+    x = torch.cat([torch.rand(150, 3), torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.25, 0.75], [1.0, 1.0, 1.0]])])
+    got = FM.sample_features(enc, mlp, x, p, chunk=64)
+    assert torch.allclose(got, stacked_features(enc, mlp, x, p), atol=1e-6)
+    rows, w = FM.hash_corners(enc, x)
+    assert rows.shape == w.shape == (len(x), 4, 8) and torch.allclose(w.sum(-1), torch.ones(len(x), 4))
+    assert rows.max() < enc.hash_table.shape[0]
+
+
 def test_a_field_without_a_torch_hash_encoder_is_refused():
     with pytest.raises(GStickerError, match="implementation torch"):
         FM.parts(nn.Linear(2, 2))
