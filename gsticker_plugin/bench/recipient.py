@@ -22,7 +22,7 @@ from typing import Any, Dict, List, Literal, Optional, Tuple
 import tyro
 
 from gsticker_plugin.bench import TINY_POOL, command_lines, provenance, write_page
-from gsticker_plugin.machine import run_logged
+from gsticker_plugin.machine import config_under, run_logged
 from gsticker_plugin.runs import latest_checkpoint
 
 
@@ -64,14 +64,13 @@ def make_runs(args: Args) -> List[Tuple[str, Path, Path]]:
     out: List[Tuple[str, Path, Path]] = []
 
     def sticker(label: str, ckpt: Path, extra: List[str]) -> None:
-        config = work / "runs" / label / "geometrysticker" / "run" / "config.yml"
         key = keys / f"{label}.gskey"
         if not key.is_file():
             cmd = [train, "geometrysticker", "--pipeline.mark", args.mark, "--load-checkpoint", str(ckpt), *CPU]
             cmd += ["--output-dir", str(work / "runs")]
             cmd += ["--experiment-name", label, "--timestamp", "run", "--pipeline.key-path", str(key), *extra]
             run_logged(cmd, work / f"{label}.log", what=f"sticker run {label}")
-        out.append((label, config, key))
+        out.append((label, config_under(work / "runs" / label), key))  # geometrysticker/ or the base's method
 
     if args.tiny:
         scene = work / "scene"
