@@ -103,6 +103,31 @@ def hash_corners(encoder: nn.Module, x: Float[Tensor, "N 3"]) -> Tuple[Tensor, T
     return torch.stack(rows, -1).long(), torch.stack(weights, -1)
 
 
+def csr_rows(rows: Tensor, weights: Float[Tensor, "M E"], columns: int) -> Tensor:
+    """A ``[M, columns]`` sparse CSR matrix whose row ``m`` holds ``weights[m, e]`` at column ``rows[m, e]`` (repeated
+    columns add up)."""
+    m, per_row = weights.shape
+    with warnings.catch_warnings():  # columns are table rows by construction; CSR is "beta" in torch
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        crow = torch.arange(0, m * per_row + 1, per_row, device=weights.device)
+        return torch.sparse_csr_tensor(
+            crow, rows.reshape(-1), weights.reshape(-1), size=(m, columns), check_invariants=False
+        )
+
+
+def pattern_encodings(
+    encoder: nn.Module, x: Float[Tensor, "M 3"], by_row: Float[Tensor, "NF K"], f: int
+) -> Float[Tensor, "M L K F"]:
+    """``enc(x; P_k)`` for every pattern, from the patterns stacked as ``[N F, K]`` (row ``r * F + j``: feature ``j``
+    of table row ``r``): one sparse product over the encoding's corners (:func:`hash_corners`)."""
+    rows, w = hash_corners(encoder, x)  # [m L 8]
+    m, levels = rows.shape[:2]
+    cols = (rows[:, :, None, :] * f + torch.arange(f, device=x.device)[None, None, :, None]).reshape(-1, 8)
+    weights = w[:, :, None, :].expand(m, levels, f, 8).reshape(m * levels * f, 8).float()
+    out = csr_rows(cols, weights, by_row.shape[0]) @ by_row  # [(m L F) K]
+    return out.reshape(m, levels, f, -1).permute(0, 1, 3, 2)
+
+
 def sample_features(
     encoder: nn.Module,
     mlp: nn.Module,
@@ -117,7 +142,7 @@ def sample_features(
     ``w_lc g_l`` (one row per position, ``L x 8 x F`` entries) times the patterns stacked as ``[N F, K]``, never K
     encodings."""
     k, n, f = pats.shape
-    by_row = pats.permute(1, 2, 0).reshape(n * f, k).contiguous().float()  # row r * F + j: feature j of table row r
+    by_row = pats.permute(1, 2, 0).reshape(n * f, k).contiguous().float().to(positions.device)  # [N F, K]
     out = torch.empty(positions.shape[0], k)
     for i in range(0, positions.shape[0], chunk):
         x = positions[i : i + chunk]
@@ -126,14 +151,9 @@ def sample_features(
             (g,) = torch.autograd.grad(mlp(enc)[..., 0].sum(), enc)
         rows, w = hash_corners(encoder, x)  # [m L 8]
         m, levels = rows.shape[:2]
-        values = (w[..., None] * g.reshape(m, levels, 1, f)).float().reshape(-1)
-        columns = (rows[..., None] * f + torch.arange(f)).reshape(-1)
-        per_row = levels * 8 * f
-        with warnings.catch_warnings():  # columns are table rows by construction; CSR is "beta" in torch
-            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-            crow = torch.arange(0, m * per_row + 1, per_row)
-            weights = torch.sparse_csr_tensor(crow, columns, values, size=(m, n * f), check_invariants=False)
-        out[i : i + chunk] = weights @ by_row
+        values = (w[..., None] * g.reshape(m, levels, 1, f)).float().reshape(m, -1)
+        columns = (rows[..., None] * f + torch.arange(f, device=rows.device)).reshape(m, -1)
+        out[i : i + chunk] = csr_rows(columns, values, n * f) @ by_row
     return out / math.sqrt(k)
 
 
@@ -440,7 +460,7 @@ def image_view(
     encoder, _ = parts(field)
     table = encoder.hash_table
     k, n, f = pats.shape
-    stacked = pats.permute(1, 0, 2).reshape(n, k * f).to(table)
+    by_row = pats.permute(1, 2, 0).reshape(n * f, k).contiguous().float().to(table.device)
     original, original_field = encoder.forward, field.forward
     state: Dict[str, Tensor] = {}
 
@@ -448,14 +468,9 @@ def image_view(
         e0 = original(x)
         live = state["live"].reshape(-1)
         ek = torch.zeros(x.shape[0], e0.shape[-1] // f, k, f, dtype=e0.dtype, device=e0.device)
-        saved = table.data
-        try:
-            table.data = stacked
-            if live.any():  # a chunk of rays may cross no live sample at all
-                with torch.no_grad():
-                    ek[live] = original(x[live]).reshape(int(live.sum()), -1, k, f)
-        finally:
-            table.data = saved
+        if live.any():  # a chunk of rays may cross no live sample at all
+            with torch.no_grad():
+                ek[live] = pattern_encodings(encoder, x[live], by_row, f).to(ek)
         s = state["s"]
         per_ray = s.repeat_interleave(x.shape[0] // s.shape[0], dim=0)
         return e0 + torch.einsum("nlkf,nk->nlf", ek, per_ray).reshape(e0.shape) / math.sqrt(k)

@@ -187,6 +187,15 @@ def test_the_image_jacobian_is_the_colour_change_of_the_marked_render(monkeypatc
     pats = FM.patterns(enc.hash_table.shape, enc.hash_table_size, [0, 1], 8, seed=3)
     view = FM.image_view(model, cam, pats)
     assert view.rays.numel() == 144 and view.jacobian.shape == (144, 3, 8)
+    x = torch.rand(50, 3)
+    by_row = pats.permute(1, 2, 0).reshape(-1, 8)
+    stacked = []
+    for pk in pats:  # the encoder with each pattern as its table: what pattern_encodings computes in one product
+        saved, enc.hash_table.data = enc.hash_table.data, pk
+        with torch.no_grad():
+            stacked.append(enc(x).reshape(50, -1, 2))
+        enc.hash_table.data = saved
+    assert torch.allclose(FM.pattern_encodings(enc, x, by_row, 2), torch.stack(stacked, 2), atol=1e-6)
     signs, a = torch.tensor([1.0, -1, 1, 1, -1, -1, 1, -1]), 1e-3
     with torch.no_grad():
         base = model.get_outputs_for_camera(cam)["rgb"].reshape(-1, 3)
