@@ -51,7 +51,7 @@ class VerifyConfig:
     candidates again: slower)."""
     view_bank: bool = True
     """--images without --cameras: keep the camera search's renders of the owner's base beside the key
-    (KEY.viewbank/, named by a hash of the base and the search) and reuse them on later calls; --no-view-bank
+    (KEY.gskey.viewbank/, named by a hash of the base and the search) and reuse them on later calls; --no-view-bank
     renders them on every call."""
     base_config: Optional[Path] = None
     """The owner's base run (config.yml) for --decode geometry, when the path recorded in the key moved."""
