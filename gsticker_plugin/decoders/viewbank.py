@@ -3,8 +3,8 @@
 The camera search (:func:`gsticker_plugin.decoders.pose.estimate_camera`) scores a picture against the base rendered
 at every candidate pose at a few pixels' size. Those renders depend on the base (its checkpoint and ``config.yml``),
 the model class that renders it, the candidates (count and seed) and the search frame (``side`` rows, ``width``
-columns), never on the picture, so they are rendered once and kept in ``KEY.viewbank/<name>.pt``, where ``name`` is
-the sha256 of all of these: a changed base names another file and is rendered again.
+columns), never on the picture, so they are rendered once and kept in ``KEY.gskey.viewbank/<name>.pt``, where
+``name`` is the sha256 of all of these: a changed base names another file and is rendered again.
 
 A bank file holds one tensor, ``[N side width 3]`` RGB in [0, 1], and is read with ``torch.load(weights_only=True)``.
 A folder that cannot be written leaves the search to render every time.
@@ -24,18 +24,15 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from gsticker_plugin.key import file_sha256
+
 BANK_FORMAT = 1
 """Bumped when what a bank file holds, or how its renders are made, changes."""
 
 
 def bank_folder(key_path: Path) -> Path:
-    """Where the view bank of the owner key at ``key_path`` lives: ``KEY.viewbank`` beside it."""
+    """Where the view bank of the owner key at ``key_path`` lives: ``KEY.gskey.viewbank`` beside it."""
     return key_path.with_name(key_path.name + ".viewbank")
-
-
-def file_sha256(path: Path) -> str:
-    with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def bank_name(checkpoint: Path, config: Path, model: str, candidates: int, seed: int, side: int, width: int) -> str:
