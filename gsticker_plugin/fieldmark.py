@@ -103,6 +103,12 @@ def hash_corners(encoder: nn.Module, x: Float[Tensor, "N 3"]) -> Tuple[Tensor, T
     return torch.stack(rows, -1).long(), torch.stack(weights, -1)
 
 
+def patterns_by_row(pats: Float[Tensor, "K N F"], device) -> Float[Tensor, "NF K"]:
+    """The K patterns stacked as ``[N F, K]``: row ``r * F + j`` holds feature ``j`` of table row ``r`` of each."""
+    k, n, f = pats.shape
+    return pats.permute(1, 2, 0).reshape(n * f, k).contiguous().float().to(device)
+
+
 def csr_rows(rows: Tensor, weights: Float[Tensor, "M E"], columns: int) -> Tensor:
     """A ``[M, columns]`` sparse CSR matrix whose row ``m`` holds ``weights[m, e]`` at column ``rows[m, e]`` (repeated
     columns add up)."""
@@ -118,8 +124,8 @@ def csr_rows(rows: Tensor, weights: Float[Tensor, "M E"], columns: int) -> Tenso
 def pattern_encodings(
     encoder: nn.Module, x: Float[Tensor, "M 3"], by_row: Float[Tensor, "NF K"], f: int
 ) -> Float[Tensor, "M L K F"]:
-    """``enc(x; P_k)`` for every pattern, from the patterns stacked as ``[N F, K]`` (row ``r * F + j``: feature ``j``
-    of table row ``r``): one sparse product over the encoding's corners (:func:`hash_corners`)."""
+    """``enc(x; P_k)`` for every pattern, from the patterns stacked by :func:`patterns_by_row`: one sparse product over
+    the encoding's corners (:func:`hash_corners`)."""
     rows, w = hash_corners(encoder, x)  # [m L 8]
     m, levels = rows.shape[:2]
     cols = (rows[:, :, None, :] * f + torch.arange(f, device=x.device)[None, None, :, None]).reshape(-1, 8)
@@ -142,7 +148,7 @@ def sample_features(
     ``w_lc g_l`` (one row per position, ``L x 8 x F`` entries) times the patterns stacked as ``[N F, K]``, never K
     encodings."""
     k, n, f = pats.shape
-    by_row = pats.permute(1, 2, 0).reshape(n * f, k).contiguous().float().to(positions.device)  # [N F, K]
+    by_row = patterns_by_row(pats, positions.device)
     out = torch.empty(positions.shape[0], k)
     for i in range(0, positions.shape[0], chunk):
         x = positions[i : i + chunk]
@@ -460,7 +466,7 @@ def image_view(
     encoder, _ = parts(field)
     table = encoder.hash_table
     k, n, f = pats.shape
-    by_row = pats.permute(1, 2, 0).reshape(n * f, k).contiguous().float().to(table.device)
+    by_row = patterns_by_row(pats, table.device)
     original, original_field = encoder.forward, field.forward
     state: Dict[str, Tensor] = {}
 
