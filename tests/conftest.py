@@ -136,34 +136,22 @@ def one_thread_per_worker() -> None:
 @pytest.fixture(scope="session", autouse=True)
 def owner_keys_dir(tmp_path_factory) -> Path:
     """Owner keys written by default go to a per-session folder, never the user's own keys folder."""
-    import os
-
     folder = tmp_path_factory.mktemp("owner-keys")
-    old = os.environ.get("GSTICKER_KEYS_DIR")
-    os.environ["GSTICKER_KEYS_DIR"] = str(folder)  # inherited by the ns-* subprocesses
-    yield folder
-    if old is None:
-        os.environ.pop("GSTICKER_KEYS_DIR", None)
-    else:
-        os.environ["GSTICKER_KEYS_DIR"] = old
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("GSTICKER_KEYS_DIR", str(folder))  # inherited by the ns-* subprocesses
+        yield folder
 
 
 @pytest.fixture(scope="session", autouse=True)
 def cache_dir(tmp_path_factory) -> Path:
     """What gsticker derives from the environment (the config census) is kept in one folder for the session and
     its workers and subprocesses, never the user's own cache."""
-    import os
-
     root = tmp_path_factory.getbasetemp()
     folder = (root.parent if WORKER else root) / "gsticker-cache"
     folder.mkdir(exist_ok=True)
-    old = os.environ.get("GSTICKER_CACHE_DIR")
-    os.environ["GSTICKER_CACHE_DIR"] = str(folder)
-    yield folder
-    if old is None:
-        os.environ.pop("GSTICKER_CACHE_DIR", None)
-    else:
-        os.environ["GSTICKER_CACHE_DIR"] = old
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("GSTICKER_CACHE_DIR", str(folder))
+        yield folder
 
 
 def built_once(tmp_path_factory, name: str, build: Callable[[Path], Path]) -> Path:
