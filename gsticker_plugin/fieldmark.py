@@ -24,7 +24,7 @@ import contextlib
 import math
 import warnings
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Sequence, Tuple
 
 import torch
 from jaxtyping import Float
@@ -179,7 +179,6 @@ class FieldView:
     base_signal: Tensor  # [C R], one row per signal
     depth_scale: float
     hw: Tuple[int, int] = (0, 0)  # the camera's image size (0, 0: not recorded)
-    pre: Optional[Tensor] = None  # [R S] density before its relu (TensoRF's planes); None: exponential activation
     signals: Tuple[str, ...] = ("accumulation", "expected_depth")
 
 
@@ -258,11 +257,8 @@ def field_view(model, camera, pats: Tensor, min_transmittance: float = 1e-3, min
 
 def geometry_from_logits(view: FieldView, change: Float[Tensor, "R S"]) -> Float[Tensor, " M"]:
     """The view's geometry (its signals: accumulation, and scaled accumulation x depth) with the density logits
-    changed by ``change`` at every sample: ``sigma * exp(change)`` (nerfacto), ``relu(pre + change)`` (TensoRF)."""
-    if view.pre is not None:
-        density = torch.relu(view.pre + change)[..., None]
-    else:
-        density = view.density * torch.exp(change)[..., None]
+    changed by ``change`` at every sample: ``sigma * exp(change)``."""
+    density = view.density * torch.exp(change)[..., None]
     w = render_weights(density, view.deltas)
     out = [w.sum(-2)[..., 0]]
     if "expected_depth" in view.signals:
@@ -297,7 +293,9 @@ def predict_jacobian(view: FieldView, signs: Tensor, amplitude: float) -> Float[
 # TensoRF's density is ``relu(sum_c plane_c(x) line_c(x))`` over its three vector-matrix planes and their lines: linear
 # in the planes. The per-bit patterns are smooth tables of the planes' shape (a standard Gaussian on a coarse grid,
 # upsampled), so at a sample ``pre(x)`` changes by exactly ``a * f_k(x) / sqrt(K)``, ``f_k`` the encoding with the
-# planes replaced by ``P_k``, and the density by ``relu(pre + a f . s / sqrt(K))``.
+# planes replaced by ``P_k``, and the density by ``relu(pre + a f . s / sqrt(K))``. The decoder reads it where it is
+# exact: the suspect's density at the base's samples (:class:`DensityView`), not its renders, whose fine samples
+# TensoRF places by the density it renders.
 
 PLANES_GRID = 20
 """Side of the coarse grid each plane pattern is drawn on before it is upsampled to the planes' resolution."""
@@ -369,10 +367,26 @@ def plane_features(
     return pre, feats / math.sqrt(k)
 
 
-def planes_view(model, camera, pats: Tensor) -> FieldView:
-    """Capture a TensoRF base's view at ``camera``: its fine samples (the PDF pass), their density before the relu and
-    their per-bit features, on the rays the coarse pass kept; the signal is the accumulation (TensoRF reports a
-    median depth, which is not smooth in the density)."""
+PROBE_SAMPLES = 32768
+"""Samples of a TensoRF base's view where the suspect's density is read (evenly spaced among those with density)."""
+
+
+@dataclass
+class DensityView:
+    """One camera of a TensoRF base, read at its samples: a fixed-size, evenly spaced share of its fine samples that
+    hold density, their world positions, density before the relu and per-bit features, and the base's accumulation
+    per pixel."""
+
+    world: Float[Tensor, "N 3"]
+    pre: Float[Tensor, " N"]
+    features: Float[Tensor, "N K"]
+    accumulation: Float[Tensor, " P"]
+    hw: Tuple[int, int]
+
+
+def density_view(model, camera, pats: Tensor, max_samples: int = PROBE_SAMPLES) -> DensityView:
+    """Render a TensoRF base at ``camera`` recording its fine samples' world positions (the PDF pass), and keep at
+    most ``max_samples`` of those with density (evenly spaced in render order) with their per-bit features."""
     from nerfstudio.data.scene_box import SceneBox
 
     field = model.field
@@ -381,12 +395,8 @@ def planes_view(model, camera, pats: Tensor) -> FieldView:
 
     def forward(ray_samples, *args, **kwargs):
         out = original(ray_samples, *args, **kwargs)
-        fr = ray_samples.frustums
-        pos = SceneBox.get_normalized_positions(fr.get_positions(), field.aabb) * 2 - 1
-        rec.setdefault("positions", []).append(pos.detach())
-        rec.setdefault("deltas", []).append(ray_samples.deltas.detach())
-        rec.setdefault("steps", []).append(((fr.starts + fr.ends) / 2).detach())
-        rec.setdefault("density", []).append(out[FieldHeadNames.DENSITY].detach())
+        dens = out[FieldHeadNames.DENSITY].detach().reshape(-1)
+        rec.setdefault("world", []).append(ray_samples.frustums.get_positions().detach().reshape(-1, 3)[dens > 0])
         return out
 
     object.__setattr__(field, "forward", forward)
@@ -395,28 +405,62 @@ def planes_view(model, camera, pats: Tensor) -> FieldView:
             outputs = model.get_outputs_for_camera(camera)
     finally:
         del field.__dict__["forward"]
-    smp = {k: torch.cat([x.reshape(-1, *x.shape[-2:]) for x in v]) for k, v in rec.items()}
-    rays = (smp["density"][..., 0] > 0).any(-1).nonzero().squeeze(-1)
-    pos = smp["positions"][rays]
-    pre, feats = plane_features(planes_of(field), pos.reshape(-1, 3), pats)
-    acc = outputs["accumulation"].reshape(-1)[rays]
-    return FieldView(
-        rays=rays,
-        density=smp["density"][rays],
-        deltas=smp["deltas"][rays],
-        steps=smp["steps"][rays],
-        features=feats.reshape(*pos.shape[:2], -1),
-        base_signal=acc[None],
-        depth_scale=1.0,
+    world = torch.cat(rec["world"]) if rec else torch.zeros(0, 3)
+    if world.shape[0] > max_samples:
+        world = world[torch.linspace(0, world.shape[0] - 1, max_samples).round().long()]
+    enc = planes_of(field)
+    pre, feats = plane_features(enc, SceneBox.get_normalized_positions(world, field.aabb) * 2 - 1, pats)
+    return DensityView(
+        world=world.cpu(),
+        pre=pre,
+        features=feats,
+        accumulation=outputs["accumulation"].reshape(-1).cpu(),
         hw=(int(camera.height[0, 0]), int(camera.width[0, 0])),
-        pre=pre.reshape(pos.shape[:2]),
-        signals=("accumulation",),
     )
 
 
-def view_of(model, camera, pats: Tensor) -> FieldView:
-    """The base's view at ``camera`` for its field's host (:func:`field_view` or :func:`planes_view`)."""
-    return planes_view(model, camera, pats) if host_of(model.field) == "planes" else field_view(model, camera, pats)
+def probe_density(model, positions: Float[Tensor, "N 3"], chunk: int = 65536) -> Float[Tensor, " N"]:
+    """A model's density at world ``positions``, through its field's public ``get_density`` on zero-length samples
+    there (any Nerfstudio field: density is a function of position)."""
+    from nerfstudio.cameras.rays import Frustums, RaySamples
+
+    field = model.field
+    dev = next(field.parameters()).device
+    out = torch.empty(positions.shape[0])
+    for i in range(0, positions.shape[0], chunk):
+        pos = positions[i : i + chunk, None].to(dev)
+        n = pos.shape[0]
+        zeros = torch.zeros(n, 1, 1, device=dev)
+        frustums = Frustums(
+            origins=pos,
+            directions=torch.nn.functional.normalize(torch.ones_like(pos), dim=-1),
+            starts=zeros,
+            ends=zeros,
+            pixel_area=torch.ones_like(zeros),
+        )
+        samples = RaySamples(frustums=frustums, camera_indices=torch.zeros(n, 1, 1, dtype=torch.long, device=dev))
+        with torch.no_grad():
+            dens = field.get_density(samples)
+        dens = dens[0] if isinstance(dens, tuple) else dens
+        out[i : i + n] = dens.reshape(-1).float().cpu()
+    return out
+
+
+def density_at(view: DensityView, signs: Tensor, amplitude: float) -> Float[Tensor, " N"]:
+    """The marked density ``relu(pre + a f . s)`` at the view's samples."""
+    return torch.relu(view.pre + amplitude * (view.features @ signs.to(view.features)))
+
+
+def density_jacobian(view: DensityView, signs: Tensor, amplitude: float) -> Float[Tensor, "N K"]:
+    """d :func:`density_at` / d signs: ``a f`` where the relu is open, 0 elsewhere."""
+    opened = (view.pre + amplitude * (view.features @ signs.to(view.features))) > 0
+    return amplitude * view.features * opened[:, None].to(view.features)
+
+
+def view_of(model, camera, pats: Tensor):
+    """The base's view at ``camera`` for its field's host: :func:`field_view` (hash) or :func:`density_view`
+    (planes)."""
+    return density_view(model, camera, pats) if host_of(model.field) == "planes" else field_view(model, camera, pats)
 
 
 def key_patterns(field: nn.Module, mark: Dict, num_bits: int) -> Tensor:

@@ -292,3 +292,82 @@ def test_pictures_of_a_tensorf_shared_run_are_refused_with_the_fix():
     reference = SimpleNamespace(model=SimpleNamespace(field=SimpleNamespace(density_encoding=tiny_planes())))
     with pytest.raises(GStickerError, match="--load-config SUSPECT/config.yml"):
         decode_images(SimpleNamespace(num_bits=8), reference, [torch.zeros(4, 4, 3)], seed=0)
+
+
+def tiny_tensorf(monkeypatch):
+    """A randomly initialised TensoRF (vector-matrix planes at 16^3) with density in much of its box."""
+    from nerfstudio.data.scene_box import SceneBox
+    from nerfstudio.models.tensorf import TensoRFModelConfig
+
+    from gsticker_plugin import compat
+
+    monkeypatch.setenv("GSTICKER_NO_DOWNLOAD", "1")
+    compat.apply()
+    torch.manual_seed(0)
+    cfg = TensoRFModelConfig(
+        init_resolution=16,
+        final_resolution=16,
+        upsampling_iters=(),
+        num_samples=16,
+        num_uniform_samples=16,
+        num_den_components=3,
+        num_color_components=3,
+        appearance_dim=4,
+        background_color="white",
+    )
+    model = cfg.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]])), num_train_data=2, metadata={})
+    model.eval()
+    with torch.no_grad():
+        FM.planes_of(model.field).plane_coef.normal_(0.3, 0.5)
+        FM.planes_of(model.field).line_coef.normal_(0.3, 0.5)
+    return model
+
+
+def box_camera(size: int = 8):
+    from nerfstudio.cameras.cameras import Cameras
+
+    c2w = torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3]])[None]
+    return Cameras(
+        camera_to_worlds=c2w, fx=1.2 * size, fy=1.2 * size, cx=size / 2, cy=size / 2, width=size, height=size
+    )
+
+
+def test_a_tensorf_view_holds_base_samples_with_density_that_any_field_answers_at_their_positions(monkeypatch):
+    """The samples a TensoRF view keeps hold density, at most ``max_samples`` of them, and the base's density read
+    back at their world positions through the field's public ``get_density`` is ``relu(pre)`` of the planes there."""
+    model = tiny_tensorf(monkeypatch)
+    pats = FM.plane_patterns(tuple(FM.planes_of(model.field).plane_coef.shape), 4, 8, seed=1)
+    view = FM.density_view(model, box_camera(), pats)
+    assert view.pre.numel() > 50 and bool((view.pre > 0).all()) and view.features.shape == (view.pre.numel(), 8)
+    assert view.accumulation.shape == (64,) and view.hw == (8, 8)
+    assert torch.allclose(FM.probe_density(model, view.world), view.pre, atol=1e-5)
+    assert FM.density_view(model, box_camera(), pats, max_samples=50).pre.numel() == 50
+
+
+def test_the_density_decoder_reads_every_bit_of_marked_planes_and_none_of_the_base(monkeypatch):
+    """A TensoRF suspect is read at the base's samples: planes marked with the signs give every bit; the base itself
+    determines none (all undetermined: mismatches whatever the message); an independently drawn field reads bits
+    that are not the message's."""
+    import copy
+
+    from gsticker_plugin.decoders.fieldmark import decode_density
+    from gsticker_plugin.decoders.fit import UNDETERMINED, tie_generator
+
+    base = tiny_tensorf(monkeypatch)
+    planes = FM.planes_of(base.field).plane_coef
+    pats = FM.plane_patterns(tuple(planes.shape), 4, 8, seed=1)
+    signs = torch.tensor([1.0, -1, -1, 1, 1, -1, 1, -1])
+    message = (signs > 0).long()
+    view = FM.density_view(base, box_camera(), pats)
+    marked = copy.deepcopy(base)
+    with torch.no_grad():
+        FM.planes_of(marked.field).plane_coef.data = FM.marked_table(planes.data, pats, signs, 0.05)
+    bits, fit = decode_density(view, marked, 0.05, tie_generator(0))
+    assert torch.equal(bits, message) and fit.explained > 0.99
+    bits, fit = decode_density(view, base, 0.05, tie_generator(0))
+    assert bool((bits == UNDETERMINED).all()) and fit.explained == 0.0
+    other = copy.deepcopy(base)
+    with torch.no_grad():
+        FM.planes_of(other.field).plane_coef.normal_(0.3, 0.5, generator=torch.Generator().manual_seed(5))
+    bits, fit = decode_density(view, other, 0.05, tie_generator(0))
+    assert fit.explained < 0.2 and not torch.equal(bits, message)

@@ -8,6 +8,11 @@ box) at the same camera; fit the continuous message ``s in [-1, 1]^K`` whose den
 (:func:`gsticker_plugin.decoders.fit.fit_and_decide`); bit ``i`` is ``s_i > 0``, undetermined bits (the suspect *is*
 the base: nothing to explain) count as mismatches.
 
+A TensoRF base (the mark in its density planes) is read at its samples instead: TensoRF places its fine samples by
+the density it renders, so a suspect's renders move them, while density is a function of position that any field
+answers (``get_density``). The suspect's density at the base's fine samples is fitted to ``relu(pre + a f @ s)``,
+exact in the planes (:func:`decode_density`).
+
 The fit reads the suspect, the base and the patterns, never the message: for a model not marked with the message the
 decoded bits are independent of it, and with the message uniformly random and secret the matches are
 ``Binomial(K, 1/2)``.
@@ -19,7 +24,7 @@ import contextlib
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -108,14 +113,37 @@ def decode_view(view: FM.FieldView, suspect_outputs: Dict[str, Tensor], amplitud
     return bits, fit
 
 
-def scene_agreement(view: FM.FieldView, suspect_outputs: Dict[str, Tensor]) -> Optional[float]:
-    """Share of the base's surface rays (accumulation above :data:`SURFACE_ACCUMULATION`) where the suspect's
+def decode_density(view: FM.DensityView, suspect_model, amplitude: float, generator: torch.Generator):
+    """Fit the signs to a suspect's density at a TensoRF view's samples (:func:`gsticker_plugin.fieldmark.
+    probe_density`) against the base's own and decide the bits; returns (bits, fit)."""
+    target = FM.probe_density(suspect_model, view.world) - torch.relu(view.pre)
+    fit, bits, _ = fit_and_decide(
+        lambda s: FM.density_at(view, s, amplitude),
+        lambda s: FM.density_jacobian(view, s, amplitude),
+        target,
+        view.features.shape[-1],
+        view.pre.numel() > 0,
+        generator,
+    )
+    return bits, fit
+
+
+def base_accumulation(view) -> Tuple[Tensor, Tensor]:
+    """(pixels, the base's accumulation there) of a view: the rays it holds, or every pixel of a density view."""
+    if isinstance(view, FM.DensityView):
+        return torch.arange(view.accumulation.numel()), view.accumulation
+    return view.rays, view.base_signal[0]
+
+
+def scene_agreement(view, suspect_outputs: Dict[str, Tensor]) -> Optional[float]:
+    """Share of the base's surface pixels (accumulation above :data:`SURFACE_ACCUMULATION`) where the suspect's
     accumulation is within :data:`SCENE_AGREEMENT_TOLERANCE` of the base's; None for a view without surface."""
-    surface = view.base_signal[0] > SURFACE_ACCUMULATION
+    pixels, base = base_accumulation(view)
+    surface = base > SURFACE_ACCUMULATION
     if not bool(surface.any()):
         return None
-    acc = FM.geometry_of(suspect_outputs)[0, view.rays]
-    return float(((acc - view.base_signal[0])[surface].abs() < SCENE_AGREEMENT_TOLERANCE).float().mean())
+    acc = FM.geometry_of(suspect_outputs)[0, pixels]
+    return float(((acc - base)[surface].abs() < SCENE_AGREEMENT_TOLERANCE).float().mean())
 
 
 def decode_suspect(
@@ -128,7 +156,7 @@ def decode_suspect(
     progress: bool = False,
     cameras: Optional[List] = None,
     full_renders: bool = True,
-    cache: Optional[Dict[str, FM.FieldView]] = None,
+    cache: Optional[Dict[str, Any]] = None,
 ):
     """Render the base and the suspect at ``num_views`` cameras of the base run (or the given ``(name, camera)``
     list), fit and decode every view. Returns ``(dec, views)`` as :func:`gsticker_plugin.decoders.geometric.
@@ -145,7 +173,11 @@ def decode_suspect(
         if name not in cache:
             cache[name] = FM.view_of(reference.model, cam.to(reference.model.device), reference.patterns)
         fv = cache[name]
-        b, fit = decode_view(fv, out, reference.amplitude, gen)
+        density = isinstance(fv, FM.DensityView)
+        if density:
+            b, fit = decode_density(fv, suspect_model, reference.amplitude, gen)
+        else:
+            b, fit = decode_view(fv, out, reference.amplitude, gen)
         bits.append(b)
         details.append(
             {
@@ -153,10 +185,11 @@ def decode_suspect(
                 "explained": fit.explained,
                 "residual_rms": fit.residual_rms,
                 "iterations": fit.iterations,
-                "rays": int(fv.rays.numel()),
+                "rays": int((fv.accumulation > 0).sum() if density else fv.rays.numel()),
                 "signs_abs_mean": float(fit.signs.abs().mean()),
                 "scene_agreement": scene_agreement(fv, out),
-                "signals": list(fv.signals),
+                "signals": ["density"] if density else list(fv.signals),
+                **({"samples": int(fv.pre.numel())} if density else {}),
             }
         )
         if full_renders:
