@@ -31,6 +31,7 @@ from jaxtyping import Float
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from torch import Tensor, nn
 
+from gsticker_plugin import hashgrid
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.sticker import render_weights
 
@@ -92,10 +93,10 @@ def hash_corners(encoder: nn.Module, x: Float[Tensor, "N 3"]) -> Tuple[Tensor, T
     scaled = x[:, None, :] * encoder.scalings.view(-1, 1).to(x)  # [N L 3]
     ceil, floor = torch.ceil(scaled).int(), torch.floor(scaled).int()
     offset = scaled - floor
-    rows, weights = [], []
-    for corner in range(8):
-        up = [(corner >> (2 - d)) & 1 for d in range(3)]  # 1: the ceiling along axis d
-        rows.append(encoder.hash_fn(torch.stack([(ceil if u else floor)[..., d] for d, u in enumerate(up)], -1)))
+    corners = [tuple((corner >> (2 - d)) & 1 for d in range(3)) for corner in range(8)]  # 1: the ceiling along d
+    rows = hashgrid.corner_rows(encoder, ceil, floor, corners)
+    weights = []
+    for up in corners:
         w = torch.ones_like(offset[..., 0])
         for d, u in enumerate(up):
             w = w * (offset[..., d] if u else 1 - offset[..., d])
@@ -152,8 +153,10 @@ def sample_features(
     out = torch.empty(positions.shape[0], k)
     for i in range(0, positions.shape[0], chunk):
         x = positions[i : i + chunk]
+        with torch.no_grad():
+            enc = encoder(x)
         with torch.enable_grad():
-            enc = encoder(x).detach().requires_grad_(True)
+            enc.requires_grad_(True)
             (g,) = torch.autograd.grad(mlp(enc)[..., 0].sum(), enc)
         rows, w = hash_corners(encoder, x)  # [m L 8]
         m, levels = rows.shape[:2]
@@ -515,7 +518,8 @@ def image_view(
     state: Dict[str, Tensor] = {}
 
     def forward(x: Tensor) -> Tensor:
-        e0 = original(x)
+        with torch.no_grad():  # the derivative is in the signs alone
+            e0 = original(x)
         live = state["live"].reshape(-1)
         ek = torch.zeros(x.shape[0], e0.shape[-1] // f, k, f, dtype=e0.dtype, device=e0.device)
         if live.any():  # a chunk of rays may cross no live sample at all

@@ -26,7 +26,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import Progress
 from torch import Tensor
 
-from gsticker_plugin import metrics
+from gsticker_plugin import hashgrid, metrics
 from gsticker_plugin.attacks import RandomDistortion, RandomDistortionConfig
 from gsticker_plugin.fastpath import (
     ViewCache,
@@ -204,6 +204,7 @@ class GeometryStickerPipeline(VanillaPipeline):
         # The parent is built single-process: no DDP wrap (the training step runs the sticker and heads on cached
         # samples, not the model's forward, so DDP's hooks would sync nothing) and no device_ids barrier.
         super().__init__(config, device, test_mode, 1, 0, grad_scaler)
+        hashgrid.speed_up(self.model)
         self.world_size, self.local_rank = world_size, local_rank
         self.rank = comms.get_rank() if self.distributed else 0
         # training draws (or takes) the owner's message; a loaded shared run has none (its sticker is folded)

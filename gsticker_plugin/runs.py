@@ -25,7 +25,7 @@ from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConf
 from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManager
 from nerfstudio.engine.trainer import TrainerConfig
 
-from gsticker_plugin import config_check
+from gsticker_plugin import config_check, hashgrid
 from gsticker_plugin.compat import allow_numpy_checkpoint_types
 from gsticker_plugin.errors import GStickerError
 
@@ -378,6 +378,7 @@ def load_run(config_path: Path, data: Optional[Path] = None, device: Optional[to
     state = load_checkpoint_state(ckpt)
     load_pipeline_strictly(pipeline, state, ckpt)
     pipeline.eval()
+    hashgrid.speed_up(pipeline.model)
     return config, pipeline, ckpt
 
 
