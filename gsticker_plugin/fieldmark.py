@@ -422,12 +422,24 @@ def density_view(model, camera, pats: Tensor, max_samples: int = PROBE_SAMPLES) 
     )
 
 
+def density_field(model: nn.Module) -> nn.Module:
+    """The field a model renders its density with: ``model.field``, or that of the first model it wraps (a recolored
+    run's)."""
+    from nerfstudio.fields.base_field import Field
+
+    for module in model.modules():
+        found = getattr(module, "field", None)
+        if isinstance(found, Field):
+            return found
+    raise GStickerError(f"{type(model).__name__} has no Nerfstudio field to read density from; pass a NeRF run")
+
+
 def probe_density(model, positions: Float[Tensor, "N 3"], chunk: int = 65536) -> Float[Tensor, " N"]:
     """A model's density at world ``positions``, through its field's public ``get_density`` on zero-length samples
     there (any Nerfstudio field: density is a function of position)."""
     from nerfstudio.cameras.rays import Frustums, RaySamples
 
-    field = model.field
+    field = density_field(model)
     dev = next(field.parameters()).device
     out = torch.empty(positions.shape[0])
     for i in range(0, positions.shape[0], chunk):

@@ -371,3 +371,15 @@ def test_the_density_decoder_reads_every_bit_of_marked_planes_and_none_of_the_ba
         FM.planes_of(other.field).plane_coef.normal_(0.3, 0.5, generator=torch.Generator().manual_seed(5))
     bits, fit = decode_density(view, other, 0.05, tie_generator(0))
     assert fit.explained < 0.2 and not torch.equal(bits, message)
+
+
+def test_the_density_of_a_wrapping_model_is_read_from_the_model_it_wraps(monkeypatch):
+    """A recolored run wraps the shared run's model: its density is the wrapped field's."""
+    model = tiny_tensorf(monkeypatch)
+    wrapper = nn.Module()
+    wrapper.inner = model
+    assert FM.density_field(wrapper) is model.field and FM.density_field(model) is model.field
+    x = torch.rand(20, 3) - 0.5
+    assert torch.equal(FM.probe_density(wrapper, x), FM.probe_density(model, x))
+    with pytest.raises(GStickerError, match="no Nerfstudio field"):
+        FM.density_field(nn.Linear(2, 2))
