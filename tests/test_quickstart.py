@@ -32,7 +32,7 @@ def test_readme_and_getting_started_give_the_same_quick_start():
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(1800)  # four commands, the base's 150 steps among them
+@pytest.mark.timeout(1800)  # four commands, the base's 100 steps among them
 def test_the_quick_start_copied_verbatim_reaches_an_owned_verdict_on_the_cpu(tmp_path):
     home = tmp_path / "home"
     home.mkdir()

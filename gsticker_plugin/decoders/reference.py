@@ -14,7 +14,7 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
-from gsticker_plugin import runs
+from gsticker_plugin import hashgrid, runs
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import cache_view
 from gsticker_plugin.key import file_sha256
@@ -214,6 +214,7 @@ def load_base_reference(
         w.aabb = stored
     model.to(device)
     model.eval()
+    hashgrid.speed_up(model)
     # nerfacto's proposal networks place its samples and are not wrapped (by default): its samples do not move;
     # without marked sampling passes no base's samples move
     follows = mcfg.mark_sampling_passes and not (
