@@ -6,8 +6,8 @@
 Reads the per-image rows that :mod:`gsticker_plugin.bench.unposed` wrote into each page's JSON. An unmarked image
 (a row of :data:`~gsticker_plugin.evaluation.unposed_page.NULL_IMAGES`) is named by its row and index, the same image on
 every page of one command's seeds; the first page that decoded it counts, the later readings are listed apart. The
-other keys are one page's only (every page draws the same 64 messages with the same seed, so a second page's are
-not new checks). Writes the Markdown page, its JSON and the null chart beside it.
+other keys (one page's: every page draws the same 64 messages with the same seed) are a row of their own, never part
+of the null: they check the messages' randomness on marked images, not the decoder on unmarked ones. Writes the Markdown page, its JSON and the null chart beside it.
 """
 
 from __future__ import annotations
@@ -59,9 +59,9 @@ def pool_null(pages: List[Dict[str, Any]], names: List[str]) -> Dict[str, Any]:
     others = pages[names.index(others_from)]["other_keys"] if others_from is not None else None
     rows = list(first.values())
     num_bits = next((len(r["bits"]) for r in rows if "bits" in r), 48)
-    null = null_summary(rows, others, pages[0]["threshold"], num_bits)
+    null = null_summary(rows, pages[0]["threshold"], num_bits)
     if null is None:
-        raise ValueError("the pages hold no unmarked image and no other key: nothing to pool")
+        raise ValueError("the pages hold no unmarked image read: nothing to pool")
     by_row: Dict[str, List[int]] = {}
     for r in rows:
         if not read_nothing(r):
@@ -132,16 +132,16 @@ def main(cfg: NullPoolConfig) -> Dict[str, Any]:
     if res["other_keys_from"]:
         ok = res["other_keys"]
         lines.append(
-            f"| other keys ({res['other_keys_from']}'s marked images, one check a key) | {ok['checks']} | "
-            f"{ok['matches_mean']:.1f} | {ok['matches_max']} |"
+            f"| other keys ({res['other_keys_from']}'s marked images, one check a key; not in the null) | "
+            f"{ok['checks']} | {ok['matches_mean']:.1f} | {ok['matches_max']} |"
         )
     lines += [
         "",
-        f"**{null['checks']} independent checks: mean {null['matches_mean']:.1f}, max {null['matches_max']}, "
-        f"{null['passing']} at or above {t}/{num_bits}** (empirical false-positive rate {null['fpr']:.3f}, 95 % upper bound "
-        f"{null['fpr_upper_95']:.3f}; the {null['images']} unmarked images alone: {null['images_passing']} passing, bound "
-        f"{null['images_fpr_upper_95']:.3f}); {null['nothing_read']} more images had nothing to read (every bit "
-        "undetermined at the camera found) and are not counted.",
+        f"**The null: {null['images']} distinct unmarked images, each counted once: mean {null['matches_mean']:.1f}, "
+        f"max {null['matches_max']}, {null['passing']} at or above {t}/{num_bits}** (empirical false-positive rate "
+        f"{null['fpr']:.3f}, 95 % upper bound {null['fpr_upper_95']:.3f}); {null['nothing_read']} more images had "
+        "nothing to read (every bit undetermined at the camera found) and are not counted. The other keys' checks are "
+        "not null images: they are reported in their row and left out of this count.",
         "",
         f"![null]({chart.name})",
     ]

@@ -28,6 +28,7 @@ from gsticker_plugin.attacks.spec import parse_attack_spec
 from gsticker_plugin.decoders.pose import PoseSearch
 from gsticker_plugin.decoders.reference import load_base_reference
 from gsticker_plugin.decoders.unposed import decode_unposed_images
+from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.evaluation.held_out import (
     HELD_OUT_CAMERA_SEED,
     HELD_OUT_VIEWS,
@@ -78,8 +79,12 @@ class BenchUnposedConfig:
     none; ``hue=~0.5``: a strength drawn per view from [-0.5, 0.5]), the first ``N`` views only (rows that differ only
     in ``N`` share their images: ``marked:@12`` early, ``marked:@24`` later)."""
     other_keys: int = 64
-    """Other owners' random messages, each checked against one marked image's bits, the images in turn (a null of
-    independent checks; the largest match over every image and key is reported beside it)."""
+    """Other owners' random messages, each checked against one marked image's bits, the images in turn (their own row:
+    a check of the messages, not part of the null of unmarked images; the largest match over every image and key is
+    reported beside it)."""
+    development_views: int = 0
+    """The first N held-out views were looked at while the decoder's rules or the sticker's recipe were chosen: the
+    page names the rows that read only them as development evidence."""
     foreign_config: Optional[Path] = None
     """Another model of the scene (config.yml) rendered for ``foreign:`` rows, e.g. a TensoRF base: a null."""
     rolls: Tuple[float, ...] = (0.0,)
@@ -100,15 +105,30 @@ class BenchUnposedConfig:
     seed: int = 0
     page_only: bool = False
     """Write the page from the images already decoded in ``--work-dir`` (rows not reached are left out), decode
-    nothing; the held-out views' PSNR comes from the work dir, else from the page's own JSON, else a render."""
+    nothing; the held-out views' PSNR comes from the work dir, else from the page's own JSON, else a render. Without
+    the work dir's rows, the page is rewritten from its own JSON alone (no run, key or data read)."""
     work_dir: Path = Path("outputs/bench-unposed")
     output: Path = Path("docs/experiments/bench-unposed.md")
     """The page; its JSON goes beside it."""
 
 
+def page_from_json(cfg: BenchUnposedConfig) -> Dict[str, Any]:
+    """The page rewritten from its own JSON: the images it recorded, its threshold and PSNR."""
+    recorded = recorded_page(cfg.output.with_suffix(".json"))
+    if not recorded:
+        raise GStickerError(
+            f"--page-only: neither {cfg.work_dir / 'rows.jsonl'} nor {cfg.output.with_suffix('.json')} exists"
+        )
+    done = {(row_key(r["row"]), r["view"]): r for r in recorded["per_image"]}
+    num_bits = len(next(r["bits"] for r in recorded["per_image"] if "bits" in r))
+    return write_page(cfg, num_bits, done, int(recorded["threshold"]), recorded["psnr_marked_vs_clean_db"])
+
+
 def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
     compat.apply()
     warnings.filterwarnings("ignore")  # nerfstudio 1.1.5's camera indexing warns on every render with this torch
+    if cfg.page_only and not (cfg.work_dir / "rows.jsonl").exists():
+        return page_from_json(cfg)
     device = torch.device("cpu")
     key = OwnerKey.load(cfg.key)
     with contextlib.redirect_stdout(sys.stderr):
@@ -127,10 +147,12 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
     psnr_path = cfg.work_dir / "psnr.json"
     if cfg.page_only and psnr_path.exists():
         per_view = json.loads(psnr_path.read_text())["per_view_db"]
-        return write_page(cfg, key, done, threshold, {"mean": sum(per_view) / len(per_view), "min": min(per_view)})
+        return write_page(
+            cfg, key.num_bits, done, threshold, {"mean": sum(per_view) / len(per_view), "min": min(per_view)}
+        )
     recorded = recorded_page(cfg.output.with_suffix(".json")).get("psnr_marked_vs_clean_db") if cfg.page_only else None
     if recorded is not None:  # the page's own record: the run may have changed since
-        return write_page(cfg, key, done, threshold, recorded)
+        return write_page(cfg, key.num_bits, done, threshold, recorded)
     t0 = time.time()
     marked, clean = held_out_renders(pipe, cams)
     per_view = metrics.psnr(marked.permute(0, 3, 1, 2), clean.permute(0, 3, 1, 2))
@@ -140,7 +162,7 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
         f"rendered {cfg.num_views} held-out views in {time.time() - t0:.0f} s; PSNR marked vs clean {psnr['mean']:.2f} dB"
     )
     if cfg.page_only:
-        return write_page(cfg, key, done, threshold, psnr)
+        return write_page(cfg, key.num_bits, done, threshold, psnr)
     jobs: List[Tuple[str, int, torch.Tensor, str]] = []
     for row in cfg.rows:
         which, _, spec = row.partition(":")
@@ -215,7 +237,7 @@ def main(cfg: BenchUnposedConfig) -> Dict[str, Any]:
         with rows_path.open("a") as f:
             f.write(json.dumps(r) + "\n")
         print(r, flush=True)
-    return write_page(cfg, key, done, threshold, psnr)
+    return write_page(cfg, key.num_bits, done, threshold, psnr)
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@ images and other keys), the threat-model curves, and the Markdown page with its 
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
@@ -27,6 +28,7 @@ class PageConfig(Protocol):
     camera_seed: int
     random_images: int
     other_keys: int
+    development_views: int
     output: Path
     work_dir: Path
     page_only: bool
@@ -77,8 +79,8 @@ def summarize(rows: List[Dict[str, Any]], threshold: int, num_bits: int, null: b
 
 def other_keys(rows: List[Dict[str, Any]], count: int, threshold: int) -> Optional[Dict[str, Any]]:
     """The marked images' decoded bits checked against ``count`` other owners' keys (messages drawn uniformly at
-    random, seed 99): the same model under a second key, a null. Each key is one check, against one marked image
-    (the images in turn), so the checks are independent draws; ``matches_max_pairs`` and ``passing_pairs`` cover
+    random, seed 99): a check of the messages' randomness, reported in its own row and never pooled with the null of
+    unmarked images. Each key is one check, against one marked image (the images in turn); ``matches_max_pairs`` and ``passing_pairs`` cover
     every image with every key (those pairs share images, so they are not independent). None without rows or keys."""
     rows = [r for r in rows if "bits" in r]
     if not rows or count <= 0:
@@ -128,7 +130,7 @@ def is_removal_row(row: str) -> bool:
 def null_chart(
     null: Dict[str, Any], marked: List[int], removed: List[int], path: Path, num_bits: int, threshold: int
 ) -> None:
-    """Histogram of the null's matches beside Binomial(``num_bits``, 1/2) scaled to its checks, the marked images'
+    """Histogram of the null's matches beside Binomial(``num_bits``, 1/2) scaled to its images, the marked images'
     matches and the removal attacks' (log count axis), with the pass line."""
     import matplotlib
 
@@ -137,9 +139,9 @@ def null_chart(
 
     x = list(range(num_bits + 1))
     fig, ax = plt.subplots(figsize=(6.5, 3.6))
-    ax.bar(x, null["histogram"], 0.8, color="tab:gray", label=f"null: {null['checks']} checks")
-    expected = [null["checks"] * math.comb(num_bits, k) / 2**num_bits for k in x]
-    ax.plot(x, expected, "k-", lw=1, label=f"Binomial({num_bits}, 1/2) x checks")
+    ax.bar(x, null["histogram"], 0.8, color="tab:gray", label=f"null: {null['images']} unmarked images")
+    expected = [null["images"] * math.comb(num_bits, k) / 2**num_bits for k in x]
+    ax.plot(x, expected, "k-", lw=1, label=f"Binomial({num_bits}, 1/2) x images")
     for values, color, label in (
         (marked, "tab:green", "marked model's images (attacked, recoloured)"),
         (removed, "tab:red", "removal attacks (pgd, purify)"),
@@ -150,44 +152,43 @@ def null_chart(
     ax.set_yscale("log")
     ax.set_ylim(0.5, max(max(null["histogram"]), len(marked), len(removed), 1) * 3)
     ax.set_xlabel(f"matching bits (of {num_bits})")
-    ax.set_ylabel("images or checks")
+    ax.set_ylabel("images")
     ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
-def null_summary(
-    rows: List[Dict[str, Any]], others: Optional[Dict[str, Any]], threshold: int, num_bits: int = 48
-) -> Optional[Dict[str, Any]]:
-    """Every null check together: the unmarked images' matches (``rows`` of :data:`NULL_IMAGES`; those with nothing
-    to read counted apart) and the marked images checked with other keys; the empirical false-positive rate at
-    ``threshold`` with its 95 % upper bound, and the histogram of the matches."""
-    m = [float(r["matches"]) for r in rows if not read_nothing(r)]
-    checks, total, top = len(m), sum(m), max(m, default=0.0)
-    passing = images_passing = int(sum(v >= threshold for v in m))
-    histogram = match_histogram([int(v) for v in m], num_bits)
-    if others is not None:
-        checks += others["checks"]
-        total += others["matches_mean"] * others["checks"]
-        top = max(top, float(others["matches_max"]))
-        passing += others["passing"]
-        histogram = [a + b for a, b in zip(histogram, others["histogram"])]
-    if checks == 0:
+def null_summary(rows: List[Dict[str, Any]], threshold: int, num_bits: int = 48) -> Optional[Dict[str, Any]]:
+    """The null: the distinct unmarked images (``rows`` of :data:`NULL_IMAGES`, each decoded once; those with nothing
+    to read counted apart), their matches' histogram, mean and maximum, and the empirical false-positive rate at
+    ``threshold`` with its 95 % upper bound. Other keys' checks of marked images are not null images: see
+    :func:`other_keys`."""
+    m = [int(r["matches"]) for r in rows if not read_nothing(r)]
+    if not m:
         return None
+    passing = int(sum(v >= threshold for v in m))
     return {
-        "histogram": histogram,
-        "checks": checks,
+        "histogram": match_histogram(m, num_bits),
         "images": len(m),
         "nothing_read": sum(map(read_nothing, rows)),
-        "matches_mean": total / checks,
-        "matches_max": int(top),
-        "passing": int(passing),
-        "fpr": passing / checks,
-        "fpr_upper_95": metrics.clopper_pearson_upper(int(passing), checks),
-        "images_passing": images_passing,
-        "images_fpr_upper_95": metrics.clopper_pearson_upper(images_passing, len(m)) if m else 1.0,
+        "matches_mean": sum(m) / len(m),
+        "matches_max": max(m),
+        "passing": passing,
+        "fpr": passing / len(m),
+        "fpr_upper_95": metrics.clopper_pearson_upper(passing, len(m)),
     }
+
+
+def drawn(rows: List[Dict[str, Any]]) -> str:
+    """The strengths drawn per view for a row's ``~`` attack (each image's recorded ``attack``), in view order."""
+    values = []
+    for r in sorted(rows, key=lambda r: r["view"]):
+        for part in str(r.get("attack", "")).split(","):
+            name, _, value = part.partition("=")
+            with contextlib.suppress(ValueError):
+                values.append(f"{name} {float(value):+.3g}")
+    return ", ".join(values)
 
 
 def row_key(row: str) -> str:
@@ -236,20 +237,18 @@ def recorded_page(page_json: Path) -> Dict[str, Any]:
 
 
 def write_page(
-    cfg: PageConfig, key, done: Dict[Any, Dict[str, Any]], threshold: int, psnr: Dict[str, float]
+    cfg: PageConfig, num_bits: int, done: Dict[Any, Dict[str, Any]], threshold: int, psnr: Dict[str, float]
 ) -> Dict[str, Any]:
     """The page and its JSON from the images decoded (``done``); ``psnr``: marked vs clean, mean and min (dB)."""
     want = wanted(cfg)
     table = {
-        row: summarize(
-            [r for (k, v), r in done.items() if k == row and v < n], threshold, key.num_bits, is_null_row(row)
-        )
+        row: summarize([r for (k, v), r in done.items() if k == row and v < n], threshold, num_bits, is_null_row(row))
         for row, n in want.items()
         if any(k == row and v < n for k, v in done)
     }
     kept = [(k, r) for (k, v), r in done.items() if v < want.get(k, 0)]
     others = other_keys([r for (k, _), r in done.items() if k.startswith("marked:")], cfg.other_keys, threshold)
-    null = null_summary([r for k, r in kept if is_null_row(k)], others, threshold, key.num_bits)
+    null = null_summary([r for k, r in kept if is_null_row(k)], threshold, num_bits)
     recorded = recorded_page(cfg.output.with_suffix(".json"))
     old = recorded if cfg.page_only else {}
     res = {
@@ -294,7 +293,7 @@ def write_page(
         "render: a recoloured copy), then the image fit with the pose Jacobian beside the message (through a blur or a "
         "JPEG of the base render when one explains the image far better; again without a rectangle the fitted mark is "
         "missing from, when one stands far above the noise: a cropout pasted from an unmarked render) "
-        f"([verify.md](verify.md)). A view passes at >= {threshold}/48 (per-view false-positive rate 1e-6)."
+        f"([verify-notes.md](verify-notes.md)). A view passes at >= {threshold}/48 (per-view false-positive rate 1e-6)."
         + (f" Owner key sha256 `{res['key_sha256'][:16]}`." if res.get("key_sha256") else ""),
         "",
         "| images | attack | decoded | bit accuracy | matches mean (min-max) | passing | read by V / colour map / camera searched through map / through a blur / as a turned render / through a JPEG / around a covered rectangle | camera error median / max (deg) | s per image (wall) |",
@@ -308,6 +307,8 @@ def write_page(
             if "rotation_error_deg_median" in t
             else "-"
         )
+        if "~" in spec:
+            spec += f" (drawn per view: {drawn([r for (k, v), r in done.items() if k == row and v < want[row]])})"
         if "crop" in spec:  # rows decoded before crop_fill was recorded painted a white rectangle
             fills = sorted({r.get("crop_fill") or "white" for (k, _), r in done.items() if k == row})
             spec += f" ({' / '.join(fills)})"
@@ -324,25 +325,41 @@ def write_page(
             f"{others.get('matches_max_pairs', others['matches_max'])}) | {others['passing']}/{others['checks']} | - | - "
             "| - |"
         )
+    development = [
+        row for row, n in want.items() if row in table and cfg.development_views and n <= cfg.development_views
+    ]
+    if development:
+        held = [row for row in table if row not in development]
+        which = (
+            "every row but " + ", ".join(f"`{row}`" for row in held)
+            if held and len(held) < len(development)
+            else "the rows " + ", ".join(f"`{row}`" for row in development)
+        )
+        lines += [
+            "",
+            f"Views 0-{cfg.development_views - 1} of these cameras were looked at while the decoder's rules or the "
+            f"sticker's recipe were chosen; {which} read only those views: development evidence, not held out.",
+        ]
+    if others is not None:
+        lines += [
+            "",
+            f"*Other keys*: the marked images' decoded bits checked against {others['keys']} other random messages "
+            "(one image each, the images in turn). It checks the messages' randomness, not the decoder on an unmarked "
+            "input, so it is its own row and not part of the null.",
+        ]
     if null is not None:
         lines += [
             "",
-            f"The null together ({null['images']} unmarked images and the other keys' checks): {null['checks']} checks, "
+            f"**The null: {null['images']} distinct unmarked images, each decoded once**"
             + (
-                f"left out: {null['nothing_read']} more unmarked image(s) with nothing to read (every bit "
-                "undetermined, no ray the gate reads at the camera found); "
+                f" ({null['nothing_read']} more with nothing to read, left out: every bit undetermined, no ray the gate "
+                "reads at the camera found)"
                 if null.get("nothing_read")
                 else ""
             )
-            + f"matches mean {null['matches_mean']:.1f}, max {null['matches_max']}; {null['passing']} pass at >= "
+            + f": matches mean {null['matches_mean']:.1f}, max {null['matches_max']}; {null['passing']} pass at >= "
             f"{threshold}/48: empirical false-positive rate {null['fpr']:.4f}, 95 % upper bound "
-            f"{null['fpr_upper_95']:.4f} (Clopper-Pearson over independent checks)."
-            + (
-                f" The unmarked images alone: {null['images']} images, {null['images_passing']} pass, 95 % upper "
-                f"bound {null['images_fpr_upper_95']:.3f}."
-                if null["images"]
-                else ""
-            ),
+            f"{null['fpr_upper_95']:.4f} (Clopper-Pearson).",
         ]
         chart = cfg.output.with_name(cfg.output.stem + "-null.png")
         null_chart(
@@ -350,7 +367,7 @@ def write_page(
             [r["matches"] for k, r in kept if not is_null_row(k) and not is_removal_row(k)],
             [r["matches"] for k, r in kept if is_removal_row(k)],
             chart,
-            key.num_bits,
+            num_bits,
             threshold,
         )
         lines += ["", f"![matches of the null beside the marked images]({chart.name})"]
@@ -362,16 +379,15 @@ def write_page(
             + ".",
             "",
         ]
-    threat = threat_curves(cfg, table, threshold, key.num_bits, recorded.get("threat", []))
+    threat = threat_curves(cfg, table, threshold, num_bits, recorded.get("threat", []))
     if threat:
         res["threat"] = threat
         js.write_text(json.dumps(res, indent=1))
         lines += threat_lines(threat, cfg.output, cfg.purify_lr, cfg.purify_rays_per_step)
     lines += [
         "",
-        "*clean*, *foreign*, *scene* (another scene) and *random* images do not carry the owner's message, and the other keys' messages were "
-        "never in the model: the null. Decoded the same way, their matches follow Binomial(48, 1/2) when the decoder "
-        "is honest (mean 24).",
+        "*clean*, *foreign*, *scene* (another scene) and *random* images do not carry the owner's message: the null. "
+        "Decoded the same way, their matches follow Binomial(48, 1/2) when the decoder is honest (mean 24).",
     ]
     cfg.output.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -10,6 +10,7 @@ import torch
 
 from gsticker_plugin import metrics
 from gsticker_plugin.bench.unposed import BenchUnposedConfig
+from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.evaluation.held_out import attacked, drawn_spec, folder_images, purify_steps
 from gsticker_plugin.evaluation.unposed_page import (
     breaking_points,
@@ -72,39 +73,31 @@ def test_the_null_bound_is_clopper_pearson():
     assert metrics.clopper_pearson_upper(3, 3) == 1.0
 
 
-def test_the_null_pools_unmarked_images_and_other_keys():
+def test_the_null_is_the_distinct_unmarked_images_and_never_the_other_keys_checks():
+    """Each unmarked image counts once; the other keys' checks (the marked images' bits against random messages) are
+    not null images and stay out of its count, histogram, mean and bound."""
     rows = [{"matches": 20}, {"matches": 28}, {"matches": 42}]
-    others = {
-        "checks": 7,
-        "matches_mean": 24.0,
-        "matches_max": 35,
-        "passing": 0,
-        "histogram": [0] * 24 + [7] + [0] * 24,
-    }
-    n = null_summary(rows, others, 41)
-    assert n["checks"] == 10 and n["images"] == 3 and n["passing"] == 1 and n["matches_max"] == 42
-    assert abs(n["matches_mean"] - (20 + 28 + 42 + 7 * 24) / 10) < 1e-12
-    assert n["fpr"] == 0.1 and n["fpr_upper_95"] > 0.1
-    assert null_summary([], None, 41) is None
+    n = null_summary(rows, 41)
+    assert n["images"] == 3 and n["passing"] == 1 and n["matches_max"] == 42 and "checks" not in n
+    assert abs(n["matches_mean"] - 30.0) < 1e-12 and n["fpr"] == 1 / 3
+    assert abs(n["fpr_upper_95"] - metrics.clopper_pearson_upper(1, 3)) < 1e-12
+    assert sum(n["histogram"]) == 3 and n["histogram"][42] == 1
+    assert null_summary([], 41) is None
 
 
-def test_the_null_histogram_counts_every_check_once():
-    """The other keys' checks and the unmarked images read land in one histogram that sums to the null's checks; an
-    image with nothing to read is left out of it like it is left out of the checks."""
+def test_other_keys_histogram_counts_each_check_once():
     rows = [{"bits": "01" * 24} for _ in range(5)]
     others = other_keys(rows, 8, 41)
     assert sum(others["histogram"]) == others["checks"] == 8 and len(others["histogram"]) == 49
     assert sum(k * c for k, c in enumerate(others["histogram"])) == others["matches_mean"] * 8
     unmarked = [{"matches": 20, "bits": "0" * 48}, {"matches": 20, "bits": "1" * 48}, {"matches": 0, "bits": "?" * 48}]
-    n = null_summary(unmarked, others, 41)
-    assert sum(n["histogram"]) == n["checks"] == 10 and n["histogram"][20] == others["histogram"][20] + 2
-    assert n["images"] == 2 and n["images_passing"] == 0 and 0.77 < n["images_fpr_upper_95"] < 0.78
-    assert n["histogram"][0] == others["histogram"][0]
+    n = null_summary(unmarked, 41)
+    assert n["images"] == 2 and n["histogram"][20] == 2 and n["nothing_read"] == 1 and 0.77 < n["fpr_upper_95"] < 0.78
     assert match_histogram([0, 48, 48], 48)[48] == 2
 
 
 def test_the_null_chart_is_written_beside_the_page(tmp_path):
-    n = null_summary([{"matches": 22}, {"matches": 27}], other_keys([{"bits": "01" * 24}] * 3, 16, 41), 41)
+    n = null_summary([{"matches": 22}, {"matches": 27}], 41)
     null_chart(n, [48, 47, 46], [23, 33], tmp_path / "p-null.png", 48, 41)
     assert (tmp_path / "p-null.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -272,14 +265,12 @@ def test_an_image_with_nothing_to_read_is_left_out_of_the_null_mean_and_counts_z
     assert null["matches_mean"] == 24.0 and null["matches_min"] == 22 and null["nothing_read"] == 1
     marked = summarize(rows, 41, 48)
     assert marked["matches_mean"] == 16.0 and marked["matches_min"] == 0 and marked["nothing_read"] == 1
-    pooled = null_summary(rows, None, 41)
-    assert pooled["images"] == 2 and pooled["checks"] == 2 and pooled["nothing_read"] == 1
-    assert pooled["matches_mean"] == 24.0
+    pooled = null_summary(rows, 41)
+    assert pooled["images"] == 2 and pooled["nothing_read"] == 1 and pooled["matches_mean"] == 24.0
 
 
 def test_a_page_rewritten_from_its_rows_keeps_the_recorded_psnr_and_draws_the_null(tmp_path):
     """--page-only on a work dir whose run has changed since: the page's own JSON keeps the PSNR it was decoded at."""
-    from types import SimpleNamespace
 
     from gsticker_plugin.evaluation.unposed_page import recorded_page, write_page
 
@@ -298,24 +289,25 @@ def test_a_page_rewritten_from_its_rows_keeps_the_recorded_psnr_and_draws_the_nu
         ("clean:", 0): {**row, "row": "clean:@1", "view": 0, "matches": 22, "bits": "10" * 24},
     }
     assert recorded_page(cfg.output.with_suffix(".json")).get("psnr_marked_vs_clean_db") is None
-    res = write_page(cfg, SimpleNamespace(num_bits=48), done, 41, {"mean": 45.42, "min": 43.53})
+    res = write_page(cfg, 48, done, 41, {"mean": 45.42, "min": 43.53})
     assert recorded_page(cfg.output.with_suffix(".json"))["psnr_marked_vs_clean_db"] == {"mean": 45.42, "min": 43.53}
     page = cfg.output.read_text()
     assert "PSNR marked vs clean 45.42 dB mean, 43.53 dB worst view" in page
-    assert res["null"]["checks"] == 1 + 64 and res["rows"]["marked:"]["passing"] == 2
+    assert res["null"]["images"] == 1 and res["other_keys"]["checks"] == 64 and res["rows"]["marked:"]["passing"] == 2
+    assert "**The null: 1 distinct unmarked images, each decoded once**" in page and "not part of the null" in page
     assert "![matches of the null beside the marked images](page-null.png)" in page
     assert (tmp_path / "page-null.png").exists()
     first = res["date"]
     assert res["key_sha256"] is None  # no key file: no identity made up
     cfg.key = tmp_path / "k.gskey"
     cfg.key.write_bytes(b"first key")
-    res = write_page(cfg, SimpleNamespace(num_bits=48), done, 41, {"mean": 45.42, "min": 43.53})
+    res = write_page(cfg, 48, done, 41, {"mean": 45.42, "min": 43.53})
     assert res["key_sha256"] == hashlib.sha256(b"first key").hexdigest()
     assert f"Owner key sha256 `{res['key_sha256'][:16]}`." in cfg.output.read_text()
     cfg.key.write_bytes(b"a retrained model's key")  # a page-only rewrite keeps the key it was decoded with
     again = write_page(
         cfg.__class__(**{**vars(cfg), "page_only": True}),
-        SimpleNamespace(num_bits=48),
+        48,
         done,
         41,
         {"mean": 45.42, "min": 43.53},
@@ -323,3 +315,52 @@ def test_a_page_rewritten_from_its_rows_keeps_the_recorded_psnr_and_draws_the_nu
     assert again["decoded"] == first and again["machine"] == res["machine"]
     assert again["key_sha256"] == hashlib.sha256(b"first key").hexdigest()
     assert f"first page {first}; this page rewritten from their rows" in cfg.output.read_text()
+
+
+def test_a_drawn_attack_row_shows_the_strength_drawn_for_each_view_and_development_rows_are_named(tmp_path):
+    """``hue=~0.5`` names a range: the page prints what each view got; rows that read only the development views
+    say so, rows that read more do not."""
+    from gsticker_plugin.evaluation.unposed_page import drawn, write_page
+
+    row = {"signals": ["rgb"], "seconds": 1.0, "explained": 0.0, "pose_rms": 0.0, "bits": "01" * 24}
+    done = {
+        ("marked:hue=~0.5", 1): {**row, "row": "marked:hue=~0.5@2", "view": 1, "matches": 48, "attack": "hue=0.257632"},
+        ("marked:hue=~0.5", 0): {**row, "row": "marked:hue=~0.5@2", "view": 0, "matches": 48, "attack": "hue=-0.0037"},
+        ("marked:", 0): {**row, "row": "marked:@6", "view": 0, "matches": 48},
+        ("clean:", 0): {**row, "row": "clean:@1", "view": 0, "matches": 22, "bits": "10" * 24},
+    }
+    assert drawn([done["marked:hue=~0.5", 1], done["marked:hue=~0.5", 0]]) == "hue -0.0037, hue +0.258"
+    cfg = BenchUnposedConfig(
+        load_config=Path("c.yml"),
+        key=Path("k.gskey"),
+        rows=("marked:hue=~0.5@2", "marked:@6", "clean:@1"),
+        random_images=0,
+        development_views=4,
+        work_dir=tmp_path / "work",
+        output=tmp_path / "page.md",
+    )
+    write_page(cfg, 48, done, 41, {"mean": 45.0, "min": 44.0})
+    page = cfg.output.read_text()
+    assert "| hue=~0.5 (drawn per view: hue -0.0037, hue +0.258) |" in page
+    assert "chosen; every row but `marked:` read only those views: development evidence" in page
+
+
+def test_a_page_is_rewritten_from_its_own_json_without_its_run_key_or_work_dir(tmp_path):
+    from gsticker_plugin.bench.unposed import main
+    from gsticker_plugin.evaluation.unposed_page import write_page
+
+    row = {"signals": ["rgb"], "seconds": 1.0, "explained": 0.0, "pose_rms": 0.0}
+    done = {
+        ("marked:", 0): {**row, "row": "marked:@1", "view": 0, "matches": 48, "bits": "01" * 24},
+        ("clean:", 0): {**row, "row": "clean:@1", "view": 0, "matches": 22, "bits": "10" * 24},
+    }
+    kw = dict(load_config=tmp_path / "gone.yml", key=tmp_path / "gone.gskey", rows=("marked:@1", "clean:@1"))
+    cfg = BenchUnposedConfig(**kw, random_images=0, work_dir=tmp_path / "work", output=tmp_path / "page.md")
+    write_page(cfg, 48, done, 41, {"mean": 45.0, "min": 44.0})
+    again = main(
+        BenchUnposedConfig(**kw, random_images=0, work_dir=tmp_path / "gone", output=cfg.output, page_only=True)
+    )
+    assert again["rows"]["marked:"]["passing"] == 1 and again["null"]["images"] == 1
+    assert again["psnr_marked_vs_clean_db"] == {"mean": 45.0, "min": 44.0} and "45.00 dB mean" in cfg.output.read_text()
+    with pytest.raises(GStickerError, match="--page-only"):
+        main(BenchUnposedConfig(**kw, work_dir=tmp_path / "gone", output=tmp_path / "none.md", page_only=True))
