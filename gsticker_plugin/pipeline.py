@@ -77,8 +77,8 @@ class GeometryStickerPipelineConfig(VanillaPipelineConfig):
     """What carries the message in the shared run. field: the base's own density field (its hash table, or TensoRF's
     density planes: the shared run is a stock run of the base's method, written in seconds; nerfacto bases with the
     torch implementation and TensoRF bases). sticker: a trained sticker (a geometrysticker run, heads and steps
-    below). auto: field for a nerfacto base with the torch implementation, else sticker (TensoRF's field mark is
-    taken with --pipeline.mark field)."""
+    below). auto: field where the base hosts it (nerfacto with the torch implementation, TensoRF vector-matrix), else
+    sticker. Pictures of a TensoRF shared run are not read yet: pass sticker to read a TensoRF run's pictures."""
     field_amplitude: Optional[float] = None
     """Field mark: amplitude of the per-bit patterns (default: 0.01 on a hash table, 50 dB render PSNR vs the base on
     lego100; 0.03 on TensoRF's density planes)."""

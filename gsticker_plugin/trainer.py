@@ -172,8 +172,8 @@ def field_host(model_config) -> Optional[str]:
 def chosen_mark(choice: str, model_config) -> str:
     """``--pipeline.mark`` resolved for a base: field or sticker (one-line error for a field mark it cannot host)."""
     host = field_host(model_config)
-    if choice == "auto":  # TensoRF's field mark is taken on request until its benchmark has run
-        return "field" if host == "hash" else "sticker"
+    if choice == "auto":
+        return "sticker" if host is None else "field"
     if choice == "field" and host is None:
         raise GStickerError(
             f"the field mark needs a nerfacto base with the torch implementation or a TensoRF base (vector-matrix), not "

@@ -62,19 +62,19 @@ def test_a_preset_base_is_shared_as_nerfstudios_own_method_with_its_data_manager
     assert stock_method_name(stock) == "nerfacto"
 
 
-def test_the_mark_is_the_field_for_torch_nerfacto_on_request_for_tensorf_and_the_sticker_otherwise():
+def test_the_mark_is_the_field_for_torch_nerfacto_and_tensorf_and_the_sticker_otherwise():
     from method_configs.presets import nerfacto_small_config, tensorf_small_config, vanilla_nerf_small_config
 
     nerfacto, tensorf = nerfacto_small_config().pipeline.model, tensorf_small_config().pipeline.model
     vanilla = vanilla_nerf_small_config().pipeline.model
-    assert chosen_mark("auto", nerfacto) == "field" and chosen_mark("auto", tensorf) == "sticker"
+    assert chosen_mark("auto", nerfacto) == "field" and chosen_mark("auto", tensorf) == "field"
     assert chosen_mark("field", tensorf) == "field"
     assert chosen_mark("auto", vanilla) == "sticker" and chosen_mark("sticker", nerfacto) == "sticker"
     with pytest.raises(GStickerError, match="--pipeline.mark sticker"):
         chosen_mark("field", vanilla)
     nerfacto.implementation = "tcnn"
     tensorf.tensorf_encoding = "cp"
-    assert chosen_mark("auto", nerfacto) == "sticker"
+    assert chosen_mark("auto", nerfacto) == "sticker" and chosen_mark("auto", tensorf) == "sticker"
     with pytest.raises(GStickerError, match="--pipeline.mark sticker"):
         chosen_mark("field", tensorf)
 

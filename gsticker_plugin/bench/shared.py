@@ -44,7 +44,7 @@ two 50-step colour fine-tunes (toward a blue palette edit and toward a half-turn
 @dataclass
 class Args:
     base: Path
-    """The base run's config.yml (nerfacto with the torch implementation, or TensoRF with --mark field)."""
+    """The base run's config.yml (nerfacto with the torch implementation, or TensoRF vector-matrix)."""
     data: Path
     """Its dataset folder."""
     work_dir: Path = Path("outputs/bench-shared")
@@ -61,7 +61,7 @@ class Args:
     recolors: Tuple[str, ...] = RECOLORS
     """ns-recolor edits of the shared run: each `SUBCOMMAND:ARG ARG`."""
     mark: str = "auto"
-    """--pipeline.mark of the shared run (field: TensoRF's field mark, taken on request)."""
+    """--pipeline.mark of the shared run (auto: the field mark, where the base hosts it)."""
     output: Path = Path("docs/experiments/bench-shared.md")
     page_only: bool = False
     """Rewrite the page from OUTPUT's JSON (no measuring)."""
