@@ -24,7 +24,7 @@ import contextlib
 import math
 import warnings
 from dataclasses import dataclass
-from typing import Dict, List, Sequence, Tuple
+from typing import ClassVar, Dict, List, Sequence, Tuple
 
 import torch
 from jaxtyping import Float
@@ -86,24 +86,6 @@ def signs_of(message: Tensor) -> Tensor:
     return message.float() * 2.0 - 1.0
 
 
-def hash_corners(encoder: nn.Module, x: Float[Tensor, "N 3"]) -> Tuple[Tensor, Tensor]:
-    """The table rows the torch hash encoding interpolates at ``x`` (``[N L 8]``, rows of its stacked table) and their
-    trilinear weights (``[N L 8]``, summing to 1): the corners and weights of Nerfstudio's
-    ``HashEncoding.pytorch_fwd``, so ``enc(x)[n, l] = sum_c w[n, l, c] T[rows[n, l, c]]``."""
-    scaled = x[:, None, :] * encoder.scalings.view(-1, 1).to(x)  # [N L 3]
-    ceil, floor = torch.ceil(scaled).int(), torch.floor(scaled).int()
-    offset = scaled - floor
-    corners = [tuple((corner >> (2 - d)) & 1 for d in range(3)) for corner in range(8)]  # 1: the ceiling along d
-    rows = hashgrid.corner_rows(encoder, ceil, floor, corners)
-    weights = []
-    for up in corners:
-        w = torch.ones_like(offset[..., 0])
-        for d, u in enumerate(up):
-            w = w * (offset[..., d] if u else 1 - offset[..., d])
-        weights.append(w)
-    return torch.stack(rows, -1).long(), torch.stack(weights, -1)
-
-
 def patterns_by_row(pats: Float[Tensor, "K N F"], device) -> Float[Tensor, "NF K"]:
     """The K patterns stacked as ``[N F, K]``: row ``r * F + j`` holds feature ``j`` of table row ``r`` of each."""
     k, n, f = pats.shape
@@ -126,8 +108,8 @@ def pattern_encodings(
     encoder: nn.Module, x: Float[Tensor, "M 3"], by_row: Float[Tensor, "NF K"], f: int
 ) -> Float[Tensor, "M L K F"]:
     """``enc(x; P_k)`` for every pattern, from the patterns stacked by :func:`patterns_by_row`: one sparse product over
-    the encoding's corners (:func:`hash_corners`)."""
-    rows, w = hash_corners(encoder, x)  # [m L 8]
+    the encoding's corners (:func:`gsticker_plugin.hashgrid.corners`)."""
+    rows, w = hashgrid.corners(encoder, x)  # [m L 8]
     m, levels = rows.shape[:2]
     cols = (rows[:, :, None, :] * f + torch.arange(f, device=x.device)[None, None, :, None]).reshape(-1, 8)
     weights = w[:, :, None, :].expand(m, levels, f, 8).reshape(m * levels * f, 8).float()
@@ -145,7 +127,7 @@ def sample_features(
     """``d pre / d s_k`` per unit amplitude at encoder-space ``positions``: ``g(x) . enc(x; P_k) / sqrt(K)``.
 
     The encoding is linear in its table: ``enc(x; P)[l] = sum_c w_lc P[r_lc]`` over the 8 corners of each level
-    (:func:`hash_corners`), so ``g . enc(x; P_k) = sum_lc w_lc g_l . P_k[r_lc]``: a sparse matrix of the weights
+    (:func:`gsticker_plugin.hashgrid.corners`), so ``g . enc(x; P_k) = sum_lc w_lc g_l . P_k[r_lc]``: a sparse matrix of the weights
     ``w_lc g_l`` (one row per position, ``L x 8 x F`` entries) times the patterns stacked as ``[N F, K]``, never K
     encodings."""
     k, n, f = pats.shape
@@ -158,7 +140,7 @@ def sample_features(
         with torch.enable_grad():
             enc.requires_grad_(True)
             (g,) = torch.autograd.grad(mlp(enc)[..., 0].sum(), enc)
-        rows, w = hash_corners(encoder, x)  # [m L 8]
+        rows, w = hashgrid.corners(encoder, x)  # [m L 8]
         m, levels = rows.shape[:2]
         values = (w[..., None] * g.reshape(m, levels, 1, f)).float().reshape(m, -1)
         columns = (rows[..., None] * f + torch.arange(f, device=rows.device)).reshape(m, -1)
@@ -182,7 +164,7 @@ class FieldView:
     base_signal: Tensor  # [C R], one row per signal
     depth_scale: float
     hw: Tuple[int, int] = (0, 0)  # the camera's image size (0, 0: not recorded)
-    signals: Tuple[str, ...] = ("accumulation", "expected_depth")
+    signals: ClassVar[Tuple[str, ...]] = ("accumulation", "expected_depth")
 
 
 def capture_samples(model, camera) -> Tuple[Dict[str, Tensor], Dict[str, Tensor]]:
@@ -263,10 +245,7 @@ def geometry_from_logits(view: FieldView, change: Float[Tensor, "R S"]) -> Float
     changed by ``change`` at every sample: ``sigma * exp(change)``."""
     density = view.density * torch.exp(change)[..., None]
     w = render_weights(density, view.deltas)
-    out = [w.sum(-2)[..., 0]]
-    if "expected_depth" in view.signals:
-        out.append((w * view.steps).sum(-2)[..., 0] / view.depth_scale)
-    return torch.cat(out)
+    return torch.cat([w.sum(-2)[..., 0], (w * view.steps).sum(-2)[..., 0] / view.depth_scale])
 
 
 def predict(view: FieldView, signs: Tensor, amplitude: float) -> Float[Tensor, " M"]:

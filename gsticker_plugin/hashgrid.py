@@ -18,7 +18,7 @@ stock code.
 from __future__ import annotations
 
 import types
-from typing import List, Sequence, Tuple
+from typing import List, Tuple
 
 import torch
 from jaxtyping import Float
@@ -31,31 +31,48 @@ CORNERS = ((1, 1, 1), (1, 0, 1), (0, 0, 1), (0, 1, 1), (1, 1, 0), (1, 0, 0), (0,
 """``pytorch_fwd``'s corners in its order (``hashed_0`` ... ``hashed_7``): 1 the ceiling along x, y, z, 0 the floor."""
 
 
-def corner_rows(
-    encoder: nn.Module, ceil: Tensor, floor: Tensor, corners: Sequence[Tuple[int, int, int]] = CORNERS
-) -> List[Tensor]:
-    """The stacked-table rows of ``corners`` (``[..., L]`` each; 1 the ceiling along an axis, 0 the floor) of the
-    integer cells ``ceil`` / ``floor`` (``[..., L, 3]``): ``encoder.hash_fn`` of each corner."""
+def corner_rows(encoder: nn.Module, ceil: Tensor, floor: Tensor) -> List[Tensor]:
+    """The stacked-table rows of the 8 corners (``[..., L]`` each, in :data:`CORNERS` order) of the integer cells
+    ``ceil`` / ``floor`` (``[..., L, 3]``): ``encoder.hash_fn`` of each corner."""
     size = int(encoder.hash_table_size)
     offset = encoder.hash_offset.to(ceil.device)
     axes = [
         (floor[..., d].long() * PRIMES[d], ceil[..., d].long() * PRIMES[d]) for d in range(3)
     ]  # [axis][0 floor, 1 ceiling]
     rows = []
-    for cx, cy, cz in corners:
+    for cx, cy, cz in CORNERS:
         h = torch.bitwise_xor(torch.bitwise_xor(axes[0][cx], axes[1][cy]), axes[2][cz])
         h = h & (size - 1) if size & (size - 1) == 0 else h % size
         rows.append(h + offset)
     return rows
 
 
-def encode(encoder: nn.Module, x: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs LF"]:
-    """``encoder.pytorch_fwd(x)``, bit for bit."""
-    x = x[..., None, :]
-    scaled = x * encoder.scalings.view(-1, 1).to(x.device)
+def cells(encoder: nn.Module, x: Float[Tensor, "*bs 3"]) -> Tuple[Tensor, Tensor, Tensor]:
+    """The grid cell of ``x`` at every level, as ``pytorch_fwd`` computes it: its ceiling and floor corners (int32,
+    ``[..., L, 3]``) and the position inside it (``[..., L, 3]``)."""
+    scaled = x[..., None, :] * encoder.scalings.view(-1, 1).to(x.device)
     ceil = torch.ceil(scaled).type(torch.int32)
     floor = torch.floor(scaled).type(torch.int32)
-    offset = scaled - floor
+    return ceil, floor, scaled - floor
+
+
+def corners(encoder: nn.Module, x: Float[Tensor, "N 3"]) -> Tuple[Tensor, Tensor]:
+    """The table rows the encoding interpolates at ``x`` (``[N L 8]``, rows of the stacked table, in :data:`CORNERS`
+    order) and their trilinear weights (``[N L 8]``, summing to 1): ``enc(x)[n, l] = sum_c w[n, l, c]
+    T[rows[n, l, c]]``."""
+    ceil, floor, offset = cells(encoder, x)
+    weights = []
+    for up in CORNERS:
+        w = torch.ones_like(offset[..., 0])
+        for d, u in enumerate(up):
+            w = w * (offset[..., d] if u else 1 - offset[..., d])
+        weights.append(w)
+    return torch.stack(corner_rows(encoder, ceil, floor), -1), torch.stack(weights, -1)
+
+
+def encode(encoder: nn.Module, x: Float[Tensor, "*bs 3"]) -> Float[Tensor, "*bs LF"]:
+    """``encoder.pytorch_fwd(x)``, bit for bit."""
+    ceil, floor, offset = cells(encoder, x)
     table = encoder.hash_table
     f = []
     for rows in corner_rows(encoder, ceil, floor):

@@ -9,6 +9,7 @@ from nerfstudio.field_components.mlp import MLP
 from torch import nn
 
 from gsticker_plugin import fieldmark as FM
+from gsticker_plugin import hashgrid
 from gsticker_plugin.decoders.fieldmark import decode_view
 from gsticker_plugin.errors import GStickerError
 
@@ -86,7 +87,7 @@ def test_sample_features_equal_the_encoding_of_each_pattern_also_on_grid_corners
     x = torch.cat([torch.rand(150, 3), torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.25, 0.75], [1.0, 1.0, 1.0]])])
     got = FM.sample_features(enc, mlp, x, p, chunk=64)
     assert torch.allclose(got, stacked_features(enc, mlp, x, p), atol=1e-6)
-    rows, w = FM.hash_corners(enc, x)
+    rows, w = hashgrid.corners(enc, x)
     assert rows.shape == w.shape == (len(x), 4, 8) and torch.allclose(w.sum(-1), torch.ones(len(x), 4))
     assert rows.max() < enc.hash_table.shape[0]
 

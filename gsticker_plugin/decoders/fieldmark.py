@@ -98,9 +98,7 @@ def decode_view(view: FM.FieldView, suspect_outputs: Dict[str, Tensor], amplitud
             "camera; the field-mark decoder needs renders at the base's cameras"
         )
     sig = FM.geometry_of(suspect_outputs)[:, view.rays]
-    target = sig[0] - view.base_signal[0]
-    if "expected_depth" in view.signals:
-        target = torch.cat([target, (sig[1] - view.base_signal[1]) / view.depth_scale])
+    target = torch.cat([sig[0] - view.base_signal[0], (sig[1] - view.base_signal[1]) / view.depth_scale])
     k = view.features.shape[-1]
     fit, bits, _ = fit_and_decide(
         lambda s: FM.predict(view, s, amplitude),
