@@ -18,23 +18,37 @@ docs/experiments/verify-notes.md).
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import torch
 from jaxtyping import Float
+from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from gsticker_plugin import fieldmark as FM
 from gsticker_plugin.decoders.fit import fit_and_decide, fit_summary, left_after, tie_generator
+from gsticker_plugin.decoders.framed import (
+    RESAMPLED,
+    base_frame,
+    content_box,
+    estimate_framed_camera,
+    framing_of,
+    warp_to_picture,
+)
 from gsticker_plugin.decoders.image import image_at_rays, without_columns
 from gsticker_plugin.decoders.pose import (
+    FRAMED,
+    POSE,
+    PRINCIPAL_STEP,
     PoseSearch,
     camera_distance,
     estimate_camera,
     moved_camera,
     pose_columns,
+    render_cameras,
     search_renders,
 )
 from gsticker_plugin.decoders.result import Decoded, decoded
@@ -67,21 +81,104 @@ def decode_image_view(
 
 
 def read_at_camera(
-    reference, image: Float[Tensor, "H W 3"], camera, generator: torch.Generator, rounds: int
+    reference, image: Float[Tensor, "H W 3"], camera, generator: torch.Generator, rounds: int, free: int = POSE
 ) -> Tuple[Dict[str, Any], Any, int]:
-    """Fit the message and the camera's pose error together for up to ``rounds`` rounds, each from the camera the
-    previous fit's pose step moved; returns the fit that left the least, its camera and its round (1-based)."""
+    """Fit the message and the camera's error (``free``: its pose, or with :data:`gsticker_plugin.decoders.pose.FRAMED`
+    its zoom and principal point too) together for up to ``rounds`` rounds, each from the camera the previous fit's
+    step moved; returns the fit that left the least, its camera and its round (1-based)."""
     best: Optional[Tuple[float, Dict[str, Any], Any, int]] = None
     for r in range(rounds):
         view = FM.image_view(reference.model, camera, reference.patterns)
-        cols = pose_columns(reference.model, camera, view.rays, False) if rounds > 1 else None
+        cols = pose_columns(reference.model, camera, view.rays, False, free=free) if rounds > 1 else None
         d = decode_image_view(view, image_at_rays(image, view.rays, view.hw), reference.amplitude, generator, cols)
-        step = torch.tensor(d.pop("column_step", [0.0] * 6))[:6]
+        step = torch.tensor(d.pop("column_step", [0.0] * free))[:free]
         if best is None or left_after(d) < best[0]:
             best = (left_after(d), d, camera, r + 1)
         if r + 1 == rounds or float(step.abs().max()) <= 1e-7:
             break
         camera = moved_camera(camera, step, camera_distance(camera))
+    assert best is not None
+    return best[1], best[2], best[3]
+
+
+def same_aspect(image: Float[Tensor, "H W 3"], h0: int, w0: int) -> bool:
+    """Whether ``image`` has the aspect ratio of a ``w0 x h0`` camera (to 1 %)."""
+    return abs(w0 / h0 - image.shape[1] / image.shape[0]) <= 0.01 * (w0 / h0)
+
+
+def read_picture(
+    reference, picture: Float[Tensor, "H W 3"], camera, generator: torch.Generator, rounds: int = 2
+) -> Tuple[Dict[str, Any], Any, int]:
+    """Read a framed picture at the ``camera`` :func:`gsticker_plugin.decoders.framed.estimate_framed_camera` found:
+    the base rendered at that camera (:func:`read_at_camera`, zoom and principal point free), and for a resized copy
+    also at the base's own intrinsics carried into the picture by its framing (:func:`read_framed`); the fit that
+    leaves the least is kept (``read``: ``render`` or ``framing``). Neither looks at the message."""
+    d, cam, used = read_at_camera(reference, picture, camera, generator, rounds, free=FRAMED)
+    d["read"] = "render"
+    base = reference.pipeline.datamanager.train_dataset.cameras[:1]
+    if abs(math.log(framing_of(camera, base).sx)) > math.log(1.0 + RESAMPLED):
+        w, wcam, wused = read_framed(reference, picture, camera, generator, rounds)
+        if left_after(w) < left_after(d):
+            d, cam, used = w, wcam, wused
+            d["read"] = "framing"
+    return d, cam, used
+
+
+def read_framed(
+    reference,
+    picture: Float[Tensor, "H W 3"],
+    camera: Cameras,
+    generator: torch.Generator,
+    rounds: int = 2,
+    eps: float = 3.5e-4,
+) -> Tuple[Dict[str, Any], Cameras, int]:
+    """:func:`read_at_camera` for a framed picture whose ``camera`` (sized like
+    it) was found by :func:`gsticker_plugin.decoders.framed.estimate_framed_camera`: the base render, the mark's per-bit colour change and the
+    derivatives in the pose and in the framing's zoom and principal point, all at the base's own intrinsics (where a
+    render is what a resized copy was made from), carried into the picture by its framing (:func:`warp_to_picture`);
+    the signs fitted there to ``picture - framed base`` beside those columns. Returns the fit that left the least,
+    its camera (the picture's) and its round (1-based)."""
+    model = reference.model
+    base = reference.pipeline.datamanager.train_dataset.cameras[:1]
+    ph, pw = int(picture.shape[0]), int(picture.shape[1])
+    dist = camera_distance(camera)
+    best: Optional[Tuple[float, Dict[str, Any], Cameras, int]] = None
+    for r in range(rounds):
+        at = base_frame(camera, base)
+        framing = framing_of(camera, base)
+        view = FM.image_view(model, at, reference.patterns)
+        h0, w0 = view.hw
+        k = view.jacobian.shape[-1]
+        render = render_cameras(model, at)["rgb"][0]
+        jac = torch.zeros(h0 * w0, 3, k)
+        jac[view.rays] = view.jacobian.float()
+        columns = [render.permute(2, 0, 1), jac.reshape(h0, w0, 3 * k).permute(2, 0, 1)]
+        for i in range(POSE):
+            e = torch.zeros(POSE)
+            e[i] = eps
+            plus = render_cameras(model, moved_camera(at, e, dist))["rgb"][0]
+            minus = render_cameras(model, moved_camera(at, -e, dist))["rgb"][0]
+            columns.append(((plus - minus) / (2 * eps)).permute(2, 0, 1))
+        warped, inside = warp_to_picture(torch.cat(columns), framing, ph, pw)
+        rows = torch.nonzero(inside.reshape(-1)).reshape(-1)
+        flat = warped.reshape(warped.shape[0], -1)[:, rows].T  # [R C]
+        framed = FM.ImageView(rows, flat[:, :3], flat[:, 3 : 3 + 3 * k].reshape(-1, 3, k), (ph, pw))
+        cols = [flat[:, 3 + 3 * k :].reshape(-1, 3, POSE).reshape(-1, POSE)]  # rows r * 3 + c, like the message's
+        for i in range(POSE, FRAMED):  # the zoom and the principal point, moved in the picture
+            e = torch.zeros(FRAMED)
+            e[i] = PRINCIPAL_STEP if i > POSE else eps
+            plus = warp_to_picture(render.permute(2, 0, 1), framing_of(moved_camera(camera, e), base), ph, pw)[0]
+            minus = warp_to_picture(render.permute(2, 0, 1), framing_of(moved_camera(camera, -e), base), ph, pw)[0]
+            cols.append(((plus - minus) / (2 * float(e[i]))).reshape(3, -1)[:, rows].T.reshape(-1, 1))
+        d = decode_image_view(
+            framed, picture.reshape(-1, 3)[rows].float(), reference.amplitude, generator, torch.cat(cols, 1)
+        )
+        step = torch.tensor(d.pop("column_step", [0.0] * FRAMED))[:FRAMED]
+        if best is None or left_after(d) < best[0]:
+            best = (left_after(d), d, camera, r + 1)
+        if r + 1 == rounds or float(step.abs().max()) <= 1e-7:
+            break
+        camera = moved_camera(camera, step, dist)
     assert best is not None
     return best[1], best[2], best[3]
 
@@ -101,7 +198,8 @@ def decode_images(
 ) -> Decoded:
     """Decode ``images`` (``[H W 3]`` in [0, 1]) of the owner's scene against the field-mark ``reference``
     (:func:`gsticker_plugin.decoders.fieldmark.load_field_reference`): at the given ``cameras`` (one per image, a
-    one-camera ``Cameras``; None: found by the camera search), then the fit with the pose Jacobian. ``renders``: the
+    one-camera ``Cameras``; None: found by the camera search, with its framing for an image of another aspect ratio
+    than the base's, :mod:`gsticker_plugin.decoders.framed`), then the fit with the pose Jacobian. ``renders``: the
     search's candidate renders per image size, kept by a caller that decodes images one call at a time (filled here);
     ``bank``: the owner key's view bank folder for them (:mod:`gsticker_plugin.decoders.viewbank`). Returns the
     decoders' shared result with, per image, its camera (``c2w``, and whether it was estimated), the fit and the
@@ -118,10 +216,18 @@ def decode_images(
     renders = renders if renders is not None else {}
     bits: List[Tensor] = []
     details: List[Dict[str, Any]] = []
+    base = reference.pipeline.datamanager.train_dataset.cameras
+    h0, w0 = int(base.height[0]), int(base.width[0])
     for i, (name, image) in enumerate(progress_bar(list(zip(names, images)), "field-mark image decoding", progress)):
         extra: Dict[str, Any] = {"camera": "given"}
+        framed = cameras is None and not same_aspect(image, h0, w0)
+        if framed:  # a letterboxed render is the render again once its bars are cut
+            r0, r1, c0, c1 = content_box(image)
+            if same_aspect(image[r0:r1, c0:c1], h0, w0):
+                image, framed = image[r0:r1, c0:c1], False
+                extra["content_box"] = [r0, r1, c0, c1]
         if cameras is None:
-            hw = (int(image.shape[0]), int(image.shape[1]))
+            hw = (h0, w0) if framed else (int(image.shape[0]), int(image.shape[1]))
             if hw not in renders:
                 t0 = time.time()
                 renders[hw] = search_renders(reference, search, hw, value=True, bank=bank)
@@ -129,11 +235,17 @@ def decode_images(
         t0 = time.time()
         if cameras is not None:
             camera = cameras[i]
+        elif framed:
+            pose, image, box = estimate_framed_camera(reference, image, True, search, renders[hw])
+            extra.update(camera="estimated with its framing", content_box=list(box), pose_rms=pose.rms)
+            extra.update(pose_score=pose.score, search_seconds=time.time() - t0)
+            d, camera, used = read_picture(reference, image, pose.camera, gen, rounds)
         else:
             pose = estimate_camera(reference, image, True, search, renders[hw])
             camera = pose.camera
             extra.update(camera="estimated", pose_rms=pose.rms, pose_score=pose.score, search_seconds=time.time() - t0)
-        d, camera, used = read_at_camera(reference, image, camera, gen, rounds)
+        if not framed:
+            d, camera, used = read_at_camera(reference, image, camera, gen, rounds)
         d.update(extra, name=name, round=used, c2w=camera.camera_to_worlds[0].tolist(), seconds=time.time() - t0)
         bits.append(d.pop("bits"))
         details.append(d)

@@ -29,6 +29,8 @@ from torch import Tensor
 
 DEFAULT_ZOOMS = tuple(float(z) for z in torch.logspace(math.log10(0.5), math.log10(3.0), 19).tolist())
 """Zooms :func:`coarse_framing` tries: 0.5 to 3 times the render's size, 10 % apart."""
+MIN_VARIANCE = (2.0 / 255.0) ** 2
+"""Least variance per pixel of picture and render over an overlap :func:`coarse_framings` scores."""
 
 
 @dataclass(frozen=True)
@@ -94,10 +96,13 @@ def coarse_framings(
     zooms: Sequence[float] = DEFAULT_ZOOMS,
     side: int = 32,
     min_overlap: float = 0.5,
+    min_render_share: float = 0.2,
+    min_picture_share: float = 0.5,
 ) -> List[Framing]:
     """For each render, the framing of ``picture`` against it to about one working pixel: for every zoom (picture px
     per render px) and every integer offset, the normalized cross-correlation of the grey levels over the overlap,
-    which must cover ``min_overlap`` of the smaller of the two; the best pair wins. Picture and zoomed render are
+    which must cover ``min_overlap`` of the smaller of the two, ``min_render_share`` of the render and
+    ``min_picture_share`` of the picture (a few pixels matched say nothing); the best pair wins. Picture and zoomed render are
     worked at a size whose larger side is ``side`` px; every render is correlated in one batched convolution per
     zoom. Isotropic (``sx == sy``): :func:`refine_framing` frees the aspect."""
     pic = _gray(picture)
@@ -110,12 +115,12 @@ def coarse_framings(
         k = side / max(ph, pw, h0 * z, w0 * z)  # working px per picture px
         sh, sw = max(4, round(ph * k)), max(4, round(pw * k))
         rh, rw = max(4, round(h0 * z * k)), max(4, round(w0 * z * k))
-        ps = _resize(pic, sh, sw)
-        rs = F.interpolate(ren[:, None], size=(rh, rw), mode="area" if rh <= h0 else "bilinear")
-        need = min_overlap * min(sh * sw, rh * rw)
+        ps = _resize(pic, sh, sw).double()
+        rs = F.interpolate(ren[:, None], size=(rh, rw), mode="area" if rh <= h0 else "bilinear").double()
+        need = max(min_overlap * min(sh * sw, rh * rw), min_render_share * rh * rw, min_picture_share * sh * sw)
         pad = F.pad(ps[None, None], (rw - 1, rw - 1, rh - 1, rh - 1))
-        ones = F.pad(torch.ones(1, 1, sh, sw), (rw - 1, rw - 1, rh - 1, rh - 1))
-        kones = torch.ones(1, 1, rh, rw)
+        ones = F.pad(torch.ones(1, 1, sh, sw, dtype=torch.float64), (rw - 1, rw - 1, rh - 1, rh - 1))
+        kones = torch.ones(1, 1, rh, rw, dtype=torch.float64)
         n = F.conv2d(ones, kones)[0]  # [1 Y X]
         s_p = F.conv2d(pad, kones)[0]
         s_pp = F.conv2d(pad * pad, kones)[0]
@@ -124,8 +129,11 @@ def coarse_framings(
         s_pr = F.conv2d(pad, rs)[0]
         nn = n.clamp_min(1)
         cov = s_pr - s_p * s_r / nn
-        var = (s_pp - s_p**2 / nn).clamp_min(0) * (s_rr - s_r**2 / nn).clamp_min(0)
-        score = torch.where((n >= need) & (var > 1e-12), cov / var.clamp_min(1e-12).sqrt(), torch.tensor(-2.0))
+        var_p = (s_pp - s_p**2 / nn).clamp_min(0)
+        var_r = (s_rr - s_r**2 / nn).clamp_min(0)
+        flat = (var_p < MIN_VARIANCE * nn) | (var_r < MIN_VARIANCE * nn)  # a flat overlap says nothing
+        score = cov / (var_p * var_r).clamp_min(1e-300).sqrt()
+        score = torch.where((n >= need) & ~flat, score, torch.tensor(-2.0, dtype=torch.float64))
         flat = score.reshape(n_r, -1)
         top, idx = flat.max(dim=1)
         for i in torch.nonzero(top > best_score).reshape(-1).tolist():

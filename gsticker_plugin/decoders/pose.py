@@ -26,23 +26,34 @@ from gsticker_plugin.decoders.geometric import render_rays
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import axis_angle_matrix, novel_cameras, smoothed
 
+POSE = 6
+"""Parameters of a pose change: axis-angle turn (3) and move (3), camera frame."""
+FRAMED = 9
+"""Parameters of a pose and framing change: the pose's 6, the log of the zoom and the principal point's move (px)."""
+PRINCIPAL_STEP = 0.05
+"""Finite-difference step (px) of the principal point in :func:`pose_columns`."""
 
-def moved_camera(camera: Cameras, delta: Float[Tensor, " 6"], distance: float = 1.0) -> Cameras:
-    """``camera`` turned by the axis-angle ``delta[:3]`` (radians, camera frame) and moved by ``delta[3:] *
-    distance`` (camera frame); one camera."""
+
+def moved_camera(camera: Cameras, delta: Float[Tensor, " P"], distance: float = 1.0) -> Cameras:
+    """``camera`` turned by the axis-angle ``delta[:3]`` (radians, camera frame) and moved by ``delta[3:6] *
+    distance`` (camera frame); with :data:`FRAMED` entries also zoomed by ``exp(delta[6])`` (``fx``, ``fy``) and its
+    principal point moved by ``delta[7:9]`` px (``cx``, ``cy``); one camera."""
     c2w = camera.camera_to_worlds[:1].detach().clone().float().cpu()
     r = c2w[0, :, :3]
     w = delta[:3].double()
     angle = float(w.norm())
     turn = axis_angle_matrix((w / angle).float(), angle) if angle > 0 else torch.eye(3)
-    c2w[0, :, 3] = c2w[0, :, 3] + r @ (delta[3:].float() * distance)
+    c2w[0, :, 3] = c2w[0, :, 3] + r @ (delta[3:6].float() * distance)
     c2w[0, :, :3] = r @ turn
+    zoom, dcx, dcy = (
+        (math.exp(float(delta[6])), float(delta[7]), float(delta[8])) if delta.numel() > POSE else (1, 0, 0)
+    )
     return Cameras(
         camera_to_worlds=c2w,
-        fx=camera.fx[:1].cpu(),
-        fy=camera.fy[:1].cpu(),
-        cx=camera.cx[:1].cpu(),
-        cy=camera.cy[:1].cpu(),
+        fx=camera.fx[:1].cpu() * zoom,
+        fy=camera.fy[:1].cpu() * zoom,
+        cx=camera.cx[:1].cpu() + dcx,
+        cy=camera.cy[:1].cpu() + dcy,
         width=camera.width[:1].cpu(),
         height=camera.height[:1].cpu(),
         camera_type=camera.camera_type[:1].cpu(),
@@ -131,8 +142,9 @@ class PoseFit:
 
 
 def projection(camera: Cameras, points: Float[Tensor, "P 3"]):
-    """A function of the pose change ``delta`` (6, as :func:`moved_camera`) giving the pixel (row, column) of each
-    world point in ``camera`` moved by it (nerfstudio's OpenGL convention: the camera looks down -z, y up)."""
+    """A function of the change ``delta`` (:data:`POSE` or :data:`FRAMED` entries, as :func:`moved_camera`) giving
+    the pixel (row, column) of each world point in ``camera`` moved by it (nerfstudio's OpenGL convention: the camera
+    looks down -z, y up)."""
     c2w = camera.camera_to_worlds[0].double().cpu()
     r, t = c2w[:, :3], c2w[:, 3]
     xc = (points.double() - t) @ r  # camera-frame points
@@ -141,7 +153,7 @@ def projection(camera: Cameras, points: Float[Tensor, "P 3"]):
     dist = camera_distance(camera)
 
     def pixels(delta: Tensor) -> Tensor:
-        w, v = delta[:3], delta[3:] * dist
+        w, v = delta[:3], delta[3:6] * dist
         theta = torch.sqrt((w**2).sum() + 1e-30)
         k = w / theta
         # Rodrigues on every point: exp(-[w]x) (x - v), the point in the moved camera's frame
@@ -150,6 +162,11 @@ def projection(camera: Cameras, points: Float[Tensor, "P 3"]):
         kx = torch.linalg.cross(k.expand_as(x), x, dim=-1)
         rotated = x * cos - kx * sin + k * (x @ k)[:, None] * (1 - cos)
         z = (-rotated[:, 2]).clamp_min(1e-6)
+        if delta.shape[0] > POSE:
+            zoom = torch.exp(delta[6])
+            return torch.stack(
+                [cy + delta[8] - fy * zoom * rotated[:, 1] / z, cx + delta[7] + fx * zoom * rotated[:, 0] / z], dim=-1
+            )
         return torch.stack([cy - fy * rotated[:, 1] / z, cx + fx * rotated[:, 0] / z], dim=-1)
 
     return pixels
@@ -217,9 +234,10 @@ def lk_refine(
     extend: int = 1,
     render_blur: float = 0.0,
     trim: float = 1.0,
+    free: int = POSE,
 ) -> Tuple[Cameras, float, int]:
-    """Gauss-Newton (Lucas-Kanade with the base's depth) over the 6 pose parameters of ``camera`` (sized like
-    ``target``): the pixel motion of each surface point under a pose change times the base render's image gradient
+    """Gauss-Newton (Lucas-Kanade with the base's depth) over the ``free`` parameters of ``camera`` (sized like
+    ``target``; :data:`POSE`, or :data:`FRAMED` for the zoom and principal point too): the pixel motion of each surface point under a pose change times the base render's image gradient
     is the Jacobian; one render per step, damped and accepted only when the (Cauchy-weighted when ``robust``)
     residual drops; an accepted step is tried at 2, 4, ... up to ``extend`` times its length while the residual keeps
     dropping. Render and target are blurred by ``sigma`` px (a wider basin; and the render's gradient only follows
@@ -250,11 +268,11 @@ def lk_refine(
     it = 0
     for it in range(1, iterations + 1):
         pts = surface_points(cur, out["expected_depth"][0], out["accumulation"][0], window)
-        dp = torch.func.jacfwd(projection(cur, pts))(torch.zeros(6, dtype=torch.float64))  # [P 2 6]
+        dp = torch.func.jacfwd(projection(cur, pts))(torch.zeros(free, dtype=torch.float64))  # [P 2 free]
         g_row, g_col = image_gradient(img)
         c = img.shape[-1]
         j = -(g_row.reshape(-1, c, 1) * dp[:, None, 0, :] + g_col.reshape(-1, c, 1) * dp[:, None, 1, :])
-        j = j.reshape(-1, 6)
+        j = j.reshape(-1, free)
         wr = cauchy_weights(r0, robust).reshape(-1)
         rr = r0.reshape(-1)
         a = (j * wr[:, None]).T @ j
@@ -309,8 +327,10 @@ def warp_refine(
     renders: int = 2,
     robust: bool = True,
     trim: float = 1.0,
+    free: int = POSE,
 ) -> Tuple[Cameras, float, int]:
-    """Gauss-Newton over the 6 pose parameters of ``camera`` (sized like ``target``) with the base render held fixed:
+    """Gauss-Newton over the ``free`` parameters of ``camera`` (:func:`lk_refine`; sized like ``target``) with the
+    base render held fixed:
     the surface points the base shows at the camera (one render's depth) are projected through the moved pose into
     ``target``, which is sampled there; the residual ``target(pi(T P)) - render(p)`` and its Jacobian
     ``grad target * d pi / d pose`` need no render, so a step costs a projection and a bilinear sample. The base is
@@ -337,14 +357,14 @@ def warp_refine(
             sampled, inside = sample_at(stacked, pixels(delta))
             return sampled[:, :c] - ref, sampled[:, c:], inside
 
-        delta = torch.zeros(6, dtype=torch.float64)
+        delta = torch.zeros(free, dtype=torch.float64)
         r0, grads, inside = residual(delta)
         lam = 1e-4
         for _ in range(iterations):
             dp = torch.func.jacfwd(pixels)(delta)  # [P 2 6]
             j = grads[:, :c, None] * dp[:, None, 0, :] + grads[:, c:, None] * dp[:, None, 1, :]  # [P C 6]
             wr = (cauchy_weights(r0, robust) * inside[:, None]).reshape(-1)
-            j, rr = j.reshape(-1, 6), r0.reshape(-1)
+            j, rr = j.reshape(-1, free), r0.reshape(-1)
             a = (j * wr[:, None]).T @ j
             g = (j * wr[:, None]).T @ rr
             c0 = float((wr * rr**2).sum() / wr.sum().clamp_min(1e-12))
@@ -509,7 +529,6 @@ def estimate_camera(
     scores = torch.stack([ncc(rows, channel_of(area_resize(t, sh, sw), value).reshape(-1)) for t in turned], dim=1)
     flat = torch.argsort(scores.reshape(-1), descending=True)[: search.keep]
     best = [(int(i) // len(search.rolls), float(search.rolls[int(i) % len(search.rolls)])) for i in flat]
-    history: List[Dict[str, Any]] = []
 
     def start(b: int, roll: float) -> Cameras:
         cam = scaled_camera(cands[b : b + 1], h, w)
@@ -517,10 +536,37 @@ def estimate_camera(
             return cam
         return moved_camera(cam, torch.tensor([0.0, 0.0, -math.radians(roll), 0.0, 0.0, 0.0]))
 
+    b, cam, rms, total, history = refine_starts(model, image, [(b, start(b, roll)) for b, roll in best], value, search)
+    return PoseFit(camera=cam, rms=rms, score=float(scores[b].max()), iterations=total, history=history)
+
+
+def refine_starts(
+    model,
+    image: Float[Tensor, "H W 3"],
+    starts: Sequence[Tuple[int, Cameras]],
+    value: bool,
+    search: PoseSearch,
+    free: int = POSE,
+    render_blur: float = 0.0,
+) -> Tuple[int, Cameras, float, int, List[Dict[str, Any]]]:
+    """The refinement of :func:`estimate_camera` from the start cameras ``(candidate, camera)`` (sized like
+    ``image``): the first stage for each (RMS over :attr:`PoseSearch.trim` of the pixels), then every stage for the one
+    that explains the image best; ``free``: the parameters moved, ``render_blur``: px the image was blurred after
+    rendering (:func:`refine_stage`). Returns its candidate, camera, RMS, the iterations taken and the stages' history."""
+    history: List[Dict[str, Any]] = []
     first = []
-    for b, roll in best:
+    for b, start in starts:
         cam, rms, n_it = refine_stage(
-            model, image, start(b, roll), value, search, search.blurs[0], search.first_iterations, trim=search.trim
+            model,
+            image,
+            start,
+            value,
+            search,
+            search.blurs[0],
+            search.first_iterations,
+            render_blur=render_blur,
+            trim=search.trim,
+            free=free,
         )
         history.append({"candidate": b, **record(cam, rms, n_it, search.blurs[0])})
         first.append((b, cam, rms, n_it))
@@ -528,10 +574,10 @@ def estimate_camera(
     for i, (blur, its) in enumerate(zip(search.blurs, search.iterations)):
         last = i == len(search.blurs) - 1
         stage = replace(search, refine="render") if search.refine == "mixed" and last else search
-        cam, rms, n_it = refine_stage(model, image, cam, value, stage, blur, its)
+        cam, rms, n_it = refine_stage(model, image, cam, value, stage, blur, its, render_blur, free=free)
         history.append({"candidate": b, **record(cam, rms, n_it, blur)})
         total += n_it
-    return PoseFit(camera=cam, rms=rms, score=float(scores[b].max()), iterations=total, history=history)
+    return b, cam, rms, total, history
 
 
 def record(cam: Cameras, rms: float, iterations: int, blur: float) -> Dict[str, Any]:
@@ -549,11 +595,13 @@ def refine_stage(
     iterations: int,
     render_blur: float = 0.0,
     trim: float = 1.0,
+    free: int = POSE,
 ) -> Tuple[Cameras, float, int]:
     """One coarse-to-fine stage of :func:`estimate_camera`: :func:`lk_refine` of ``camera`` against ``image`` (V with
     ``value``) at ``blur`` px per 100 px of its larger side; stages blurred by at least twice
     :attr:`PoseSearch.half_size_blur` run at half size; ``render_blur``: px (at the image's size) the image was
-    blurred after rendering; ``trim``: the RMS's share of pixels (:func:`lk_refine`). Returns the camera at the image's size, the RMS and the iterations taken."""
+    blurred after rendering; ``trim``: the RMS's share of pixels and ``free`` the parameters moved
+    (:func:`lk_refine`). Returns the camera at the image's size, the RMS and the iterations taken."""
     h, w = int(image.shape[0]), int(image.shape[1])
     sigma = blur * max(h, w) / 100.0
     # blurred stages run at half size (the blur has removed what the finer pixels would add)
@@ -562,7 +610,15 @@ def refine_stage(
     target = channel_of(image.float() if f == 1 else area_resize(image, lh, lw), value)
     if search.refine in ("warp", "mixed") and render_blur == 0.0:
         cam, rms, n_it = warp_refine(
-            model, scaled_camera(camera, lh, lw), target, value, iterations, sigma / f, search.warp_renders, trim=trim
+            model,
+            scaled_camera(camera, lh, lw),
+            target,
+            value,
+            iterations,
+            sigma / f,
+            search.warp_renders,
+            trim=trim,
+            free=free,
         )
         return scaled_camera(cam, h, w), rms, n_it
     cam, rms, n_it = lk_refine(
@@ -575,6 +631,7 @@ def refine_stage(
         extend=search.extend,
         render_blur=render_blur / f,
         trim=trim,
+        free=free,
     )
     return scaled_camera(cam, h, w), rms, n_it
 
@@ -634,17 +691,19 @@ def pose_columns(
     rays: Int[Tensor, " R"],
     value: bool,
     eps: float = 3.5e-4,
-) -> Float[Tensor, "M 6"]:
-    """d (base render at ``rays``) / d pose by central differences (rows
-    ``r * 3 + c``, or one V row per ray with ``value``): what the image decoder fits beside the message for a camera
-    this module estimated."""
+    free: int = POSE,
+) -> Float[Tensor, "M free"]:
+    """d (base render at ``rays``) / d (pose, and with ``free`` = :data:`FRAMED` zoom and principal point, as
+    :func:`moved_camera`) by central differences (rows ``r * 3 + c``, or one V row per ray with ``value``): what the
+    image decoder fits beside the message for a camera this module estimated. Steps: ``eps`` for the pose and the log
+    zoom, :data:`PRINCIPAL_STEP` px for the principal point."""
     dist = camera_distance(camera)
 
     cols = []
-    for k in range(6):
-        e = torch.zeros(6)
-        e[k] = eps
+    for k in range(free):
+        e = torch.zeros(free)
+        e[k] = PRINCIPAL_STEP if k >= 7 else eps
         plus = channel_of(render_at(model, moved_camera(camera, e, dist), rays), value)
         minus = channel_of(render_at(model, moved_camera(camera, -e, dist), rays), value)
-        cols.append(((plus - minus) / (2 * eps)).reshape(-1))
+        cols.append(((plus - minus) / (2 * float(e[k]))).reshape(-1))
     return torch.stack(cols, dim=1)

@@ -287,15 +287,15 @@ def _verify_images_informed(
 
 
 def _field_images(config: VerifyConfig, path: Path, key: OwnerKey, views: Views, frames, device: torch.device):
-    """One field-mark key's image decoding: at the cameras in --cameras, or at cameras found against the base.
-    Returns ``(views read, dec, reference)``."""
+    """One field-mark key's image decoding: at the cameras in --cameras, or at cameras found against the base (with
+    their framing for images of another aspect ratio). Returns ``(views read, dec, reference)``."""
     ref = field_decoder.load_field_reference(key, path, config.base_config, config.base_data or config.data, device)
     if frames is not None:
         posed, cams = posed_views(views, frames, base_pose_map(ref))
         cameras = [c for _, c in cams]
         posed.details["cameras_of"] = str(config.cameras)
     else:
-        posed, cameras = same_aspect_views(views, ref.pipeline.datamanager.train_dataset.cameras), None
+        posed, cameras = views, None  # any size and aspect ratio: framed pictures are searched with their framing
         posed.details["cameras_of"] = "found by a camera search against the owner's base"
     with contextlib.redirect_stdout(sys.stderr):
         dec = field_images.decode_images(

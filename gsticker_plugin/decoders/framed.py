@@ -1,0 +1,222 @@
+"""The camera of a picture framed in any way: another aspect ratio, zoomed, cropped, letterboxed or resized.
+
+A picture re-posted from a render is the render at some camera seen through a framing
+(:mod:`gsticker_plugin.decoders.framing`): zoom ``s``, offset ``t``, size ``W' x H'``. It is itself the picture of
+a pinhole camera with the same pose and the intrinsics ::
+
+    fx' = s fx,   fy' = s fy,   cx' = s cx + tx,   cy' = s cy + ty,   size W' x H'.
+
+:func:`estimate_framed_camera` finds that camera against the owner's base:
+
+1. uniform bars along the picture's edges (letterboxing, padding) are cut off (:func:`content_box`);
+2. each search candidate's render (the view bank of :func:`gsticker_plugin.decoders.pose.search_renders`) is framed
+   against the picture by normalized cross-correlation over zooms and offsets
+   (:func:`gsticker_plugin.decoders.framing.coarse_framings`);
+3. the picture is worked at no more than the base's own scale (a larger copy averaged down: it holds nothing the
+   base's render did not);
+4. the best candidates' cameras, framed like the picture (:func:`framed_camera`), are refined on the picture by the
+   pose stages of :func:`gsticker_plugin.decoders.pose.estimate_camera` (:func:`gsticker_plugin.decoders.pose.refine_starts`).
+
+A framing's error left after step 2 is a fraction of a coarse pixel; the pose moves to absorb it (a zoom error as a
+step along the axis, an offset as a turn), which is what a camera of the right pose would show up to the scene's
+parallax at that scale. Uses the picture and the owner's base only, never the owner's message.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import List, Optional, Tuple
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Float
+from nerfstudio.cameras.cameras import Cameras
+from torch import Tensor
+
+from gsticker_plugin.decoders.framing import Framing, coarse_framings
+from gsticker_plugin.decoders.pose import (
+    FRAMED,
+    PoseFit,
+    PoseSearch,
+    Window,
+    channel_of,
+    refine_starts,
+    scaled_camera,
+    search_renders,
+)
+
+PICTURE_SCALES = tuple(float(z) for z in torch.logspace(math.log10(0.3), math.log10(4.5), 29).tolist())
+"""Picture px per base px tried by the coarse framing: a copy 0.5 to 3 times the base's size, zoomed 0.7 to 1.5
+times (10 % apart)."""
+COARSE_SIDE = 24
+"""Larger side (px) at which picture and candidates are correlated for the coarse framing."""
+RESAMPLED = 0.03
+"""A picture zoomed by more than this share against the base's render is taken for a resized copy."""
+RESAMPLED_BLUR = 0.45
+"""Blur (px of the picture worked) a resized copy holds beyond a render (the resampling kernels'), put on the
+renders it is compared with."""
+BAR_TOLERANCE = 6.0 / 255.0
+"""A row or column whose values span less than this in every channel is a bar."""
+
+
+def content_box(picture: Float[Tensor, "H W 3"], tolerance: float = BAR_TOLERANCE, min_side: int = 8) -> Window:
+    """The picture less uniform bars along its edges (each a single colour, rows or columns whose values span less
+    than ``tolerance``): rows ``[r0, r1)`` and columns ``[c0, c1)``; at least ``min_side`` px a side.
+
+    Examples:
+        >>> import torch
+        >>> p = torch.zeros(10, 20, 3); p[:, 5:15] = torch.rand(10, 10, 3)
+        >>> content_box(p, min_side=2)
+        (0, 10, 5, 15)
+    """
+    x = picture.float()
+    flat_rows = (x.amax(dim=1) - x.amin(dim=1)).amax(dim=-1) < tolerance  # [H]
+    flat_cols = (x.amax(dim=0) - x.amin(dim=0)).amax(dim=-1) < tolerance  # [W]
+
+    def span(flat: Tensor) -> Tuple[int, int]:
+        n = flat.numel()
+        keep = torch.nonzero(~flat).reshape(-1)
+        if keep.numel() == 0:
+            return 0, n
+        a, b = int(keep[0]), int(keep[-1]) + 1
+        if b - a < min_side:
+            grow = min_side - (b - a)
+            a = max(0, a - (grow + 1) // 2)
+            b = min(n, a + max(min_side, b - a))
+            a = max(0, b - min_side)
+        return a, b
+
+    r0, r1 = span(flat_rows)
+    c0, c1 = span(flat_cols)
+    return r0, r1, c0, c1
+
+
+def framed_camera(camera: Cameras, framing: Framing, height: int, width: int) -> Cameras:
+    """The one-camera ``camera`` (a render's intrinsics) framed like a picture: ``height x width`` px with
+    :meth:`gsticker_plugin.decoders.framing.Framing.intrinsics`, the same pose."""
+    fx, fy, cx, cy = framing.intrinsics(
+        float(camera.fx.reshape(-1)[0]),
+        float(camera.fy.reshape(-1)[0]),
+        float(camera.cx.reshape(-1)[0]),
+        float(camera.cy.reshape(-1)[0]),
+    )
+
+    def one(x: float) -> Tensor:
+        return torch.full((1, 1), x)
+
+    return Cameras(
+        camera_to_worlds=camera.camera_to_worlds[:1].detach().float().cpu(),
+        fx=one(fx),
+        fy=one(fy),
+        cx=one(cx),
+        cy=one(cy),
+        width=int(width),
+        height=int(height),
+        camera_type=camera.camera_type[:1].cpu(),
+    )
+
+
+def estimate_framed_camera(
+    reference,
+    picture: Float[Tensor, "H W 3"],
+    value: bool,
+    search: PoseSearch = PoseSearch(),
+    renders: Optional[Tuple[Cameras, Tensor]] = None,
+) -> Tuple[PoseFit, Float[Tensor, "h w 3"], Window]:
+    """The camera of ``picture`` (any size and aspect ratio) found against the owner's base (see the module's
+    docstring). ``value``: compare V = max(R, G, B). ``renders``: :func:`gsticker_plugin.decoders.pose.search_renders`
+    at the base's own size (computed once for many pictures). Returns the fit (its camera at the content box's size),
+    the content box's picture and the box (:func:`content_box`)."""
+    train = reference.pipeline.datamanager.train_dataset.cameras
+    h0, w0 = int(train.height[0]), int(train.width[0])
+    cands, rows = renders if renders is not None else search_renders(reference, search, (h0, w0), value)
+    sh = search.search_side
+    sw = max(1, round(sh * w0 / h0))
+    r0, r1, c0, c1 = content_box(picture)
+    pic = picture[r0:r1, c0:c1].float()
+    per_bank = sh / h0  # bank px per base px
+    coarse = coarse_framings(
+        channel_of(pic, value)[..., 0] if value else pic,
+        rows.reshape(-1, sh, sw) if value else rows.reshape(-1, sh, sw, 3),
+        [z / per_bank for z in PICTURE_SCALES],
+        side=COARSE_SIDE,
+    )
+    order = sorted(range(len(coarse)), key=lambda i: -coarse[i].score)[: search.keep]
+    framings: List[Framing] = []
+    for b in order:
+        c = coarse[b]
+        framings.append(Framing(c.sx * per_bank, c.sy * per_bank, c.tx, c.ty, c.score))
+    scale = max(1.0, framings[0].sx)  # picture px per base px of the best
+    ph, pw = pic.shape[0], pic.shape[1]
+    hh, ww = max(1, round(ph / scale)), max(1, round(pw / scale))
+    work = pic if (hh, ww) == (ph, pw) else resized(pic, hh, ww)
+    starts = [(b, scaled_camera(framed_camera(cands[b : b + 1], f, ph, pw), hh, ww)) for b, f in zip(order, framings)]
+    blur = RESAMPLED_BLUR if abs(math.log(framings[0].sx)) > math.log(1.0 + RESAMPLED) else 0.0
+    b, cam, rms, total, history = refine_starts(reference.model, work, starts, value, search, FRAMED, blur)
+    best = framings[order.index(b)]
+    fit = PoseFit(camera=scaled_camera(cam, ph, pw), rms=rms, score=best.score, iterations=total, history=history)
+    return fit, pic, (r0, r1, c0, c1)
+
+
+def resized(image: Float[Tensor, "H W 3"], height: int, width: int) -> Float[Tensor, "h w 3"]:
+    """``image`` resampled to ``height x width`` (antialiased bilinear: each axis scaled evenly, edges to edges)."""
+    x = image.float().permute(2, 0, 1)[None]
+    out = F.interpolate(x, size=(height, width), mode="bilinear", antialias=True, align_corners=False)
+    return out[0].permute(1, 2, 0).clamp(0, 1)
+
+
+def framing_of(camera: Cameras, base: Cameras) -> Framing:
+    """The framing that takes ``base``'s intrinsics (a render at the base's own size) to ``camera``'s (a picture's):
+    ``sx = fx' / fx``, ``tx = cx' - sx cx`` (pixel edges), and likewise in y."""
+    sx = float(camera.fx.reshape(-1)[0]) / float(base.fx.reshape(-1)[0])
+    sy = float(camera.fy.reshape(-1)[0]) / float(base.fy.reshape(-1)[0])
+    tx = float(camera.cx.reshape(-1)[0]) - sx * float(base.cx.reshape(-1)[0])
+    ty = float(camera.cy.reshape(-1)[0]) - sy * float(base.cy.reshape(-1)[0])
+    return Framing(sx, sy, tx, ty)
+
+
+def base_frame(camera: Cameras, base: Cameras) -> Cameras:
+    """``camera``'s pose with ``base``'s intrinsics and size (one camera)."""
+    return Cameras(
+        camera_to_worlds=camera.camera_to_worlds[:1].detach().float().cpu(),
+        fx=base.fx[:1].cpu(),
+        fy=base.fy[:1].cpu(),
+        cx=base.cx[:1].cpu(),
+        cy=base.cy[:1].cpu(),
+        width=base.width[:1].cpu(),
+        height=base.height[:1].cpu(),
+        camera_type=base.camera_type[:1].cpu(),
+    )
+
+
+def blurred(stack: Float[Tensor, "C H W"], sigma: float) -> Float[Tensor, "C H W"]:
+    """A separable Gaussian blur of std ``sigma`` px, borders replicated."""
+    radius = max(1, math.ceil(3 * sigma))
+    x = torch.arange(-radius, radius + 1, dtype=torch.float32)
+    g = torch.exp(-0.5 * (x / sigma) ** 2)
+    g = g / g.sum()
+    c = stack.shape[0]
+    img = F.pad(stack.float()[None], (radius, radius, radius, radius), mode="replicate")
+    img = F.conv2d(img, g.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    return F.conv2d(img, g.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)[0]
+
+
+def warp_to_picture(
+    stack: Float[Tensor, "C h w"], framing: Framing, height: int, width: int
+) -> Tuple[Float[Tensor, "C H W"], Tensor]:
+    """Base-frame images (any channels) as the framed picture shows them, ``height x width``: enlarged by bicubic
+    interpolation, shrunk by a Gaussian of the shrink's width then bilinear interpolation; and which of the picture's
+    pixels the base frame covers."""
+    h0, w0 = stack.shape[-2:]
+    s = min(framing.sx, framing.sy)
+    img = (blurred(stack, 0.5 * math.sqrt(1 / (s * s) - 1)) if s < 1 else stack.float())[None]
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=torch.float32), torch.arange(width, dtype=torch.float32), indexing="ij"
+    )
+    ub = (u + 0.5 - framing.tx) / framing.sx  # base-frame coordinates (pixel edges) of the picture's pixel centres
+    vb = (v + 0.5 - framing.ty) / framing.sy
+    grid = torch.stack([ub / w0 * 2 - 1, vb / h0 * 2 - 1], dim=-1)[None]
+    mode = "bicubic" if s > 1 else "bilinear"
+    out = F.grid_sample(img, grid, mode=mode, padding_mode="border", align_corners=False)[0]
+    inside = (ub >= 0.5) & (ub <= w0 - 0.5) & (vb >= 0.5) & (vb <= h0 - 0.5)
+    return out, inside
