@@ -195,9 +195,14 @@ def verify_images(images: Path, key: Path, out: Path) -> dict:
 
 
 def test_ns_verify_owner_reads_pictures_of_the_shared_run_without_cameras_and_nothing_from_the_bases(shared, tmp_path):
-    """A stock ns-render PNG of the shared run's first test view, read with no camera file: the camera found against
-    the owner's base, then the field-mark image fit; the base's own picture reads nothing. The camera search's base
-    renders are kept beside the key by the first call and read by the second."""
+    """A stock ns-render PNG of the shared run's first test view, read with no camera file (the camera found against
+    the owner's base, then the field-mark image fit), beside two copies framed unlike the base's square cameras: the
+    render letterboxed into a 16:9 frame with black bars (read once the bars are cut) and cropped to 16:9 (searched
+    with its framing). None is skipped for its shape; the render and the letterbox read OWNED; the base's own
+    pictures framed the same way read nothing. The camera search's base renders are kept beside the key by the first
+    call and read by the second."""
+    from PIL import Image
+
     verdicts = {}
     bank = bank_folder(shared["key"])
     for name, config in (("shared", shared["run"]), ("base", shared["base"])):
@@ -208,46 +213,25 @@ def test_ns_verify_owner_reads_pictures_of_the_shared_run_without_cameras_and_no
         pictures = sorted((tmp_path / name / "test" / "rgb").glob("*.png"))
         for extra in pictures[1:]:
             extra.unlink()
-        before = {p: p.stat().st_mtime_ns for p in bank.glob("*.pt")}
-        rep = verify_images(pictures[0].parent, shared["key"], tmp_path / f"report-{name}")
-        assert rep["decoder"]["kind"] == "image" and rep["input"]["views"] == 1 and not rep["input"]["skipped"]
-        verdicts[name] = (rep["verdict"], [v["matches"] for v in rep["keys"][0]["per_view"]])
-        after = {p: p.stat().st_mtime_ns for p in bank.glob("*.pt")}
-        assert len(after) == 1 and (name == "shared" or after == before), (before, after)
-    assert verdicts["shared"][0] == "owned" and min(verdicts["shared"][1]) >= 41, verdicts
-    assert verdicts["base"][0] == "not shown" and max(verdicts["base"][1]) < 41, verdicts
-
-
-def test_ns_verify_owner_reads_pictures_of_other_aspect_ratios_with_their_framing(shared, tmp_path):
-    """Pictures of the shared run's first test view framed unlike the base's square cameras - letterboxed into a
-    16:9 frame with black bars (read once the bars are cut) and cropped to 16:9 (searched with its framing) - are
-    all read, none skipped for its shape: the letterbox OWNED; the base's own pictures framed the same way: not
-    shown."""
-    from PIL import Image
-
-    verdicts = {}
-    for name, config in (("shared", shared["run"]), ("base", shared["base"])):
-        cmd = [str(BIN / "ns-render"), "dataset", "--load-config", str(config), "--split", "test"]
-        cmd += ["--output-path", str(tmp_path / name), "--rendered-output-names", "rgb", "--image-format", "png"]
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=subprocess_env(1), cwd=tmp_path, timeout=600)
-        assert proc.returncode == 0, proc.stderr[-3000:]
-        render = Image.open(sorted((tmp_path / name / "test" / "rgb").glob("*.png"))[0]).convert("RGB")
+        render = Image.open(pictures[0]).convert("RGB")
         w, h = render.size
-        framed = tmp_path / f"framed-{name}"
-        framed.mkdir()
         box = Image.new("RGB", (round(h * 16 / 9), h), (0, 0, 0))
         box.paste(render, ((box.size[0] - w) // 2, 0))
-        box.save(framed / "letterbox.png")
-        render.crop((0, (h - round(w * 9 / 16)) // 2, w, (h - round(w * 9 / 16)) // 2 + round(w * 9 / 16))).save(
-            framed / "crop-16x9.png"
-        )
-        rep = verify_images(framed, shared["key"], tmp_path / f"report-{name}")
-        assert rep["input"]["views"] == 2 and not rep["input"]["skipped"], rep["input"]
+        box.save(pictures[0].parent / "letterbox.png")
+        ch = round(w * 9 / 16)
+        render.crop((0, (h - ch) // 2, w, (h - ch) // 2 + ch)).save(pictures[0].parent / "crop-16x9.png")
+        before = {p: p.stat().st_mtime_ns for p in bank.glob("*.pt")}
+        rep = verify_images(pictures[0].parent, shared["key"], tmp_path / f"report-{name}")
+        assert rep["decoder"]["kind"] == "image" and rep["input"]["views"] == 3 and not rep["input"]["skipped"]
         fits = {v["name"]: v["image_fit"] for v in rep["keys"][0]["per_view"]}
         assert fits["letterbox.png"]["content_box"][2:] == [(box.size[0] - w) // 2, (box.size[0] - w) // 2 + w], fits
         assert fits["crop-16x9.png"]["camera"] == "estimated with its framing", fits
         verdicts[name] = (rep["verdict"], {v["name"]: v["matches"] for v in rep["keys"][0]["per_view"]})
+        after = {p: p.stat().st_mtime_ns for p in bank.glob("*.pt")}
+        assert len(after) == 1 and (name == "shared" or after == before), (before, after)
     # the 32x18 crop of this 32 px scene is searched but not read reliably (lego100's crops are:
-    # docs/experiments/bench-framed.md); the letterbox is the render itself once its bars are cut
-    assert verdicts["shared"][0] == "owned" and verdicts["shared"][1]["letterbox.png"] >= 41, verdicts
+    # docs/experiments/bench-framed.md)
+    shared_reads = verdicts["shared"][1]
+    assert verdicts["shared"][0] == "owned", verdicts
+    assert shared_reads[pictures[0].name] >= 41 and shared_reads["letterbox.png"] >= 41, verdicts
     assert verdicts["base"][0] == "not shown" and max(verdicts["base"][1].values()) < 41, verdicts

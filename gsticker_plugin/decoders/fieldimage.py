@@ -216,8 +216,9 @@ def decode_images(
     renders = renders if renders is not None else {}
     bits: List[Tensor] = []
     details: List[Dict[str, Any]] = []
-    base = reference.pipeline.datamanager.train_dataset.cameras
-    h0, w0 = int(base.height[0]), int(base.width[0])
+    if cameras is None:
+        base = reference.pipeline.datamanager.train_dataset.cameras
+        h0, w0 = int(base.height[0]), int(base.width[0])
     for i, (name, image) in enumerate(progress_bar(list(zip(names, images)), "field-mark image decoding", progress)):
         extra: Dict[str, Any] = {"camera": "given"}
         framed = cameras is None and not same_aspect(image, h0, w0)
