@@ -13,7 +13,8 @@ a pinhole camera with the same pose and the intrinsics ::
    against the picture by normalized cross-correlation over zooms and offsets
    (:func:`gsticker_plugin.decoders.framing.coarse_framings`);
 3. the picture is worked at no more than the base's own scale (a larger copy averaged down: it holds nothing the
-   base's render did not);
+   base's render did not), and a resized copy is compared with renders blurred by :data:`RESAMPLED_BLUR` (what its
+   resampling blurred);
 4. the best candidates' cameras, framed like the picture (:func:`framed_camera`), are refined on the picture by the
    pose stages of :func:`gsticker_plugin.decoders.pose.estimate_camera` (:func:`gsticker_plugin.decoders.pose.refine_starts`).
 
