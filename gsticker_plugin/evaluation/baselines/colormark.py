@@ -256,6 +256,10 @@ def mark_psnr(model, cameras: Sequence[Tuple[str, Any]]) -> Float[Tensor, " V"]:
     return torch.stack(values)
 
 
+MATCH_MEASUREMENTS = 6
+"""Most PSNR measurements :func:`match_amplitude` makes."""
+
+
 def match_amplitude(
     pipeline,
     target_psnr: float,
@@ -268,8 +272,9 @@ def match_amplitude(
 
     The RGB change is linear in the amplitude up to the final [0, 1] clamp, so every view's PSNR moves by
     ``-20 log10(a / a0)``: ``a = a0 * 10 ** ((psnr(a0) - target) / 20)`` from a measurement at ``trial_amplitude``
-    (default: the model's own), then once more from a measurement at that ``a`` (the clamp bends the line for strong
-    marks). Views where the gate never opens (infinite PSNR) are ignored.
+    (default: the model's own), then again from a measurement at that ``a`` until the PSNR is within 0.05 dB of the
+    target, at most :data:`MATCH_MEASUREMENTS` measurements (the clamp bends the line for strong marks). Views where
+    the gate never opens (infinite PSNR) are ignored.
     """
 
     model = color_mark_model(pipeline.model)
@@ -277,7 +282,7 @@ def match_amplitude(
     a = check_amplitude(model.config.color_amplitude if trial_amplitude is None else trial_amplitude)
     old = model.config.color_amplitude
     try:
-        for _ in range(2):
+        for _ in range(MATCH_MEASUREMENTS):
             model.config.color_amplitude = a
             psnr = mark_psnr(model, cams)
             finite = psnr[torch.isfinite(psnr)]
@@ -286,7 +291,10 @@ def match_amplitude(
                     "the color mark changes no pixel in the chosen views (the gate never opens); pass "
                     "more --num-views or check that the run's gates are calibrated"
                 )
-            a = a * 10.0 ** ((float(finite.mean()) - float(target_psnr)) / 20.0)
+            off = float(finite.mean()) - float(target_psnr)
+            if abs(off) <= 0.05:
+                break
+            a = a * 10.0 ** (off / 20.0)
     finally:
         model.config.color_amplitude = old
     return a
