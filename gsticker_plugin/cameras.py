@@ -139,6 +139,12 @@ class PoseMap:
         return out
 
 
+def same_aspect(width: float, height: float, w0: float, h0: float) -> bool:
+    """Whether a ``width x height`` image has the aspect ratio of a ``w0 x h0`` camera (to 1 %): then the camera's
+    intrinsics scale to it."""
+    return abs(w0 / h0 - width / height) <= 0.01 * (w0 / h0)
+
+
 def camera_for_image(frame: Frame, height: int, width: int, pose_map: Optional[PoseMap] = None):
     """A nerfstudio camera for an image of ``height x width`` px taken at ``frame`` (:func:`read_cameras_file`):
     the intrinsics scaled to the image's size, the pose put in the base run's coordinates by ``pose_map``
@@ -147,7 +153,7 @@ def camera_for_image(frame: Frame, height: int, width: int, pose_map: Optional[P
     intr = frame.intrinsics
     if "fl_x" in intr:
         w0, h0 = float(intr["w"]), float(intr["h"])
-        if abs(w0 / h0 - width / height) > 0.01 * (w0 / h0):
+        if not same_aspect(width, height, w0, h0):
             raise GStickerError(
                 f"a {width}x{height} image for a camera of {int(w0)}x{int(h0)} px (another aspect "
                 "ratio): crop or pad it back to the camera's frame"

@@ -18,7 +18,6 @@ docs/experiments/verify-notes.md).
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -29,13 +28,14 @@ from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from gsticker_plugin import fieldmark as FM
+from gsticker_plugin.cameras import same_aspect
 from gsticker_plugin.decoders.fit import fit_and_decide, fit_summary, left_after, tie_generator
 from gsticker_plugin.decoders.framed import (
-    RESAMPLED,
     base_frame,
     content_box,
     estimate_framed_camera,
     framing_of,
+    resampled,
     warp_to_picture,
 )
 from gsticker_plugin.decoders.image import image_at_rays, without_columns
@@ -101,11 +101,6 @@ def read_at_camera(
     return best[1], best[2], best[3]
 
 
-def same_aspect(image: Float[Tensor, "H W 3"], h0: int, w0: int) -> bool:
-    """Whether ``image`` has the aspect ratio of a ``w0 x h0`` camera (to 1 %)."""
-    return abs(w0 / h0 - image.shape[1] / image.shape[0]) <= 0.01 * (w0 / h0)
-
-
 def read_picture(
     reference, picture: Float[Tensor, "H W 3"], camera, generator: torch.Generator, rounds: int = 2
 ) -> Tuple[Dict[str, Any], Any, int]:
@@ -116,7 +111,7 @@ def read_picture(
     d, cam, used = read_at_camera(reference, picture, camera, generator, rounds, free=FRAMED)
     d["read"] = "render"
     base = reference.pipeline.datamanager.train_dataset.cameras[:1]
-    if abs(math.log(framing_of(camera, base).sx)) > math.log(1.0 + RESAMPLED):
+    if resampled(framing_of(camera, base).sx):
         w, wcam, wused = read_framed(reference, picture, camera, generator, rounds)
         if left_after(w) < left_after(d):
             d, cam, used = w, wcam, wused
@@ -132,9 +127,9 @@ def read_framed(
     rounds: int = 2,
     eps: float = 3.5e-4,
 ) -> Tuple[Dict[str, Any], Cameras, int]:
-    """:func:`read_at_camera` for a framed picture whose ``camera`` (sized like
-    it) was found by :func:`gsticker_plugin.decoders.framed.estimate_framed_camera`: the base render, the mark's per-bit colour change and the
-    derivatives in the pose and in the framing's zoom and principal point, all at the base's own intrinsics (where a
+    """:func:`read_at_camera` for a framed picture whose ``camera`` (sized like it) was found by
+    :func:`gsticker_plugin.decoders.framed.estimate_framed_camera`: the base render, the mark's per-bit colour change
+    and the derivatives in the pose and in the framing's zoom and principal point, all at the base's own intrinsics (where a
     render is what a resized copy was made from), carried into the picture by its framing (:func:`warp_to_picture`);
     the signs fitted there to ``picture - framed base`` beside those columns. Returns the fit that left the least,
     its camera (the picture's) and its round (1-based)."""
@@ -152,14 +147,9 @@ def read_framed(
         render = render_cameras(model, at)["rgb"][0]
         jac = torch.zeros(h0 * w0, 3, k)
         jac[view.rays] = view.jacobian.float()
-        columns = [render.permute(2, 0, 1), jac.reshape(h0, w0, 3 * k).permute(2, 0, 1)]
-        for i in range(POSE):
-            e = torch.zeros(POSE)
-            e[i] = eps
-            plus = render_cameras(model, moved_camera(at, e, dist))["rgb"][0]
-            minus = render_cameras(model, moved_camera(at, -e, dist))["rgb"][0]
-            columns.append(((plus - minus) / (2 * eps)).permute(2, 0, 1))
-        warped, inside = warp_to_picture(torch.cat(columns), framing, ph, pw)
+        pose = pose_columns(model, at, torch.arange(h0 * w0), False, eps)  # rows r * 3 + c
+        columns = [render, jac.reshape(h0, w0, 3 * k), pose.reshape(h0, w0, 3 * POSE)]
+        warped, inside = warp_to_picture(torch.cat(columns, dim=-1).permute(2, 0, 1), framing, ph, pw)
         rows = torch.nonzero(inside.reshape(-1)).reshape(-1)
         flat = warped.reshape(warped.shape[0], -1)[:, rows].T  # [R C]
         framed = FM.ImageView(rows, flat[:, :3], flat[:, 3 : 3 + 3 * k].reshape(-1, 3, k), (ph, pw))
@@ -221,12 +211,12 @@ def decode_images(
         h0, w0 = int(base.height[0]), int(base.width[0])
     for i, (name, image) in enumerate(progress_bar(list(zip(names, images)), "field-mark image decoding", progress)):
         extra: Dict[str, Any] = {"camera": "given"}
-        framed = cameras is None and not same_aspect(image, h0, w0)
-        if framed:  # a letterboxed render is the render again once its bars are cut
+        framed = cameras is None and not same_aspect(image.shape[1], image.shape[0], w0, h0)
+        if framed:  # bars cut; a letterboxed render is the render again
             r0, r1, c0, c1 = content_box(image)
-            if same_aspect(image[r0:r1, c0:c1], h0, w0):
-                image, framed = image[r0:r1, c0:c1], False
-                extra["content_box"] = [r0, r1, c0, c1]
+            image = image[r0:r1, c0:c1]
+            extra["content_box"] = [r0, r1, c0, c1]
+            framed = not same_aspect(image.shape[1], image.shape[0], w0, h0)
         if cameras is None:
             hw = (h0, w0) if framed else (int(image.shape[0]), int(image.shape[1]))
             if hw not in renders:
@@ -237,8 +227,8 @@ def decode_images(
         if cameras is not None:
             camera = cameras[i]
         elif framed:
-            pose, image, box = estimate_framed_camera(reference, image, True, search, renders[hw])
-            extra.update(camera="estimated with its framing", content_box=list(box), pose_rms=pose.rms)
+            pose = estimate_framed_camera(reference, image, True, search, renders[hw])
+            extra.update(camera="estimated with its framing", pose_rms=pose.rms)
             extra.update(pose_score=pose.score, search_seconds=time.time() - t0)
             d, camera, used = read_picture(reference, image, pose.camera, gen, rounds)
         else:

@@ -8,7 +8,7 @@ a pinhole camera with the same pose and the intrinsics ::
 
 :func:`estimate_framed_camera` finds that camera against the owner's base:
 
-1. uniform bars along the picture's edges (letterboxing, padding) are cut off (:func:`content_box`);
+1. uniform bars along the picture's edges (letterboxing, padding) are cut off by the caller (:func:`content_box`);
 2. each search candidate's render (the view bank of :func:`gsticker_plugin.decoders.pose.search_renders`) is framed
    against the picture by normalized cross-correlation over zooms and offsets
    (:func:`gsticker_plugin.decoders.framing.coarse_framings`);
@@ -45,6 +45,7 @@ from gsticker_plugin.decoders.pose import (
     scaled_camera,
     search_renders,
 )
+from gsticker_plugin.fastpath import smoothed
 
 PICTURE_SCALES = tuple(float(z) for z in torch.logspace(math.log10(0.3), math.log10(4.5), 29).tolist())
 """Picture px per base px tried by the coarse framing: a copy 0.5 to 3 times the base's size, zoomed 0.7 to 1.5
@@ -92,21 +93,18 @@ def content_box(picture: Float[Tensor, "H W 3"], tolerance: float = BAR_TOLERANC
     return r0, r1, c0, c1
 
 
-def framed_camera(camera: Cameras, framing: Framing, height: int, width: int) -> Cameras:
+def framed_camera(camera: Cameras, framing: Framing, height: int, width: int, c2w: Optional[Tensor] = None) -> Cameras:
     """The one-camera ``camera`` (a render's intrinsics) framed like a picture: ``height x width`` px with
-    :meth:`gsticker_plugin.decoders.framing.Framing.intrinsics`, the same pose."""
+    :meth:`gsticker_plugin.decoders.framing.Framing.intrinsics`, the same pose (or ``c2w``, ``[1 3 4]``)."""
     fx, fy, cx, cy = framing.intrinsics(
-        float(camera.fx.reshape(-1)[0]),
-        float(camera.fy.reshape(-1)[0]),
-        float(camera.cx.reshape(-1)[0]),
-        float(camera.cy.reshape(-1)[0]),
+        *(float(x.reshape(-1)[0]) for x in (camera.fx, camera.fy, camera.cx, camera.cy))
     )
 
     def one(x: float) -> Tensor:
         return torch.full((1, 1), x)
 
     return Cameras(
-        camera_to_worlds=camera.camera_to_worlds[:1].detach().float().cpu(),
+        camera_to_worlds=camera.camera_to_worlds[:1].detach().float().cpu() if c2w is None else c2w,
         fx=one(fx),
         fy=one(fy),
         cx=one(cx),
@@ -123,18 +121,17 @@ def estimate_framed_camera(
     value: bool,
     search: PoseSearch = PoseSearch(),
     renders: Optional[Tuple[Cameras, Tensor]] = None,
-) -> Tuple[PoseFit, Float[Tensor, "h w 3"], Window]:
-    """The camera of ``picture`` (any size and aspect ratio) found against the owner's base (see the module's
-    docstring). ``value``: compare V = max(R, G, B). ``renders``: :func:`gsticker_plugin.decoders.pose.search_renders`
-    at the base's own size (computed once for many pictures). Returns the fit (its camera at the content box's size),
-    the content box's picture and the box (:func:`content_box`)."""
+) -> PoseFit:
+    """The camera of ``picture`` (any size and aspect ratio, its bars already cut: :func:`content_box`) found against
+    the owner's base (see the module's docstring). ``value``: compare V = max(R, G, B). ``renders``:
+    :func:`gsticker_plugin.decoders.pose.search_renders` at the base's own size (computed once for many pictures).
+    The fit's camera is sized like ``picture``."""
     train = reference.pipeline.datamanager.train_dataset.cameras
     h0, w0 = int(train.height[0]), int(train.width[0])
     cands, rows = renders if renders is not None else search_renders(reference, search, (h0, w0), value)
     sh = search.search_side
     sw = max(1, round(sh * w0 / h0))
-    r0, r1, c0, c1 = content_box(picture)
-    pic = picture[r0:r1, c0:c1].float()
+    pic = picture.float()
     per_bank = sh / h0  # bank px per base px
     coarse = coarse_framings(
         channel_of(pic, value)[..., 0] if value else pic,
@@ -152,11 +149,15 @@ def estimate_framed_camera(
     hh, ww = max(1, round(ph / scale)), max(1, round(pw / scale))
     work = pic if (hh, ww) == (ph, pw) else resized(pic, hh, ww)
     starts = [(b, scaled_camera(framed_camera(cands[b : b + 1], f, ph, pw), hh, ww)) for b, f in zip(order, framings)]
-    blur = RESAMPLED_BLUR if abs(math.log(framings[0].sx)) > math.log(1.0 + RESAMPLED) else 0.0
+    blur = RESAMPLED_BLUR if resampled(framings[0].sx) else 0.0
     b, cam, rms, total, history = refine_starts(reference.model, work, starts, value, search, FRAMED, blur)
     best = framings[order.index(b)]
-    fit = PoseFit(camera=scaled_camera(cam, ph, pw), rms=rms, score=best.score, iterations=total, history=history)
-    return fit, pic, (r0, r1, c0, c1)
+    return PoseFit(camera=scaled_camera(cam, ph, pw), rms=rms, score=best.score, iterations=total, history=history)
+
+
+def resampled(zoom: float) -> bool:
+    """Whether a picture at ``zoom`` picture px per base px is taken for a resized copy (:data:`RESAMPLED`)."""
+    return abs(math.log(zoom)) > math.log(1.0 + RESAMPLED)
 
 
 def resized(image: Float[Tensor, "H W 3"], height: int, width: int) -> Float[Tensor, "h w 3"]:
@@ -178,28 +179,8 @@ def framing_of(camera: Cameras, base: Cameras) -> Framing:
 
 def base_frame(camera: Cameras, base: Cameras) -> Cameras:
     """``camera``'s pose with ``base``'s intrinsics and size (one camera)."""
-    return Cameras(
-        camera_to_worlds=camera.camera_to_worlds[:1].detach().float().cpu(),
-        fx=base.fx[:1].cpu(),
-        fy=base.fy[:1].cpu(),
-        cx=base.cx[:1].cpu(),
-        cy=base.cy[:1].cpu(),
-        width=base.width[:1].cpu(),
-        height=base.height[:1].cpu(),
-        camera_type=base.camera_type[:1].cpu(),
-    )
-
-
-def blurred(stack: Float[Tensor, "C H W"], sigma: float) -> Float[Tensor, "C H W"]:
-    """A separable Gaussian blur of std ``sigma`` px, borders replicated."""
-    radius = max(1, math.ceil(3 * sigma))
-    x = torch.arange(-radius, radius + 1, dtype=torch.float32)
-    g = torch.exp(-0.5 * (x / sigma) ** 2)
-    g = g / g.sum()
-    c = stack.shape[0]
-    img = F.pad(stack.float()[None], (radius, radius, radius, radius), mode="replicate")
-    img = F.conv2d(img, g.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
-    return F.conv2d(img, g.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)[0]
+    c2w = camera.camera_to_worlds[:1].detach().float().cpu()
+    return framed_camera(base[:1], Framing(1.0, 1.0, 0.0, 0.0), int(base.height[0]), int(base.width[0]), c2w)
 
 
 def warp_to_picture(
@@ -210,7 +191,10 @@ def warp_to_picture(
     pixels the base frame covers."""
     h0, w0 = stack.shape[-2:]
     s = min(framing.sx, framing.sy)
-    img = (blurred(stack, 0.5 * math.sqrt(1 / (s * s) - 1)) if s < 1 else stack.float())[None]
+    img = stack.float()
+    if s < 1:
+        img = smoothed(img.permute(1, 2, 0), 0.5 * math.sqrt(1 / (s * s) - 1)).permute(2, 0, 1)
+    img = img[None]
     v, u = torch.meshgrid(
         torch.arange(height, dtype=torch.float32), torch.arange(width, dtype=torch.float32), indexing="ij"
     )

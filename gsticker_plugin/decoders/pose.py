@@ -21,6 +21,7 @@ from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
 from gsticker_plugin.attacks.geometric import rotate
+from gsticker_plugin.cameras import same_aspect
 from gsticker_plugin.decoders import viewbank as VB
 from gsticker_plugin.decoders.geometric import render_rays
 from gsticker_plugin.errors import GStickerError
@@ -513,7 +514,7 @@ def estimate_camera(
     h, w = int(image.shape[0]), int(image.shape[1])
     train = reference.pipeline.datamanager.train_dataset.cameras
     w0, h0 = float(train.width[0]), float(train.height[0])
-    if abs(w0 / h0 - w / h) > 0.01 * (w0 / h0):
+    if not same_aspect(w, h, w0, h0):
         raise GStickerError(
             f"a {w}x{h} image for a base whose cameras are {int(w0)}x{int(h0)} px (another aspect ratio): "
             "crop or pad it back to the base's frame, or pass --cameras"

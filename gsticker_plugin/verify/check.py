@@ -12,7 +12,7 @@ from typing import Callable, Dict, List, Optional, Tuple
 import torch
 
 from gsticker_plugin.attacks import parse_attack_spec
-from gsticker_plugin.cameras import read_cameras_file
+from gsticker_plugin.cameras import read_cameras_file, same_aspect
 from gsticker_plugin.decoders import fieldimage as field_images
 from gsticker_plugin.decoders import fieldmark as field_decoder
 from gsticker_plugin.decoders.blind import decode_views
@@ -319,7 +319,7 @@ def same_aspect_views(views: Views, cameras) -> Views:
     out = Views(kind=views.kind, source=views.source, skipped=list(views.skipped), details=dict(views.details))
     for v in views.views:
         h, w = v.image.shape[-2:]
-        if abs(w0 / h0 - w / h) > 0.01 * (w0 / h0):
+        if not same_aspect(w, h, w0, h0):
             out.skipped.append(
                 {
                     "name": v.name,
