@@ -9,6 +9,8 @@
 6. ``ns-verify-owner``: verdicts on the shared, recolored and unwatermarked models (exit 0 owned, 1 not shown)
    with the informed geometric decoder (reads the message from the model's geometry against the owner's base run);
    ``--blind`` adds the blind extractor (its empirical null, its bits and verdicts on RGB renders).
+7. ``ns-verify-owner --images``: stock ``ns-render`` pictures of the palette-recolored run, found without cameras
+   (one of them cropped to 16:9), and the base's pictures framed the same way: the paper's scenario.
 
 Each stage is skipped when its output already exists, so an interrupted demo resumes where it stopped.
 """
@@ -52,6 +54,9 @@ class DemoConfig:
     """Views rendered per model by ns-verify-owner (blind extractor)."""
     geometry_views: int = 6
     """Views per model for the informed geometric decoder (each renders the suspect and the owner's base)."""
+    picture_views: int = 3
+    """Test views rendered by ``ns-render`` as pictures (the last one also cropped to 16:9) and read without cameras;
+    0 skips the pictures stage."""
     pool_views: int = 24
     """--blind: training and as many novel cameras in the sticker stage's cached pool (its default is 48 + 48)."""
     blind: bool = False
@@ -72,7 +77,7 @@ def main(cfg: DemoConfig) -> None:
     scene = out / "scene"
     t_start = time.time()
 
-    print("[1/6] Rendering the embedded scene", flush=True)
+    print("[1/7] Rendering the embedded scene", flush=True)
     if not (scene / "transforms_train.json").exists():
         _run(
             [
@@ -93,7 +98,7 @@ def main(cfg: DemoConfig) -> None:
     else:
         print("    (exists)")
 
-    print("[2/6] Training the small nerfacto base", flush=True)
+    print("[2/7] Training the small nerfacto base", flush=True)
     base_run = out / "demo" / "gsticker-nerfacto-small" / "base"
     if not list((base_run / "nerfstudio_models").glob("step-*.ckpt")):
         _run(
@@ -123,10 +128,10 @@ def main(cfg: DemoConfig) -> None:
         print("    (exists)")
     base_ckpt = latest_checkpoint(base_run / "nerfstudio_models")
 
-    print("[3/6] Writing the owner message into the geometry: the shared run", flush=True)
+    print("[3/7] Writing the owner message into the geometry: the shared run", flush=True)
     key_path = out / "owner-keys" / "demo.gskey"  # the secret half: outside the run's output folder
     wm_run = mark_base(cfg, out, base_ckpt, key_path, logs)
-    print("[4/6] Rendering test views of the shared run and of the base: what the mark costs (PSNR)", flush=True)
+    print("[4/7] Rendering test views of the shared run and of the base: what the mark costs (PSNR)", flush=True)
     key = OwnerKey.load(key_path)
     pipe = load_pipeline(wm_run / "config.yml")
     marked = render_split(pipe, "test", cfg.test_views, sticker=True)
@@ -153,7 +158,7 @@ def main(cfg: DemoConfig) -> None:
     for k, v in summary.items():
         print(f"    {k}: {v:.4f}" if isinstance(v, float) else f"    {k}: {v}")
 
-    print("[5/6] Recoloring the watermarked model (palette edit, hue shift)", flush=True)
+    print("[5/7] Recoloring the watermarked model (palette edit, hue shift)", flush=True)
     recolored = {}
     for name, args in (
         ("palette", ["palette", "--set", "0=dodger blue", "1=magenta"]),
@@ -163,7 +168,7 @@ def main(cfg: DemoConfig) -> None:
         recolor_into(args, wm_run / "config.yml", dest, logs / f"recolor-{name}.log", what="demo step")
         recolored[name] = config_under(dest)
 
-    print("[6/6] ns-verify-owner: verdicts", flush=True)
+    print("[6/7] ns-verify-owner: verdicts", flush=True)
     null_done = out / "verify" / "calibrated"
     if cfg.blind and not null_done.exists():  # the blind extractor's empirical null
         _run(
@@ -206,6 +211,12 @@ def main(cfg: DemoConfig) -> None:
     for name, by_decoder in blind.items():
         verdicts.setdefault(name, {}).update(by_decoder)
     summary["verdicts"] = verdicts
+    print("[7/7] ns-verify-owner --images: ns-render pictures, no cameras (one cropped to 16:9)", flush=True)
+    if cfg.picture_views > 0 and not cfg.blind:
+        pictures = {"palette-recolored": recolored["palette"], "unwatermarked base": base_run / "config.yml"}
+        summary["picture_verdicts"] = pictures_stage(out / "pictures", logs, key_path, pictures, cfg.picture_views)
+    else:
+        print("    (skipped: --picture-views 0, or --blind)")
     summary["seconds"] = round(time.time() - t_start, 1)  # this run's stages (a rerun skips finished ones)
     (out / "demo_summary.json").write_text(json.dumps(summary, indent=2))
 
@@ -218,9 +229,9 @@ def main(cfg: DemoConfig) -> None:
     print(f"  verdict reports:     {out / 'verify'}/*/report.json, report.png")
     print(f"  summary:             {out / 'demo_summary.json'}")
     print(
-        "\nNote: the decoders are informed: they need the owner's unwatermarked base run. Pictures of the shared run\n"
-        "are read too: ns-verify-owner --images DIR --key KEY (docs/verify.md). The blind extractor (no base) does not\n"
-        "learn the 48-bit message on a CPU budget; --blind adds its honest 'not shown' verdicts to this demo."
+        "\nNote: the decoders are informed: they need the owner's unwatermarked base run (docs/verify.md). The blind\n"
+        "extractor (no base) does not learn the 48-bit message on a CPU budget; --blind adds its honest 'not shown'\n"
+        "verdicts to this demo."
     )
 
 
@@ -290,6 +301,52 @@ def verify_stage(
                 "report": str(report_dir / "report.json"),
                 "figure": str(report_dir / "report.png"),
             }
+    return verdicts
+
+
+def pictures_stage(
+    out: Path, logs: Path, key_path: Path, suspects: Dict[str, Path], views: int
+) -> Dict[str, Dict[str, Any]]:
+    """Per suspect run: stock ``ns-render dataset --split test`` PNGs of its first ``views`` test views, the last one
+    also cropped to 16:9 (another aspect ratio and size), then ``ns-verify-owner --images`` on that folder with no
+    camera file; returns {suspect: {verdict, matches and seconds per picture, report}} and prints one line a suspect."""
+    from PIL import Image
+
+    verdicts: Dict[str, Dict[str, Any]] = {}
+    for name, config in suspects.items():
+        slug = name.replace(" ", "-")
+        folder, report_dir = out / slug, out / f"{slug}-report"
+        if not (folder / "crop-16x9.png").is_file():
+            rendered = out / f"{slug}-render"
+            _run(
+                [console_script("ns-render"), "dataset", "--load-config", str(config), "--split", "test"]
+                + ["--output-path", str(rendered), "--rendered-output-names", "rgb", "--image-format", "png"],
+                logs / f"render-{slug}.log",
+            )
+            folder.mkdir(parents=True, exist_ok=True)
+            chosen = sorted((rendered / "test" / "rgb").glob("*.png"))[:views]
+            for png in chosen:
+                (folder / png.name).write_bytes(png.read_bytes())
+            picture = Image.open(chosen[-1]).convert("RGB")
+            w, h = picture.size
+            ch = round(w * 9 / 16)
+            picture.crop((0, (h - ch) // 2, w, (h - ch) // 2 + ch)).save(folder / "crop-16x9.png")
+        code = _run(
+            [console_script("ns-verify-owner"), "--images", str(folder), "--key", str(key_path)]
+            + ["--output", str(report_dir), "--no-progress"],
+            logs / f"verify-pictures-{slug}.log",
+            ok=(0, 1),
+        )
+        report = json.loads((report_dir / "report.json").read_text())
+        verdict = "owned" if code == 0 else "not shown"
+        if report["verdict"] != verdict:
+            raise SystemExit(f"demo: {report_dir / 'report.json'} disagrees with the exit status {code}")
+        per_view = report["keys"][0]["per_view"]
+        matches = {v["name"]: v["matches"] for v in per_view}
+        seconds = [v["image_fit"]["seconds"] for v in per_view if "seconds" in v.get("image_fit", {})]
+        shown = ", ".join(f"{n} {m}/48" for n, m in matches.items())
+        print(f"    {name:>20} [image, {len(matches)} pictures, no cameras]: {verdict.upper()} ({shown})", flush=True)
+        verdicts[name] = {"verdict": verdict, "matches": matches, "seconds": seconds, "report": str(report_dir)}
     return verdicts
 
 

@@ -19,6 +19,7 @@ docs/experiments/verify-notes.md).
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
@@ -48,6 +49,7 @@ from gsticker_plugin.decoders.pose import (
     estimate_camera,
     moved_camera,
     pose_columns,
+    render_at,
     render_cameras,
     search_renders,
 )
@@ -85,11 +87,16 @@ def read_at_camera(
 ) -> Tuple[Dict[str, Any], Any, int]:
     """Fit the message and the camera's error (``free``: its pose, or with :data:`gsticker_plugin.decoders.pose.FRAMED`
     its zoom and principal point too) together for up to ``rounds`` rounds, each from the camera the previous fit's
-    step moved; returns the fit that left the least, its camera and its round (1-based)."""
+    step moved; returns the fit that left the least, its camera and its round (1-based). The mark's Jacobian and the
+    camera's columns are those of the first camera (the steps are fractions of a pixel); each later round renders the
+    base again at its camera."""
+    model = reference.model
     best: Optional[Tuple[float, Dict[str, Any], Any, int]] = None
+    view = FM.image_view(model, camera, reference.patterns)
+    cols = pose_columns(model, camera, view.rays, False, free=free, base=view.base_rgb) if rounds > 1 else None
     for r in range(rounds):
-        view = FM.image_view(reference.model, camera, reference.patterns)
-        cols = pose_columns(reference.model, camera, view.rays, False, free=free) if rounds > 1 else None
+        if r > 0:
+            view = replace(view, base_rgb=render_at(model, camera, view.rays))
         d = decode_image_view(view, image_at_rays(image, view.rays, view.hw), reference.amplitude, generator, cols)
         step = torch.tensor(d.pop("column_step", [0.0] * free))[:free]
         if best is None or left_after(d) < best[0]:
@@ -137,19 +144,21 @@ def read_framed(
     base = reference.pipeline.datamanager.train_dataset.cameras[:1]
     ph, pw = int(picture.shape[0]), int(picture.shape[1])
     dist = camera_distance(camera)
+    at = base_frame(camera, base)
+    view = FM.image_view(model, at, reference.patterns)
+    h0, w0 = view.hw
+    k = view.jacobian.shape[-1]
+    jac = torch.zeros(h0 * w0, 3, k)
+    jac[view.rays] = view.jacobian.float()
+    render = render_cameras(model, at)["rgb"][0]
+    pose = pose_columns(model, at, torch.arange(h0 * w0), False, eps, base=render.reshape(-1, 3))  # rows r * 3 + c
+    fixed = torch.cat([jac.reshape(h0, w0, 3 * k), pose.reshape(h0, w0, 3 * POSE)], dim=-1).permute(2, 0, 1)
     best: Optional[Tuple[float, Dict[str, Any], Cameras, int]] = None
     for r in range(rounds):
-        at = base_frame(camera, base)
+        if r > 0:  # the Jacobians of the first camera (the steps are fractions of a pixel), the base rendered again
+            render = render_cameras(model, base_frame(camera, base))["rgb"][0]
         framing = framing_of(camera, base)
-        view = FM.image_view(model, at, reference.patterns)
-        h0, w0 = view.hw
-        k = view.jacobian.shape[-1]
-        render = render_cameras(model, at)["rgb"][0]
-        jac = torch.zeros(h0 * w0, 3, k)
-        jac[view.rays] = view.jacobian.float()
-        pose = pose_columns(model, at, torch.arange(h0 * w0), False, eps)  # rows r * 3 + c
-        columns = [render, jac.reshape(h0, w0, 3 * k), pose.reshape(h0, w0, 3 * POSE)]
-        warped, inside = warp_to_picture(torch.cat(columns, dim=-1).permute(2, 0, 1), framing, ph, pw)
+        warped, inside = warp_to_picture(torch.cat([render.permute(2, 0, 1), fixed]), framing, ph, pw)
         rows = torch.nonzero(inside.reshape(-1)).reshape(-1)
         flat = warped.reshape(warped.shape[0], -1)[:, rows].T  # [R C]
         framed = FM.ImageView(rows, flat[:, :3], flat[:, 3 : 3 + 3 * k].reshape(-1, 3, k), (ph, pw))

@@ -329,6 +329,7 @@ def warp_refine(
     robust: bool = True,
     trim: float = 1.0,
     free: int = POSE,
+    render_blur: float = 0.0,
 ) -> Tuple[Cameras, float, int]:
     """Gauss-Newton over the ``free`` parameters of ``camera`` (:func:`lk_refine`; sized like ``target``) with the
     base render held fixed:
@@ -336,7 +337,8 @@ def warp_refine(
     ``target``, which is sampled there; the residual ``target(pi(T P)) - render(p)`` and its Jacobian
     ``grad target * d pi / d pose`` need no render, so a step costs a projection and a bilinear sample. The base is
     rendered again at the pose reached, ``renders`` times in all (occlusions and the view-dependent colour change with
-    the pose). Image and render are blurred by ``sigma`` px. Returns the camera, the last residual's RMS (over the
+    the pose). Image and render are blurred by ``sigma`` px, the render by ``render_blur`` px more (:func:`lk_refine`).
+    Returns the camera, the last residual's RMS (over the
     ``trim`` share of pixels with the smallest residuals) and the iterations taken.
 
     Examples:
@@ -351,7 +353,7 @@ def warp_refine(
 
     for _ in range(max(1, renders)):
         out = render_cameras(model, cur, ("rgb", "expected_depth", "accumulation"))
-        ref = smoothed(channel_of(out["rgb"][0], value).double(), sigma).reshape(-1, c)
+        ref = smoothed(channel_of(out["rgb"][0], value).double(), math.hypot(sigma, render_blur)).reshape(-1, c)
         pixels = projection(cur, surface_points(cur, out["expected_depth"][0], out["accumulation"][0]))
 
         def residual(delta: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
@@ -484,19 +486,21 @@ class PoseSearch:
     """Stages blurred by at least twice this many px run at half the image's size."""
     extend: int = 8
     """An accepted Gauss-Newton step is tried at up to this many times its length (:func:`lk_refine`)."""
-    refine: Literal["render", "warp", "mixed"] = "render"
-    """How a stage steps: ``render`` (:func:`lk_refine`, a render per step; the default), ``warp``
-    (:func:`warp_refine`, the image warped onto a held render, ``warp_renders`` renders per stage) or ``mixed``
-    (``warp`` for every stage but the finest, which renders per step: the picture's bilinear resampling is not a render
-    at the moved camera). ``warp`` and ``mixed`` halve the renders of lego100 pictures but miss the tests' 32 px
-    pictures of a 100-step base, whose depth they trust (docs/experiments/verify-notes.md)."""
+    refine: Literal["auto", "render", "warp", "mixed"] = "auto"
+    """How a stage steps: ``render`` (:func:`lk_refine`, a render per step), ``warp`` (:func:`warp_refine`, the image
+    warped onto a held render, ``warp_renders`` renders per stage), ``mixed`` (``warp`` for every stage but the
+    finest, which renders per step) or ``auto`` (the default: ``warp`` for pictures of more than ``warp_pixels``
+    pixels, ``render`` for smaller ones, where a render is cheap and the warp samples few pixels through a depth that
+    a half-transparent base does not give). docs/experiments/bench-pose-refine.md measures them."""
+    warp_pixels: int = 64 * 64
+    """``auto``: pictures of at most this many pixels are refined with a render per step."""
     warp_renders: int = 2
     """Renders per warped stage (``refine`` ``warp`` or ``mixed``)."""
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.refine not in ("render", "warp", "mixed"):
-            raise ValueError(f"PoseSearch.refine must be render, warp or mixed, got {self.refine!r}")
+        if self.refine not in ("auto", "render", "warp", "mixed"):
+            raise ValueError(f"PoseSearch.refine must be auto, render, warp or mixed, got {self.refine!r}")
 
 
 def estimate_camera(
@@ -554,6 +558,9 @@ def refine_starts(
     ``image``): the first stage for each (RMS over :attr:`PoseSearch.trim` of the pixels), then every stage for the one
     that explains the image best; ``free``: the parameters moved, ``render_blur``: px the image was blurred after
     rendering (:func:`refine_stage`). Returns its candidate, camera, RMS, the iterations taken and the stages' history."""
+    if search.refine == "auto":
+        large = int(image.shape[0]) * int(image.shape[1]) > search.warp_pixels
+        search = replace(search, refine="warp" if large else "render")
     history: List[Dict[str, Any]] = []
     first = []
     for b, start in starts:
@@ -598,8 +605,9 @@ def refine_stage(
     trim: float = 1.0,
     free: int = POSE,
 ) -> Tuple[Cameras, float, int]:
-    """One coarse-to-fine stage of :func:`estimate_camera`: :func:`lk_refine` of ``camera`` against ``image`` (V with
-    ``value``) at ``blur`` px per 100 px of its larger side; stages blurred by at least twice
+    """One coarse-to-fine stage of :func:`estimate_camera`: :func:`lk_refine` (or :func:`warp_refine` where
+    ``search.refine`` says so; ``auto``, resolved by :func:`refine_starts`, steps as ``render`` here) of ``camera``
+    against ``image`` (V with ``value``) at ``blur`` px per 100 px of its larger side; stages blurred by at least twice
     :attr:`PoseSearch.half_size_blur` run at half size; ``render_blur``: px (at the image's size) the image was
     blurred after rendering; ``trim``: the RMS's share of pixels and ``free`` the parameters moved
     (:func:`lk_refine`). Returns the camera at the image's size, the RMS and the iterations taken."""
@@ -609,17 +617,11 @@ def refine_stage(
     f = 2 if sigma >= 2 * search.half_size_blur else 1
     lh, lw = max(1, h // f), max(1, w // f)
     target = channel_of(image.float() if f == 1 else area_resize(image, lh, lw), value)
-    if search.refine in ("warp", "mixed") and render_blur == 0.0:
+    if search.refine in ("warp", "mixed"):
+        start = scaled_camera(camera, lh, lw)
+        sig, rb = sigma / f, render_blur / f
         cam, rms, n_it = warp_refine(
-            model,
-            scaled_camera(camera, lh, lw),
-            target,
-            value,
-            iterations,
-            sigma / f,
-            search.warp_renders,
-            trim=trim,
-            free=free,
+            model, start, target, value, iterations, sig, search.warp_renders, trim=trim, free=free, render_blur=rb
         )
         return scaled_camera(cam, h, w), rms, n_it
     cam, rms, n_it = lk_refine(
@@ -693,18 +695,24 @@ def pose_columns(
     value: bool,
     eps: float = 3.5e-4,
     free: int = POSE,
+    base: Optional[Float[Tensor, "R 3"]] = None,
 ) -> Float[Tensor, "M free"]:
     """d (base render at ``rays``) / d (pose, and with ``free`` = :data:`FRAMED` zoom and principal point, as
-    :func:`moved_camera`) by central differences (rows ``r * 3 + c``, or one V row per ray with ``value``): what the
+    :func:`moved_camera`) by finite differences (rows ``r * 3 + c``, or one V row per ray with ``value``): what the
     image decoder fits beside the message for a camera this module estimated. Steps: ``eps`` for the pose and the log
-    zoom, :data:`PRINCIPAL_STEP` px for the principal point."""
+    zoom, :data:`PRINCIPAL_STEP` px for the principal point. Central differences (two renders a column), or forward
+    ones from ``base`` (the base's RGB at ``rays`` and ``camera``, already rendered: one render a column)."""
     dist = camera_distance(camera)
+    at = None if base is None else channel_of(base.float().cpu(), value)
 
     cols = []
     for k in range(free):
         e = torch.zeros(free)
         e[k] = PRINCIPAL_STEP if k >= 7 else eps
         plus = channel_of(render_at(model, moved_camera(camera, e, dist), rays), value)
+        if at is not None:
+            cols.append(((plus - at) / float(e[k])).reshape(-1))
+            continue
         minus = channel_of(render_at(model, moved_camera(camera, -e, dist), rays), value)
         cols.append(((plus - minus) / (2 * float(e[k]))).reshape(-1))
     return torch.stack(cols, dim=1)
