@@ -38,7 +38,7 @@ class VerifyConfig:
     """geometry: informed decoding from the suspect model's accumulation/depth, given the owner's unwatermarked base
     run (needs a version-2 key and --load-config; model-level only); image: informed decoding of --images, given the
     owner's base run (the same fit on colour), at the cameras of --cameras or, without it, at cameras found by a
-    search against the base (about a minute per image on a CPU); extractor: the key's CNN reads the message from RGB
+    search against the base (about 20 s a 100 px image on a CPU); extractor: the key's CNN reads the message from RGB
     renders or images (blind); auto: geometry for a model and image for images when the keys' base runs are
     reachable, else extractor."""
     cameras: Optional[Path] = None
