@@ -302,6 +302,8 @@ def decode_unposed_images(
     better than the render is read through that JPEG, by its luma (:func:`coded_reading`). Returns the decoders' shared result, with per image the
     found camera (``c2w``), the pose fit's RMS, the degradation read through and seconds in ``image``."""
     search = search or PoseSearch()
+    if search.refine == "auto":  # the sticker keys' readings were built and measured rendering per step
+        search = dataclasses.replace(search, refine="render")
     st = cpu_sticker(reference.model)
     background = reference.model.background_color()
     gen = tie_generator(seed)
