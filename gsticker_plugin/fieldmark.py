@@ -169,7 +169,7 @@ class FieldView:
 
 def capture_samples(model, camera) -> Tuple[Dict[str, Tensor], Dict[str, Tensor]]:
     """Render ``camera`` with a nerfacto model, recording its final field's samples: encoder-space positions, density,
-    deltas and distances. Returns (outputs, samples)."""
+    colour (``rgb``), deltas and distances. Returns (outputs, samples)."""
     field = model.field
     encoder, _ = parts(field)
     rec: Dict[str, List[Tensor]] = {}
@@ -181,6 +181,7 @@ def capture_samples(model, camera) -> Tuple[Dict[str, Tensor], Dict[str, Tensor]
         rec.setdefault("deltas", []).append(ray_samples.deltas.detach())
         rec.setdefault("steps", []).append(((fr.starts + fr.ends) / 2).detach())
         rec.setdefault("density", []).append(out[FieldHeadNames.DENSITY].detach())
+        rec.setdefault("rgb", []).append(out[FieldHeadNames.RGB].detach())
         return out
 
     hook = encoder.register_forward_pre_hook(lambda m, inp: rec.setdefault("positions", []).append(inp[0].detach()))

@@ -240,6 +240,43 @@ def test_a_picture_of_the_marked_field_at_its_camera_decodes_to_the_message_and_
     assert dec["image"][1]["explained"] < 0.05 and dec["matches"].tolist()[1] < 8
 
 
+def test_a_picture_of_a_recoloured_copy_is_read_through_a_colour_map_of_the_base_samples(monkeypatch):
+    """A copy whose every sample colour was changed (channels rotated and darkened, as a recolour edits the run):
+    at its camera the picture is read through the colour map fitted from the base (the map explains nearly all of
+    its difference from the base render) and gives the message; without the map the same fit explains little of the
+    picture (0.01 against 0.74 here)."""
+    from types import SimpleNamespace
+
+    from nerfstudio.cameras.cameras import Cameras
+
+    from gsticker_plugin.decoders.fieldimage import decode_images, read_at_camera, recolouring_at
+    from gsticker_plugin.decoders.fit import tie_generator
+    from gsticker_plugin.recolor.model import ColorWrap
+
+    model = tiny_nerfacto(monkeypatch)
+    enc, _ = FM.parts(model.field)
+    c2w = torch.tensor([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2.5]]])
+    cam = Cameras(camera_to_worlds=c2w, fx=20.0, fy=20.0, cx=12.0, cy=12.0, width=24, height=24)
+    pats = FM.patterns(enc.hash_table.shape, enc.hash_table_size, [0, 1], 8, seed=3)
+    message = torch.tensor([0, 1, 1, 0, 1, 0, 0, 1])
+    key = SimpleNamespace(message=message, num_bits=8)
+    ref = SimpleNamespace(model=model, patterns=pats, amplitude=0.3)
+    with torch.no_grad():
+        table = enc.hash_table.data.clone()
+        enc.hash_table.data = FM.marked_table(table, pats, FM.signs_of(message), 0.3)
+        wrap = ColorWrap(model.field, lambda c: 0.8 * c[..., [1, 2, 0]] + 0.1)
+        recoloured = model.get_outputs_for_camera(cam)["rgb"]
+        wrap.remove()
+        enc.hash_table.data = table
+    picture = (recoloured * 255).round() / 255
+    rec = recolouring_at(model, picture, cam)
+    assert rec is not None and rec.reads and rec.share > 0.95
+    dec = decode_images(key, ref, [picture], seed=0, cameras=[cam])
+    assert dec["image"][0]["color_map"] and dec["matches"].tolist() == [8]
+    plain, _, _ = read_at_camera(ref, picture, cam, tie_generator(0), 2)
+    assert plain["explained"] < 0.5 * dec["image"][0]["explained"]
+
+
 def tiny_planes():
     from nerfstudio.field_components.encodings import TensorVMEncoding
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass
-from typing import Iterator
+from typing import Iterator, Tuple
 
 import torch
 from jaxtyping import Float
@@ -20,6 +20,16 @@ from torch import Tensor
 
 from gsticker_plugin.recolor.model import ColorWrap, color_fields
 from gsticker_plugin.recolor.palette import extract_palette, palette_weights, rgb_to_lab
+
+COLOR_MAP_MARGIN = 0.25
+"""An image is read through a colour map when the map leaves at most this share of the squared difference between
+the image and the base render at the rays (a recolouring moves whole materials; the mark and a small pose error it
+cannot map)."""
+
+MAP_SEARCH_SHARE = 0.15
+"""The camera search goes on through a colour map of the base's samples when that map explains at least this share
+of the image's difference from the base render at the camera found on V (a recolouring moves V too: the search on
+V stops a few tenths of a degree off, where a pose error leaves the map little to explain)."""
 
 
 @dataclass
@@ -101,6 +111,20 @@ def fit_color_map(
     lam = ridge * float(torch.diagonal(a).mean()) + 1e-12
     theta = torch.linalg.solve(a + lam * torch.eye(a.shape[0], dtype=a.dtype), x.T @ change.double())
     return ColorMap(centres_lab, softness, theta.reshape(centres_lab.shape[0], 4, 3))
+
+
+def fit_to_change(
+    sample_rgb: Float[Tensor, "R S 3"],
+    sample_weights: Float[Tensor, "R S 1"],
+    change: Float[Tensor, "R 3"],
+    centres_lab: Float[Tensor, "K 3"],
+) -> Tuple[ColorMap, float, float]:
+    """:func:`fit_color_map`, with the mean squared ``change`` (per channel) before the map and what the map leaves of
+    it."""
+    before = float((change.double() ** 2).mean())
+    cmap = fit_color_map(sample_rgb, sample_weights, change, centres_lab)
+    fitted = (sample_weights.double() * (cmap(sample_rgb.double()) - sample_rgb.double())).sum(dim=1)
+    return cmap, before, float(((change.double() - fitted) ** 2).mean())
 
 
 @contextlib.contextmanager

@@ -18,8 +18,9 @@ docs/experiments/verify-notes.md).
 
 from __future__ import annotations
 
+import contextlib
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
@@ -30,6 +31,15 @@ from torch import Tensor
 
 from gsticker_plugin import fieldmark as FM
 from gsticker_plugin.cameras import same_aspect
+from gsticker_plugin.decoders.colormap import (
+    COLOR_MAP_MARGIN,
+    MAP_SEARCH_SHARE,
+    ColorMap,
+    fit_to_change,
+    map_columns,
+    mapped_colors,
+    scene_clusters,
+)
 from gsticker_plugin.decoders.fit import fit_and_decide, fit_summary, left_after, tie_generator
 from gsticker_plugin.decoders.framed import (
     base_frame,
@@ -49,12 +59,14 @@ from gsticker_plugin.decoders.pose import (
     estimate_camera,
     moved_camera,
     pose_columns,
+    refine_stage,
     render_at,
     render_cameras,
     search_renders,
 )
 from gsticker_plugin.decoders.result import Decoded, decoded
 from gsticker_plugin.errors import GStickerError
+from gsticker_plugin.sticker import render_weights
 from gsticker_plugin.views import progress_bar
 
 
@@ -82,28 +94,96 @@ def decode_image_view(
     return out
 
 
+@dataclass
+class Recolouring:
+    """A colour map of the base's sample colours fitted to a picture at one camera (:func:`recolouring_at`)."""
+
+    cmap: ColorMap
+    share: float
+    """Of the picture's squared difference from the base render, the share the map explains."""
+    sample_rgb: Float[Tensor, "P S 3"]
+    """The base's sample colours at every pixel of the camera."""
+    weights: Float[Tensor, "P S 1"]
+    """Their render weights."""
+
+    @property
+    def reads(self) -> bool:
+        """Whether the picture is read through the map: it leaves at most :data:`COLOR_MAP_MARGIN` of the difference
+        (a recolouring moves whole materials; the mark and a small pose error it cannot map)."""
+        return self.share >= 1.0 - COLOR_MAP_MARGIN
+
+    def columns(self, rays: Tensor) -> Float[Tensor, "M P"]:
+        """d (render through the map at the flat pixels ``rays``) / d map: rows ``r * 3 + c``."""
+        return map_columns(self.sample_rgb[rays], self.weights[rays], self.cmap).float()
+
+
+def recolouring_at(model, image: Float[Tensor, "H W 3"], camera) -> Optional[Recolouring]:
+    """The colour map of the base's samples (:func:`gsticker_plugin.decoders.colormap.fit_color_map`, clusters of the
+    base render's colours) that best turns the base render at ``camera`` (sized like ``image``) into ``image``; None
+    when the image is the render. The fit sees the image and the base only."""
+    outputs, smp = FM.capture_samples(model, camera)
+    render = outputs["rgb"].reshape(-1, 3).float().cpu()
+    change = image.reshape(-1, 3).double() - render.double()
+    if float((change**2).mean()) <= 0:
+        return None
+    rgb = smp["rgb"].cpu()
+    weights = render_weights(smp["density"], smp["deltas"]).cpu()
+    cmap, before, after = fit_to_change(rgb, weights, change, scene_clusters(render))
+    return Recolouring(cmap, 1.0 - after / before, rgb, weights)
+
+
+def recoloured_camera(
+    model, image: Float[Tensor, "H W 3"], camera, search: PoseSearch, recolouring: Recolouring
+) -> Tuple[Any, Optional[Recolouring]]:
+    """``camera`` (found on V, which a recolouring moves too) refined again in RGB against the base rendered with its
+    sample colours through ``recolouring``'s map (fitted at ``camera``), the map fitted again before every stage after
+    the first of ``search``'s finer stages. Returns the camera and the map fitted there."""
+    search = search.for_size(int(image.shape[0]), int(image.shape[1]))
+    rec: Optional[Recolouring] = recolouring
+    for k, (blur, its) in enumerate(zip(search.blurs[1:], search.iterations[1:])):
+        if k > 0:
+            rec = recolouring_at(model, image, camera)
+        if rec is None:
+            break
+        with mapped_colors(model, rec.cmap):
+            camera, _, _ = refine_stage(model, image, camera, False, search, blur, its)
+    return camera, recolouring_at(model, image, camera)
+
+
 def read_at_camera(
-    reference, image: Float[Tensor, "H W 3"], camera, generator: torch.Generator, rounds: int, free: int = POSE
+    reference,
+    image: Float[Tensor, "H W 3"],
+    camera,
+    generator: torch.Generator,
+    rounds: int,
+    free: int = POSE,
+    recolouring: Optional[Recolouring] = None,
 ) -> Tuple[Dict[str, Any], Any, int]:
     """Fit the message and the camera's error (``free``: its pose, or with :data:`gsticker_plugin.decoders.pose.FRAMED`
     its zoom and principal point too) together for up to ``rounds`` rounds, each from the camera the previous fit's
     step moved; returns the fit that left the least, its camera and its round (1-based). The mark's Jacobian and the
     camera's columns are those of the first camera (the steps are fractions of a pixel); each later round renders the
-    base again at its camera."""
+    base again at its camera. ``recolouring`` (fitted at ``camera``): the base is rendered with its sample colours
+    through that map, and the map's own error is fitted beside the message too."""
     model = reference.model
+    tint = mapped_colors(model, recolouring.cmap) if recolouring is not None else contextlib.nullcontext()
     best: Optional[Tuple[float, Dict[str, Any], Any, int]] = None
-    view = FM.image_view(model, camera, reference.patterns)
-    cols = pose_columns(model, camera, view.rays, False, free=free, base=view.base_rgb) if rounds > 1 else None
-    for r in range(rounds):
-        if r > 0:
-            view = replace(view, base_rgb=render_at(model, camera, view.rays))
-        d = decode_image_view(view, image_at_rays(image, view.rays, view.hw), reference.amplitude, generator, cols)
-        step = torch.tensor(d.pop("column_step", [0.0] * free))[:free]
-        if best is None or left_after(d) < best[0]:
-            best = (left_after(d), d, camera, r + 1)
-        if r + 1 == rounds or float(step.abs().max()) <= 1e-7:
-            break
-        camera = moved_camera(camera, step, camera_distance(camera))
+    with tint:
+        view = FM.image_view(model, camera, reference.patterns)
+        cols = pose_columns(model, camera, view.rays, False, free=free, base=view.base_rgb) if rounds > 1 else None
+        if recolouring is not None:
+            mapped = recolouring.columns(view.rays)
+            cols = mapped if cols is None else torch.cat([cols, mapped], dim=1)
+        for r in range(rounds):
+            if r > 0:
+                view = replace(view, base_rgb=render_at(model, camera, view.rays))
+            d = decode_image_view(view, image_at_rays(image, view.rays, view.hw), reference.amplitude, generator, cols)
+            step = torch.tensor(d.pop("column_step", [0.0] * free))[:free]
+            if best is None or left_after(d) < best[0]:
+                best = (left_after(d), d, camera, r + 1)
+            if r + 1 == rounds or float(step.abs().max()) <= 1e-7:
+                break
+            camera = moved_camera(camera, step, camera_distance(camera))
     assert best is not None
     return best[1], best[2], best[3]
 
@@ -245,7 +325,13 @@ def decode_images(
             camera = pose.camera
             extra.update(camera="estimated", pose_rms=pose.rms, pose_score=pose.score, search_seconds=time.time() - t0)
         if not framed:
-            d, camera, used = read_at_camera(reference, image, camera, gen, rounds)
+            rec = recolouring_at(reference.model, image, camera)
+            if cameras is None and rec is not None and rec.share >= MAP_SEARCH_SHARE:
+                camera, rec = recoloured_camera(reference.model, image, camera, search, rec)
+                extra.update(search_seconds=time.time() - t0)
+            mapped = rec if rec is not None and rec.reads else None
+            d, camera, used = read_at_camera(reference, image, camera, gen, rounds, recolouring=mapped)
+            d.update(color_map=mapped is not None, map_share=rec.share if rec is not None else 0.0)
         d.update(extra, name=name, round=used, c2w=camera.camera_to_worlds[0].tolist(), seconds=time.time() - t0)
         bits.append(d.pop("bits"))
         details.append(d)

@@ -502,6 +502,12 @@ class PoseSearch:
         if self.refine not in ("auto", "render", "warp", "mixed"):
             raise ValueError(f"PoseSearch.refine must be auto, render, warp or mixed, got {self.refine!r}")
 
+    def for_size(self, h: int, w: int) -> "PoseSearch":
+        """This search with ``auto`` resolved for an ``h`` x ``w`` picture (``warp`` above :attr:`warp_pixels`)."""
+        if self.refine != "auto":
+            return self
+        return replace(self, refine="warp" if h * w > self.warp_pixels else "render")
+
 
 def estimate_camera(
     reference,
@@ -558,9 +564,7 @@ def refine_starts(
     ``image``): the first stage for each (RMS over :attr:`PoseSearch.trim` of the pixels), then every stage for the one
     that explains the image best; ``free``: the parameters moved, ``render_blur``: px the image was blurred after
     rendering (:func:`refine_stage`). Returns its candidate, camera, RMS, the iterations taken and the stages' history."""
-    if search.refine == "auto":
-        large = int(image.shape[0]) * int(image.shape[1]) > search.warp_pixels
-        search = replace(search, refine="warp" if large else "render")
+    search = search.for_size(int(image.shape[0]), int(image.shape[1]))
     history: List[Dict[str, Any]] = []
     first = []
     for b, start in starts:

@@ -20,7 +20,15 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from gsticker_plugin.decoders.colormap import ColorMap, fit_color_map, map_columns, mapped_colors, scene_clusters
+from gsticker_plugin.decoders.colormap import (
+    COLOR_MAP_MARGIN,
+    MAP_SEARCH_SHARE,
+    ColorMap,
+    fit_to_change,
+    map_columns,
+    mapped_colors,
+    scene_clusters,
+)
 from gsticker_plugin.decoders.fit import left_after, tie_generator
 from gsticker_plugin.decoders.image import (
     DEGRADATION_GRID,
@@ -53,11 +61,6 @@ from gsticker_plugin.decoders.result import Decoded, decoded
 from gsticker_plugin.sticker import render_weights
 from gsticker_plugin.views import progress_bar
 
-COLOR_MAP_MARGIN = 0.25
-"""An image is read through a colour map when the map leaves at most this share of the squared difference between
-the image and the base render at the rays (a recolouring moves whole materials; the mark and a small pose error it
-cannot map)."""
-
 
 def map_fit(image: Float[Tensor, "H W 3"], ref: ImageReferenceView) -> Tuple[Optional[ColorMap], float, float]:
     """The colour map of the base's samples (:func:`gsticker_plugin.decoders.colormap.fit_color_map`) fitted to the
@@ -67,14 +70,10 @@ def map_fit(image: Float[Tensor, "H W 3"], ref: ImageReferenceView) -> Tuple[Opt
     if v.rays.numel() == 0:
         return None, 0.0, 0.0
     change = image_at_rays(image, v.rays, v.hw).double() - ref.base_rgb.double()
-    before = float((change**2).mean())
-    if before <= 0:
+    if float((change**2).mean()) <= 0:
         return None, 0.0, 0.0
     centres = scene_clusters(v.image.permute(1, 2, 0).reshape(-1, 3))
-    weights = render_weights(v.density, v.deltas)
-    cmap = fit_color_map(v.rgb, weights, change, centres)
-    fitted = (weights.double() * (cmap(v.rgb.double()) - v.rgb.double())).sum(dim=1)
-    return cmap, before, float(((change - fitted) ** 2).mean())
+    return fit_to_change(v.rgb, render_weights(v.density, v.deltas), change, centres)
 
 
 def recolouring(image: Float[Tensor, "H W 3"], ref: ImageReferenceView) -> Optional[ColorMap]:
@@ -100,12 +99,6 @@ def reading(
     y = image_at_rays(image, ref.view.rays, ref.view.hw).double()
     value_left = float(((y.amax(dim=-1) - ref.base_rgb.double().amax(dim=-1)) ** 2).mean())
     return (True, None) if value_left <= after else (False, cmap)
-
-
-MAP_SEARCH_SHARE = 0.15
-"""The camera search goes on through a colour map of the base's samples when that map explains at least this share
-of the image's difference from the base render at the camera found on V (a recolouring moves V too: the search on
-V stops a few tenths of a degree off, where a pose error leaves the map little to explain)."""
 
 
 def recoloured_camera(
