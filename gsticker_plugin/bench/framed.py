@@ -36,6 +36,8 @@ class Args:
     """Test views rendered, framed and read."""
     seed: int = 20261207
     """Decoding seed."""
+    recolored: Tuple[str, ...] = ()
+    """Recolored copies of the shared run read beside it, as ``NAME=CONFIG`` (``ns-recolor``'s config.yml)."""
     output: Path = Path("docs/experiments/bench-framed.md")
     page_only: bool = False
     """Rewrite the page from OUTPUT's JSON (no measuring)."""
@@ -86,6 +88,7 @@ def framings() -> Dict[str, Callable]:
         return f
 
     return {
+        "as rendered": lambda im: im,
         "16:9 crop": crop(16 / 9),
         "9:16 crop": crop(9 / 16),
         "16:9 letterbox": letterbox,
@@ -113,6 +116,11 @@ def measure(args: Args) -> Dict[str, Any]:
         "shared": load_run(config_under(args.shared_dir / "runs"), data=args.data, device=dev)[1].model.eval(),
         "base": ref.model,
     }
+    for entry in args.recolored:
+        name, sep, config = entry.partition("=")
+        if not sep or not Path(config).is_file():
+            raise SystemExit(f"--recolored takes NAME=CONFIG with an existing config.yml, got {entry!r}")
+        models[name] = load_run(Path(config), data=args.data, device=dev)[1].model.eval()
     args.work_dir.mkdir(parents=True, exist_ok=True)
     rows_path = args.work_dir / "rows.jsonl"
     rows = [json.loads(line) for line in rows_path.read_text().splitlines()] if rows_path.is_file() else []
@@ -145,6 +153,7 @@ def measure(args: Args) -> Dict[str, Any]:
                         "size": [int(picture.shape[1]), int(picture.shape[0])],
                         "matches": int(dec["matches"][0]),
                         "read": d.get("read", "render"),
+                        "color_map": d.get("color_map", False),
                         "pose_rms": d["pose_rms"],
                         "seconds": time.time() - t1,
                     }
@@ -152,9 +161,10 @@ def measure(args: Args) -> Dict[str, Any]:
                 with rows_path.open("a") as f:
                     f.write(json.dumps(rows[-1]) + "\n")
                 print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
-    rows = [r for r in rows if r["view"] in args.views]
+    rows = [r for r in rows if r["view"] in args.views and r["model"] in models]
     return {
         "views": list(args.views),
+        "models": list(models),
         "rows": rows,
         "view_bank_seconds": bank_seconds,
         "note": args.note,
@@ -163,6 +173,8 @@ def measure(args: Args) -> Dict[str, Any]:
 
 
 def page(res: Dict[str, Any]) -> str:
+    models = res.get("models", ["shared", "base"])
+    headers = [{"shared": "shared run", "base": "base"}.get(m, f"{m} (recolored)") for m in models]
     lines = command_lines(
         "Pictures framed unlike the base's cameras, read without cameras",
         f"{res['date']}, {res['machine']['cpu']}",
@@ -174,22 +186,23 @@ def page(res: Dict[str, Any]) -> str:
         f"{', '.join(map(str, res['views']))} (the image decoder's development views: development evidence, not the "
         "frozen evaluation), framed as a re-poster would and read with no camera. Read: how the fit that left the "
         "least modelled the picture (`render`: the base rendered at the picture's camera; `framing`: rendered at the "
-        "base's own intrinsics and resized like the picture). OWNED needs 41/48. Seconds: wall clock per picture "
+        "base's own intrinsics and resized like the picture). Recolored: `ns-recolor` copies of the shared run, read "
+        "through a colour map of the base's sample colours where one explains the picture. OWNED needs 41/48. "
+        "Each cell: matches, and wall-clock seconds per picture "
         f"(the view bank, {res['view_bank_seconds']:.0f} s, built beforehand).",
         "",
-        "| view | framing | size | shared run | base | read (shared) | seconds (shared) |",
-        "|---|---|---|---|---|---|---|",
+        "| view | framing | size | " + " | ".join(headers) + " | read (shared) |",
+        "|---|---|---|" + "---|" * (len(headers) + 1),
     ]
     by = {(r["view"], r["framing"], r["model"]): r for r in res["rows"]}
     for (view, name, model), r in by.items():
         if model != "shared":
             continue
-        b = by.get((view, name, "base"))
-        base = f"{b['matches']}/48" if b else "-"
-        lines.append(
-            f"| {view} | {name} | {r['size'][0]}x{r['size'][1]} | {r['matches']}/48 | {base} | {r['read']} | "
-            f"{r['seconds']:.0f} |"
-        )
+        cells = []
+        for m in models:
+            o = by.get((view, name, m))
+            cells.append(f"{o['matches']}/48, {o['seconds']:.0f} s" if o else "-")
+        lines.append(f"| {view} | {name} | {r['size'][0]}x{r['size'][1]} | {' | '.join(cells)} | {r['read']} |")
     lines.append("")
     if res.get("note"):
         lines += [res["note"], ""]

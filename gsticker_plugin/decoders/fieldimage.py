@@ -133,11 +133,12 @@ def recolouring_at(model, image: Float[Tensor, "H W 3"], camera) -> Optional[Rec
 
 
 def recoloured_camera(
-    model, image: Float[Tensor, "H W 3"], camera, search: PoseSearch, recolouring: Recolouring
+    model, image: Float[Tensor, "H W 3"], camera, search: PoseSearch, recolouring: Recolouring, free: int = POSE
 ) -> Tuple[Any, Optional[Recolouring]]:
     """``camera`` (found on V, which a recolouring moves too) refined again in RGB against the base rendered with its
     sample colours through ``recolouring``'s map (fitted at ``camera``), the map fitted again before every stage after
-    the first of ``search``'s finer stages. Returns the camera and the map fitted there."""
+    the first of ``search``'s finer stages (``free``: the camera's parameters moved). Returns the camera and the map
+    fitted there."""
     search = search.for_size(int(image.shape[0]), int(image.shape[1]))
     rec: Optional[Recolouring] = recolouring
     for k, (blur, its) in enumerate(zip(search.blurs[1:], search.iterations[1:])):
@@ -146,7 +147,7 @@ def recoloured_camera(
         if rec is None:
             break
         with mapped_colors(model, rec.cmap):
-            camera, _, _ = refine_stage(model, image, camera, False, search, blur, its)
+            camera, _, _ = refine_stage(model, image, camera, False, search, blur, its, free=free)
     return camera, recolouring_at(model, image, camera)
 
 
@@ -189,16 +190,22 @@ def read_at_camera(
 
 
 def read_picture(
-    reference, picture: Float[Tensor, "H W 3"], camera, generator: torch.Generator, rounds: int = 2
+    reference,
+    picture: Float[Tensor, "H W 3"],
+    camera,
+    generator: torch.Generator,
+    rounds: int = 2,
+    recolouring: Optional[Recolouring] = None,
 ) -> Tuple[Dict[str, Any], Any, int]:
     """Read a framed picture at the ``camera`` :func:`gsticker_plugin.decoders.framed.estimate_framed_camera` found:
-    the base rendered at that camera (:func:`read_at_camera`, zoom and principal point free), and for a resized copy
-    also at the base's own intrinsics carried into the picture by its framing (:func:`read_framed`); the fit that
-    leaves the least is kept (``read``: ``render`` or ``framing``). Neither looks at the message."""
-    d, cam, used = read_at_camera(reference, picture, camera, generator, rounds, free=FRAMED)
+    the base rendered at that camera (:func:`read_at_camera`, zoom and principal point free, through ``recolouring``'s
+    colour map when given), and for a resized copy that is not read through a map also at the base's own intrinsics
+    carried into the picture by its framing (:func:`read_framed`); the fit that leaves the least is kept (``read``:
+    ``render`` or ``framing``). Neither looks at the message."""
+    d, cam, used = read_at_camera(reference, picture, camera, generator, rounds, free=FRAMED, recolouring=recolouring)
     d["read"] = "render"
     base = reference.pipeline.datamanager.train_dataset.cameras[:1]
-    if resampled(framing_of(camera, base).sx):
+    if recolouring is None and resampled(framing_of(camera, base).sx):
         w, wcam, wused = read_framed(reference, picture, camera, generator, rounds)
         if left_after(w) < left_after(d):
             d, cam, used = w, wcam, wused
@@ -313,25 +320,29 @@ def decode_images(
                 renders[hw] = search_renders(reference, search, hw, value=True, bank=bank)
                 extra["view_bank_seconds"] = time.time() - t0
         t0 = time.time()
+        free = FRAMED if framed else POSE
         if cameras is not None:
             camera = cameras[i]
-        elif framed:
-            pose = estimate_framed_camera(reference, image, True, search, renders[hw])
-            extra.update(camera="estimated with its framing", pose_rms=pose.rms)
-            extra.update(pose_score=pose.score, search_seconds=time.time() - t0)
-            d, camera, used = read_picture(reference, image, pose.camera, gen, rounds)
         else:
-            pose = estimate_camera(reference, image, True, search, renders[hw])
+            if framed:
+                pose = estimate_framed_camera(reference, image, True, search, renders[hw])
+                extra["camera"] = "estimated with its framing"
+            else:
+                pose = estimate_camera(reference, image, True, search, renders[hw])
+                extra["camera"] = "estimated"
             camera = pose.camera
-            extra.update(camera="estimated", pose_rms=pose.rms, pose_score=pose.score, search_seconds=time.time() - t0)
-        if not framed:
-            rec = recolouring_at(reference.model, image, camera)
-            if cameras is None and rec is not None and rec.share >= MAP_SEARCH_SHARE:
-                camera, rec = recoloured_camera(reference.model, image, camera, search, rec)
-                extra.update(search_seconds=time.time() - t0)
-            mapped = rec if rec is not None and rec.reads else None
+            extra.update(pose_rms=pose.rms, pose_score=pose.score)
+        rec = recolouring_at(reference.model, image, camera)
+        if cameras is None and rec is not None and rec.share >= MAP_SEARCH_SHARE:
+            camera, rec = recoloured_camera(reference.model, image, camera, search, rec, free)
+        if cameras is None:
+            extra["search_seconds"] = time.time() - t0
+        mapped = rec if rec is not None and rec.reads else None
+        extra.update(color_map=mapped is not None, map_share=rec.share if rec is not None else 0.0)
+        if framed:
+            d, camera, used = read_picture(reference, image, camera, gen, rounds, mapped)
+        else:
             d, camera, used = read_at_camera(reference, image, camera, gen, rounds, recolouring=mapped)
-            d.update(color_map=mapped is not None, map_share=rec.share if rec is not None else 0.0)
         d.update(extra, name=name, round=used, c2w=camera.camera_to_worlds[0].tolist(), seconds=time.time() - t0)
         bits.append(d.pop("bits"))
         details.append(d)
