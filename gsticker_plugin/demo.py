@@ -9,8 +9,8 @@
 6. ``ns-verify-owner``: verdicts on the shared, recolored and unwatermarked models (exit 0 owned, 1 not shown)
    with the informed geometric decoder (reads the message from the model's geometry against the owner's base run);
    ``--blind`` adds the blind extractor (its empirical null, its bits and verdicts on RGB renders).
-7. ``ns-verify-owner --images``: stock ``ns-render`` pictures of the shared run, read without cameras (one of them
-   cropped to 16:9). Pictures of recolored copies are not read yet with the field mark (docs/verify.md).
+7. ``ns-verify-owner --images``: stock ``ns-render`` pictures of the palette-recolored copy, read without cameras
+   (one of them cropped to 16:9): the paper's scenario, an owner who finds pictures of a recolored copy.
 
 Each stage is skipped when its output already exists, so an interrupted demo resumes where it stopped.
 """
@@ -55,8 +55,8 @@ class DemoConfig:
     geometry_views: int = 6
     """Views per model for the informed geometric decoder (each renders the suspect and the owner's base)."""
     picture_views: int = 2
-    """Test views of the shared run rendered by ``ns-render`` as pictures (the last one also cropped to 16:9) and read
-    without cameras; 0 skips the pictures stage."""
+    """Test views of the palette-recolored copy rendered by ``ns-render`` as pictures (the last one also cropped to
+    16:9) and read without cameras; 0 skips the pictures stage."""
     pool_views: int = 24
     """--blind: training and as many novel cameras in the sticker stage's cached pool (its default is 48 + 48)."""
     blind: bool = False
@@ -211,9 +211,9 @@ def main(cfg: DemoConfig) -> None:
     for name, by_decoder in blind.items():
         verdicts.setdefault(name, {}).update(by_decoder)
     summary["verdicts"] = verdicts
-    print("[7/7] ns-verify-owner --images: ns-render pictures of the shared run, no cameras", flush=True)
+    print("[7/7] ns-verify-owner --images: ns-render pictures of the palette-recolored copy, no cameras", flush=True)
     if cfg.picture_views > 0 and not cfg.blind:
-        pictures = {"watermarked": wm_run / "config.yml"}
+        pictures = {"palette-recolored": recolored["palette"]}
         summary["picture_verdicts"] = pictures_stage(out / "pictures", logs, key_path, pictures, cfg.picture_views)
     else:
         print("    (skipped: --picture-views 0, or --blind)")
@@ -229,9 +229,8 @@ def main(cfg: DemoConfig) -> None:
     print(f"  verdict reports:     {out / 'verify'}/*/report.json, report.png")
     print(f"  summary:             {out / 'demo_summary.json'}")
     print(
-        "\nNote: the decoders are informed: they need the owner's unwatermarked base run (docs/verify.md). Pictures\n"
-        "of recolored copies are not read yet with the field mark (the recolored models are). The blind extractor\n"
-        "(no base) does not learn the 48-bit message on a CPU budget; --blind adds its 'not shown' verdicts."
+        "\nNote: the decoders are informed: they need the owner's unwatermarked base run (docs/verify.md). The blind\n"
+        "extractor (no base) does not learn the 48-bit message on a CPU budget; --blind adds its 'not shown' verdicts."
     )
 
 

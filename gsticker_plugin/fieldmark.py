@@ -24,7 +24,7 @@ import contextlib
 import math
 import warnings
 from dataclasses import dataclass
-from typing import ClassVar, Dict, List, Sequence, Tuple
+from typing import ClassVar, Dict, List, Optional, Sequence, Tuple
 
 import torch
 from jaxtyping import Float
@@ -481,6 +481,7 @@ class ImageView:
     base_rgb: Tensor  # [R 3]
     jacobian: Tensor  # [R 3 K] d rgb / d s per unit amplitude
     hw: Tuple[int, int]
+    image: Optional[Tensor] = None  # [H*W 3] the base's colour at every pixel (None: not kept)
 
 
 def image_view(
@@ -555,4 +556,4 @@ def image_view(
         jac_all.append(torch.stack(grads, dim=1).detach().float().cpu())
     rgb_full, jac_full = torch.cat(rgb_all), torch.cat(jac_all)
     rays = (jac_full.abs().amax(dim=(1, 2)) > min_change).nonzero().squeeze(-1)
-    return ImageView(rays=rays, base_rgb=rgb_full[rays], jacobian=jac_full[rays], hw=(h, w))
+    return ImageView(rays=rays, base_rgb=rgb_full[rays], jacobian=jac_full[rays], hw=(h, w), image=rgb_full)

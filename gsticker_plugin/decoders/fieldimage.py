@@ -5,13 +5,17 @@ reads, both linearly in the table; at a camera the base's colour then changes by
 ``J`` the derivative of the rendered colour in the signs (:func:`gsticker_plugin.fieldmark.image_view`: the stock
 field and renderer, differentiated). Per image:
 
-1. the camera, found against the owner's base (:func:`gsticker_plugin.decoders.pose.estimate_camera`) unless given;
-2. ``s`` fitted to ``image - base render`` by least squares beside the base render's pose Jacobian, so what remains of
+1. the camera, found against the owner's base (:func:`gsticker_plugin.decoders.pose.estimate_camera`, on V) unless
+   given;
+2. a colour map of the base's sample colours fitted to the image there (:func:`recolouring_at`): a recoloured copy
+   (``ns-recolor`` palette, hue or fine-tune changes every sample's colour) is then searched again and read with the
+   base rendered through that map (:func:`recoloured_camera`), the map's own error fitted beside the message;
+3. ``s`` fitted to ``image - base render`` by least squares beside the base render's pose Jacobian, so what remains of
    the camera's error is fitted too (:func:`gsticker_plugin.decoders.image.without_columns`); the fitted pose step
    moves the camera and the fit runs again, for a few rounds, the best kept;
-3. bit ``i`` = ``s_i > 0``.
+4. bit ``i`` = ``s_i > 0``.
 
-Neither step reads the message: for an image that does not carry it the bits are independent of it, and with the
+No step reads the message: for an image that does not carry it the bits are independent of it, and with the
 message uniformly random and secret the matches are ``Binomial(K, 1/2)`` (the informed decoders' null,
 docs/experiments/verify-notes.md).
 """
@@ -49,7 +53,15 @@ from gsticker_plugin.decoders.framed import (
     resampled,
     warp_to_picture,
 )
-from gsticker_plugin.decoders.image import image_at_rays, without_columns
+from gsticker_plugin.decoders.image import (
+    DEGRADATION_GRID,
+    Degradation,
+    image_at_rays,
+    match_blur_spectrum,
+    match_degradation,
+    observe,
+    without_columns,
+)
 from gsticker_plugin.decoders.pose import (
     FRAMED,
     POSE,
@@ -76,22 +88,68 @@ def decode_image_view(
     amplitude: float,
     generator: torch.Generator,
     columns: Optional[Float[Tensor, "M P"]] = None,
+    luma: bool = False,
 ) -> Dict[str, Any]:
     """Fit the signs to one image's colour at the view's rays (minus the base render) and decide the bits.
     ``columns``: further free columns fitted beside the message (rows ``r * 3 + c``; the pose Jacobian); the result then
-    holds their fitted coefficients (``column_step``). Returns the bits and the fit's summary."""
+    holds their fitted coefficients (``column_step``). ``luma``: fit the luma of every row alone
+    (:func:`gsticker_plugin.decoders.image.observe`). Returns the bits and the fit's summary."""
     k = view.jacobian.shape[-1]
-    j = (view.jacobian * amplitude).reshape(-1, k)
-    target = (image_rgb.float() - view.base_rgb).reshape(-1)
+    j = observe((view.jacobian * amplitude).reshape(-1, k), luma)
+    target = observe((image_rgb.float() - view.base_rgb).reshape(-1), luma)
+    cols = observe(columns, luma) if columns is not None and columns.numel() else None
     t, predict, jac = target, (lambda s: j @ s), (lambda s: j)
-    if columns is not None and columns.numel():
-        t, predict, jac = without_columns(columns, target, predict, jac)
+    if cols is not None:
+        t, predict, jac = without_columns(cols, target, predict, jac)
     fit, bits, undetermined = fit_and_decide(predict, jac, t, k, view.rays.numel() > 0, generator)
-    out = {"bits": bits, **fit_summary(fit, undetermined, int(view.rays.numel())), "signals": ["rgb"]}
-    if columns is not None and columns.numel():
+    out = {
+        "bits": bits,
+        **fit_summary(fit, undetermined, int(view.rays.numel())),
+        "signals": ["luma" if luma else "rgb"],
+    }
+    if cols is not None:
         rest = (target - j @ fit.signs).double()
-        out["column_step"] = torch.linalg.lstsq(columns.double(), rest[:, None]).solution[:, 0].tolist()
+        out["column_step"] = torch.linalg.lstsq(cols.double(), rest[:, None]).solution[:, 0].tolist()
     return out
+
+
+def through_degradation(
+    degradation: Degradation, rows: Float[Tensor, "P 3 C"], hw: Tuple[int, int]
+) -> Float[Tensor, "P 3 C"]:
+    """The linear part of ``degradation`` applied to per-pixel colour changes (``C`` of them, every pixel of an
+    ``hw`` camera): what it does to a small change of the picture."""
+    h, w = hw
+    c = rows.shape[-1]
+    x = degradation.linear(rows.reshape(h, w, 3, c).permute(3, 2, 0, 1).float())  # [C 3 H W]
+    return x.permute(2, 3, 1, 0).reshape(h * w, 3, c)
+
+
+def degraded_render(degradation: Degradation, rgb: Float[Tensor, "P 3"], hw: Tuple[int, int]) -> Float[Tensor, "P 3"]:
+    """``degradation`` applied to a render of every pixel of an ``hw`` camera."""
+    h, w = hw
+    return degradation.apply(rgb.reshape(1, h, w, 3).permute(0, 3, 1, 2).float())[0].permute(1, 2, 0).reshape(-1, 3)
+
+
+def degraded_view(
+    view: FM.ImageView, degradation: Degradation, columns: Optional[Float[Tensor, "M P"]]
+) -> Tuple[FM.ImageView, Optional[Float[Tensor, "M P"]]]:
+    """``view`` (with its render of every pixel) and free ``columns`` of every pixel (rows ``p * 3 + c``) as a picture
+    ``degradation`` was applied to shows them: the base render degraded, the mark's and the columns' changes through
+    its linear part, at the pixels where the mark's change now lands."""
+    assert view.image is not None
+    h, w = view.hw
+    k = view.jacobian.shape[-1]
+    jac = torch.zeros(h * w, 3, k)
+    jac[view.rays] = view.jacobian.float()
+    jac = through_degradation(degradation, jac, view.hw)
+    rays = (jac.abs().amax(dim=(1, 2)) > 1e-4).nonzero().reshape(-1)
+    base = degraded_render(degradation, view.image, view.hw)
+    out = FM.ImageView(rays, base[rays], jac[rays], view.hw, view.image)
+    if columns is None:
+        return out, None
+    p = columns.shape[1]
+    cols = through_degradation(degradation, columns.reshape(h * w, 3, p), view.hw)[rays].reshape(-1, p)
+    return out, cols
 
 
 @dataclass
@@ -159,26 +217,38 @@ def read_at_camera(
     rounds: int,
     free: int = POSE,
     recolouring: Optional[Recolouring] = None,
+    degradation: Degradation = Degradation(),
 ) -> Tuple[Dict[str, Any], Any, int]:
     """Fit the message and the camera's error (``free``: its pose, or with :data:`gsticker_plugin.decoders.pose.FRAMED`
     its zoom and principal point too) together for up to ``rounds`` rounds, each from the camera the previous fit's
     step moved; returns the fit that left the least, its camera and its round (1-based). The mark's Jacobian and the
     camera's columns are those of the first camera (the steps are fractions of a pixel); each later round renders the
     base again at its camera. ``recolouring`` (fitted at ``camera``): the base is rendered with its sample colours
-    through that map, and the map's own error is fitted beside the message too."""
+    through that map, and the map's own error is fitted beside the message too. ``degradation`` (a blur or JPEG the
+    picture went through, :func:`matched_degradation`): everything is compared as that degradation shows it
+    (:func:`degraded_view`; JPEG by luma)."""
     model = reference.model
     tint = mapped_colors(model, recolouring.cmap) if recolouring is not None else contextlib.nullcontext()
+    degraded = degradation.name != "none"
     best: Optional[Tuple[float, Dict[str, Any], Any, int]] = None
     with tint:
         view = FM.image_view(model, camera, reference.patterns)
-        cols = pose_columns(model, camera, view.rays, False, free=free, base=view.base_rgb) if rounds > 1 else None
+        h, w = view.hw
+        rays = torch.arange(h * w) if degraded else view.rays
+        at = view.image[rays] if view.image is not None else view.base_rgb
+        cols = pose_columns(model, camera, rays, False, free=free, base=at) if rounds > 1 else None
         if recolouring is not None:
-            mapped = recolouring.columns(view.rays)
+            mapped = recolouring.columns(rays)
             cols = mapped if cols is None else torch.cat([cols, mapped], dim=1)
+        if degraded:
+            view, cols = degraded_view(view, degradation, cols)
         for r in range(rounds):
             if r > 0:
-                view = replace(view, base_rgb=render_at(model, camera, view.rays))
-            d = decode_image_view(view, image_at_rays(image, view.rays, view.hw), reference.amplitude, generator, cols)
+                again = render_at(model, camera, rays)
+                base = degraded_render(degradation, again, view.hw)[view.rays] if degraded else again
+                view = replace(view, base_rgb=base)
+            picture = image_at_rays(image, view.rays, view.hw)
+            d = decode_image_view(view, picture, reference.amplitude, generator, cols, luma=degradation.luma)
             step = torch.tensor(d.pop("column_step", [0.0] * free))[:free]
             if best is None or left_after(d) < best[0]:
                 best = (left_after(d), d, camera, r + 1)
@@ -186,7 +256,24 @@ def read_at_camera(
                 break
             camera = moved_camera(camera, step, camera_distance(camera))
     assert best is not None
+    best[1]["degradation"] = degradation.label()
     return best[1], best[2], best[3]
+
+
+JPEG_GRID = {"jpeg": DEGRADATION_GRID["jpeg"]}
+
+
+def matched_degradation(image: Float[Tensor, "H W 3"], render: Float[Tensor, "P 3"]) -> Degradation:
+    """The blur (by amplitude spectrum, :func:`gsticker_plugin.decoders.image.match_blur_spectrum`) or else the JPEG
+    quality (by pixels, :func:`gsticker_plugin.decoders.image.match_degradation`) whose transform of the base's
+    ``render`` at the picture's camera is clearly closer to the picture than the render itself; the identity
+    otherwise. Uses the picture and the base only."""
+    h, w = int(image.shape[0]), int(image.shape[1])
+    base = render.reshape(h, w, 3).permute(2, 0, 1).float()
+    blur = match_blur_spectrum(image, base)
+    if blur.name != "none":
+        return blur
+    return match_degradation(image, base, JPEG_GRID)[0]
 
 
 def read_picture(
@@ -196,16 +283,17 @@ def read_picture(
     generator: torch.Generator,
     rounds: int = 2,
     recolouring: Optional[Recolouring] = None,
+    degradation: Degradation = Degradation(),
 ) -> Tuple[Dict[str, Any], Any, int]:
     """Read a framed picture at the ``camera`` :func:`gsticker_plugin.decoders.framed.estimate_framed_camera` found:
     the base rendered at that camera (:func:`read_at_camera`, zoom and principal point free, through ``recolouring``'s
     colour map when given), and for a resized copy that is not read through a map also at the base's own intrinsics
-    carried into the picture by its framing (:func:`read_framed`); the fit that leaves the least is kept (``read``:
-    ``render`` or ``framing``). Neither looks at the message."""
-    d, cam, used = read_at_camera(reference, picture, camera, generator, rounds, free=FRAMED, recolouring=recolouring)
+    carried into the picture by its framing (:func:`read_framed`; not for a picture matched to a ``degradation``); the
+    fit that leaves the least is kept (``read``: ``render`` or ``framing``). Neither looks at the message."""
+    d, cam, used = read_at_camera(reference, picture, camera, generator, rounds, FRAMED, recolouring, degradation)
     d["read"] = "render"
     base = reference.pipeline.datamanager.train_dataset.cameras[:1]
-    if recolouring is None and resampled(framing_of(camera, base).sx):
+    if recolouring is None and degradation.name == "none" and resampled(framing_of(camera, base).sx):
         w, wcam, wused = read_framed(reference, picture, camera, generator, rounds)
         if left_after(w) < left_after(d):
             d, cam, used = w, wcam, wused
@@ -339,10 +427,13 @@ def decode_images(
             extra["search_seconds"] = time.time() - t0
         mapped = rec if rec is not None and rec.reads else None
         extra.update(color_map=mapped is not None, map_share=rec.share if rec is not None else 0.0)
+        with mapped_colors(reference.model, mapped.cmap) if mapped is not None else contextlib.nullcontext():
+            render = render_cameras(reference.model, camera)["rgb"][0].reshape(-1, 3)
+        degradation = matched_degradation(image, render)
         if framed:
-            d, camera, used = read_picture(reference, image, camera, gen, rounds, mapped)
+            d, camera, used = read_picture(reference, image, camera, gen, rounds, mapped, degradation)
         else:
-            d, camera, used = read_at_camera(reference, image, camera, gen, rounds, recolouring=mapped)
+            d, camera, used = read_at_camera(reference, image, camera, gen, rounds, POSE, mapped, degradation)
         d.update(extra, name=name, round=used, c2w=camera.camera_to_worlds[0].tolist(), seconds=time.time() - t0)
         bits.append(d.pop("bits"))
         details.append(d)
