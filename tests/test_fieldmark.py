@@ -277,6 +277,39 @@ def test_a_picture_of_a_recoloured_copy_is_read_through_a_colour_map_of_the_base
     assert plain["explained"] < 0.5 * dec["image"][0]["explained"]
 
 
+def test_a_blurred_picture_is_read_as_the_blur_shows_the_base_and_a_plain_one_as_it_is(monkeypatch):
+    """The marked render blurred (sigma 1 px, as a re-poster's resize or filter does): the blur is matched from the
+    picture and the base alone, the base render and the mark's change are blurred alike, and the message is read;
+    the plain render is matched to no degradation."""
+    from types import SimpleNamespace
+
+    from nerfstudio.cameras.cameras import Cameras
+
+    from gsticker_plugin.attacks import gaussian_blur
+    from gsticker_plugin.decoders.fieldimage import decode_images, matched_degradation
+
+    model = tiny_nerfacto(monkeypatch)
+    enc, _ = FM.parts(model.field)
+    c2w = torch.tensor([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2.5]]])
+    cam = Cameras(camera_to_worlds=c2w, fx=40.0, fy=40.0, cx=24.0, cy=24.0, width=48, height=48)
+    pats = FM.patterns(enc.hash_table.shape, enc.hash_table_size, [0, 1], 8, seed=3)
+    message = torch.tensor([1, 1, 0, 1, 0, 0, 1, 0])
+    key = SimpleNamespace(message=message, num_bits=8)
+    ref = SimpleNamespace(model=model, patterns=pats, amplitude=0.3)
+    with torch.no_grad():
+        base = model.get_outputs_for_camera(cam)["rgb"]
+        table = enc.hash_table.data.clone()
+        enc.hash_table.data = FM.marked_table(table, pats, FM.signs_of(message), 0.3)
+        marked = model.get_outputs_for_camera(cam)["rgb"]
+        enc.hash_table.data = table
+    blurred = gaussian_blur(marked.permute(2, 0, 1)[None], 1.0)[0].permute(1, 2, 0)
+    assert matched_degradation(marked, base.reshape(-1, 3)).name == "none"
+    assert matched_degradation(blurred, base.reshape(-1, 3)).name == "blur"
+    dec = decode_images(key, ref, [blurred, marked], seed=0, cameras=[cam, cam])
+    assert dec["image"][0]["degradation"].startswith("blur=") and dec["image"][1]["degradation"] == "none"
+    assert dec["matches"].tolist() == [8, 8]
+
+
 def tiny_planes():
     from nerfstudio.field_components.encodings import TensorVMEncoding
 

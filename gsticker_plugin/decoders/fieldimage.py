@@ -195,17 +195,17 @@ def recoloured_camera(
 ) -> Tuple[Any, Optional[Recolouring]]:
     """``camera`` (found on V, which a recolouring moves too) refined again in RGB against the base rendered with its
     sample colours through ``recolouring``'s map (fitted at ``camera``), the map fitted again before every stage after
-    the first of ``search``'s finer stages (``free``: the camera's parameters moved). Returns the camera and the map
-    fitted there."""
+    the first of ``search``'s finer stages, each of :attr:`PoseSearch.map_iterations` (``free``: the camera's
+    parameters moved). Returns the camera and the map fitted there."""
     search = search.for_size(int(image.shape[0]), int(image.shape[1]))
     rec: Optional[Recolouring] = recolouring
-    for k, (blur, its) in enumerate(zip(search.blurs[1:], search.iterations[1:])):
+    for k, blur in enumerate(search.blurs[1:]):
         if k > 0:
             rec = recolouring_at(model, image, camera)
         if rec is None:
             break
         with mapped_colors(model, rec.cmap):
-            camera, _, _ = refine_stage(model, image, camera, False, search, blur, its, free=free)
+            camera, _, _ = refine_stage(model, image, camera, False, search, blur, search.map_iterations, free=free)
     return camera, recolouring_at(model, image, camera)
 
 

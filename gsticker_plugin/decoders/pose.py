@@ -482,6 +482,9 @@ class PoseSearch:
     """Gauss-Newton iterations per stage (the best candidate)."""
     first_iterations: int = 3
     """Iterations of the first stage for every kept candidate, before the best one goes on."""
+    map_iterations: int = 3
+    """Iterations per stage of a recoloured picture's search again through a colour map of the base's samples
+    (:func:`gsticker_plugin.decoders.fieldimage.recoloured_camera`)."""
     half_size_blur: float = 1.5
     """Stages blurred by at least twice this many px run at half the image's size."""
     extend: int = 8
