@@ -46,6 +46,7 @@ from gsticker_plugin.decoders.colormap import (
 )
 from gsticker_plugin.decoders.fit import fit_and_decide, fit_summary, left_after, tie_generator
 from gsticker_plugin.decoders.framed import (
+    RESAMPLERS,
     base_frame,
     content_box,
     estimate_framed_camera,
@@ -301,6 +302,18 @@ def read_picture(
     return d, cam, used
 
 
+def matched_resampler(render: Float[Tensor, "h w 3"], picture: Float[Tensor, "H W 3"], framing) -> str:
+    """The resampling filter (:data:`gsticker_plugin.decoders.framed.RESAMPLERS`) whose resize of the base's
+    ``render`` by ``framing`` is nearest ``picture`` where the render covers it: the tool a resized copy was made
+    with. Uses the picture and the base only."""
+    ph, pw = int(picture.shape[0]), int(picture.shape[1])
+    costs = {}
+    for kernel in RESAMPLERS:
+        warped, inside = warp_to_picture(render.permute(2, 0, 1), framing, ph, pw, kernel)
+        costs[kernel] = float(((warped.permute(1, 2, 0) - picture.float())[inside] ** 2).mean())
+    return min(costs, key=costs.__getitem__)
+
+
 def read_framed(
     reference,
     picture: Float[Tensor, "H W 3"],
@@ -328,12 +341,13 @@ def read_framed(
     render = render_cameras(model, at)["rgb"][0]
     pose = pose_columns(model, at, torch.arange(h0 * w0), False, eps, base=render.reshape(-1, 3))  # rows r * 3 + c
     fixed = torch.cat([jac.reshape(h0, w0, 3 * k), pose.reshape(h0, w0, 3 * POSE)], dim=-1).permute(2, 0, 1)
+    kernel = matched_resampler(render, picture, framing_of(camera, base))
     best: Optional[Tuple[float, Dict[str, Any], Cameras, int]] = None
     for r in range(rounds):
         if r > 0:  # the Jacobians of the first camera (the steps are fractions of a pixel), the base rendered again
             render = render_cameras(model, base_frame(camera, base))["rgb"][0]
         framing = framing_of(camera, base)
-        warped, inside = warp_to_picture(torch.cat([render.permute(2, 0, 1), fixed]), framing, ph, pw)
+        warped, inside = warp_to_picture(torch.cat([render.permute(2, 0, 1), fixed]), framing, ph, pw, kernel)
         rows = torch.nonzero(inside.reshape(-1)).reshape(-1)
         flat = warped.reshape(warped.shape[0], -1)[:, rows].T  # [R C]
         framed = FM.ImageView(rows, flat[:, :3], flat[:, 3 : 3 + 3 * k].reshape(-1, 3, k), (ph, pw))
@@ -341,13 +355,18 @@ def read_framed(
         for i in range(POSE, FRAMED):  # the zoom and the principal point, moved in the picture
             e = torch.zeros(FRAMED)
             e[i] = PRINCIPAL_STEP if i > POSE else eps
-            plus = warp_to_picture(render.permute(2, 0, 1), framing_of(moved_camera(camera, e), base), ph, pw)[0]
-            minus = warp_to_picture(render.permute(2, 0, 1), framing_of(moved_camera(camera, -e), base), ph, pw)[0]
+            plus = warp_to_picture(render.permute(2, 0, 1), framing_of(moved_camera(camera, e), base), ph, pw, kernel)[
+                0
+            ]
+            minus = warp_to_picture(
+                render.permute(2, 0, 1), framing_of(moved_camera(camera, -e), base), ph, pw, kernel
+            )[0]
             cols.append(((plus - minus) / (2 * float(e[i]))).reshape(3, -1)[:, rows].T.reshape(-1, 1))
         d = decode_image_view(
             framed, picture.reshape(-1, 3)[rows].float(), reference.amplitude, generator, torch.cat(cols, 1)
         )
         step = torch.tensor(d.pop("column_step", [0.0] * FRAMED))[:FRAMED]
+        d["resampler"] = kernel
         if best is None or left_after(d) < best[0]:
             best = (left_after(d), d, camera, r + 1)
         if r + 1 == rounds or float(step.abs().max()) <= 1e-7:

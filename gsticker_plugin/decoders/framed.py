@@ -183,25 +183,63 @@ def base_frame(camera: Cameras, base: Cameras) -> Cameras:
     return framed_camera(base[:1], Framing(1.0, 1.0, 0.0, 0.0), int(base.height[0]), int(base.width[0]), c2w)
 
 
+def resampling_kernel(name: str, x: Tensor) -> Tensor:
+    """A resampling filter at offsets ``x`` (input px): ``bilinear`` (triangle), ``bicubic`` (Keys, a = -0.5: Pillow's),
+    ``cubic-0.75`` (Keys, a = -0.75: OpenCV's and torch's) or ``lanczos`` (3 lobes)."""
+    ax = x.abs()
+    if name == "bilinear":
+        return (1.0 - ax).clamp_min(0.0)
+    if name in ("bicubic", "cubic-0.75"):
+        a = -0.5 if name == "bicubic" else -0.75
+        near = ((a + 2.0) * ax - (a + 3.0)) * ax * ax + 1.0
+        far = ((a * ax - 5.0 * a) * ax + 8.0 * a) * ax - 4.0 * a
+        return torch.where(ax < 1.0, near, torch.where(ax < 2.0, far, torch.zeros_like(ax)))
+    if name == "lanczos":
+        return torch.where(ax < 3.0, torch.sinc(x) * torch.sinc(x / 3.0), torch.zeros_like(ax))
+    raise ValueError(f"unknown resampling kernel {name!r}")
+
+
+RESAMPLERS = ("bicubic", "cubic-0.75", "bilinear", "lanczos")
+"""The resampling filters a resized copy is matched against (:func:`read_framed`'s choice): what common image tools
+resize with."""
+
+
+def resampling_matrix(n_out: int, n_in: int, scale: float, offset: float, kernel: str) -> Float[Tensor, "O I"]:
+    """Separable resampling as Pillow does it: output pixel ``u`` takes the input around ``(u + 0.5 - offset) /
+    scale`` (edge coordinates) through ``kernel``, widened by ``1 / scale`` when shrinking (antialiased); its taps
+    inside the input sum to one."""
+    centre = (torch.arange(n_out, dtype=torch.float64) + 0.5 - offset) / scale
+    widen = max(1.0 / scale, 1.0)
+    taps = torch.arange(n_in, dtype=torch.float64) + 0.5
+    w = resampling_kernel(kernel, (taps[None, :] - centre[:, None]) / widen)
+    total = w.sum(dim=1, keepdim=True)
+    return torch.where(total.abs() > 1e-12, w / total, torch.zeros_like(w)).float()
+
+
 def warp_to_picture(
-    stack: Float[Tensor, "C h w"], framing: Framing, height: int, width: int
+    stack: Float[Tensor, "C h w"], framing: Framing, height: int, width: int, kernel: Optional[str] = None
 ) -> Tuple[Float[Tensor, "C H W"], Tensor]:
-    """Base-frame images (any channels) as the framed picture shows them, ``height x width``: enlarged by bicubic
-    interpolation, shrunk by a Gaussian of the shrink's width then bilinear interpolation; and which of the picture's
-    pixels the base frame covers."""
+    """Base-frame images (any channels) as the framed picture shows them, ``height x width``: through ``kernel``
+    (:func:`resampling_matrix`, one of :data:`RESAMPLERS`), or by default enlarged by bicubic interpolation and
+    shrunk by a Gaussian of the shrink's width then bilinear interpolation; and which of the picture's pixels the
+    base frame covers."""
     h0, w0 = stack.shape[-2:]
-    s = min(framing.sx, framing.sy)
-    img = stack.float()
-    if s < 1:
-        img = smoothed(img.permute(1, 2, 0), 0.5 * math.sqrt(1 / (s * s) - 1)).permute(2, 0, 1)
-    img = img[None]
     v, u = torch.meshgrid(
         torch.arange(height, dtype=torch.float32), torch.arange(width, dtype=torch.float32), indexing="ij"
     )
     ub = (u + 0.5 - framing.tx) / framing.sx  # base-frame coordinates (pixel edges) of the picture's pixel centres
     vb = (v + 0.5 - framing.ty) / framing.sy
+    inside = (ub >= 0.5) & (ub <= w0 - 0.5) & (vb >= 0.5) & (vb <= h0 - 0.5)
+    if kernel is not None:
+        wy = resampling_matrix(height, h0, framing.sy, framing.ty, kernel)
+        wx = resampling_matrix(width, w0, framing.sx, framing.tx, kernel)
+        return torch.einsum("Hh,chw,Ww->cHW", wy, stack.float(), wx), inside
+    s = min(framing.sx, framing.sy)
+    img = stack.float()
+    if s < 1:
+        img = smoothed(img.permute(1, 2, 0), 0.5 * math.sqrt(1 / (s * s) - 1)).permute(2, 0, 1)
+    img = img[None]
     grid = torch.stack([ub / w0 * 2 - 1, vb / h0 * 2 - 1], dim=-1)[None]
     mode = "bicubic" if s > 1 else "bilinear"
     out = F.grid_sample(img, grid, mode=mode, padding_mode="border", align_corners=False)[0]
-    inside = (ub >= 0.5) & (ub <= w0 - 0.5) & (vb >= 0.5) & (vb <= h0 - 0.5)
     return out, inside

@@ -33,7 +33,7 @@ class EvalArgs:
     """Override sticker.seeds: train the primary sticker again with these seeds (stage seeds), e.g. --sticker-seeds 1 2."""
     stages: Tuple[str, ...] = ALL_STAGES
     """Stages to run (in protocol order): scene bases sticker renders quality geometry seeds distortions curves
-    recolor purify false_positives speed report."""
+    recolor purify false_positives speed wild report."""
     redo: Tuple[str, ...] = ()
     """Stages to recompute even when their outputs exist (cached renders and trained runs are kept)."""
     progress: bool = True

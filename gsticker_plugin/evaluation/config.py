@@ -52,6 +52,7 @@ ALL_STAGES = (
     "purify",
     "false_positives",
     "speed",
+    "wild",
     "report",
 )
 
@@ -168,6 +169,46 @@ class GeometrySpec:
 
 
 @dataclass
+class WildSpec:
+    """Pictures found in the wild read without cameras (stage ``wild``), as registered in
+    docs/experiments/images-wild-protocol.md: its seed, its views per row, its rows; null = skip the stage."""
+
+    seed: int = 1621744754
+    """The registered camera seed (never change it after a picture was read: draw a new one and say so)."""
+    views: int = 24
+    """Framed pictures per row."""
+    development_views: List[int] = field(default_factory=lambda: [1, 2, 3])
+    """Test views the image decoder was developed on: never drawn."""
+    rows: List[str] = field(
+        default_factory=lambda: [
+            "framed",
+            "rotation +-30",
+            "hue +-0.5",
+            "cropout 25 %",
+            "noise 0.1",
+            "JPEG 50",
+            "blur 1",
+            "resize 0.5",
+            "crop + JPEG + hue",
+        ]
+    )
+    """Rows of the shared run's pictures (:data:`gsticker_plugin.evaluation.wild.ROWS`); its recolored copies (the
+    protocol's ``recolor`` edits) are read in the framed row."""
+    null_seeds: List[int] = field(default_factory=lambda: [1, 2])
+    """Independently trained bases of the scene in the null (``ns-train NULL_PRESET --machine.seed S``), read in the
+    framed and JPEG 50 rows like the base."""
+    null_preset: str = "gsticker-nerfacto-small"
+    null_steps: int = 1000
+    other_scene: bool = True
+    """Also a base of another scene (``ns-gsticker-scene``, 100 px) in the null, its test views framed alike."""
+    random_pictures: int = 32
+    """Random null pictures (noise, smooth noise, flat colours, gradients) to make up the count: with the base's
+    and the independent bases' 48 each, the other scene's 24 and the 24 photographs, 224 null pictures."""
+    decode_seed: int = 20261209
+    """The decoder's tie-breaking seed."""
+
+
+@dataclass
 class Protocol:
     name: str
     output_dir: Path
@@ -190,6 +231,8 @@ class Protocol:
     false_positives: FalsePositiveSpec = field(default_factory=FalsePositiveSpec)
     geometry: Optional[GeometrySpec] = field(default_factory=GeometrySpec)
     """Model-level geometric decoding (the verdict that survives recoloring); null = skip."""
+    wild: Optional[WildSpec] = None
+    """Pictures found in the wild (stage ``wild``); null (the default) = skip."""
     device: str = "cpu"
     source: Optional[Path] = None
     """The YAML file this protocol came from."""
@@ -216,6 +259,7 @@ def _build(cls, data: Any, where: str):
             "finetune": FinetuneSpec,
             "false_positives": FalsePositiveSpec,
             "geometry": GeometrySpec,
+            "wild": WildSpec,
         }.get(f.name)
         if sub is not None and cls in (Protocol, RecolorSpec):
             v = _build(sub, v, f"{where}.{f.name}")

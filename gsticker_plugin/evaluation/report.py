@@ -83,6 +83,7 @@ def markdown(r: Dict[str, Any]) -> str:
         + _fp(r)
         + _curves(r)
         + _speed(r)
+        + _wild(r)
     )
     lines += [
         "## Not measured by this protocol",
@@ -517,6 +518,41 @@ def _curves(r) -> List[str]:
         "",
     ]
     return out
+
+
+def _wild(r) -> List[str]:
+    d = r.get("wild")
+    if not d:
+        return []
+    rows = [
+        [
+            x["suspect"],
+            x["row"],
+            str(x["pictures"]),
+            pct(x["bit_acc"]),
+            f"{pct(x['passing'])} (>= {d['threshold']}/48)",
+            str(x["min_matches"]),
+            f"{num(x['seconds_median'], 0)} / {num(x['seconds_p90'], 0)}",
+        ]
+        for x in d["rows"]
+        if x["kind"] == "marked"
+    ]
+    n = d["null"]
+    return [
+        "## Pictures found in the wild (no cameras)",
+        "",
+        "Registered protocol: docs/experiments/images-wild-protocol.md (seed, framings and magnitudes fixed before "
+        "any picture was read). Marked: the shared run and its recolored copies; seconds per picture alone on this "
+        "machine (median / 90th percentile; the view bank apart).",
+        "",
+        table(["suspect", "row", "pictures", "bit acc", "passing", "fewest matches", "seconds"], rows),
+        "",
+        f"Null: {n['pictures']} distinct unmarked pictures, each decoded once: matches {num(n['mean'], 1)} ± "
+        f"{num(n['std'], 1)}, largest {n['max']}, {n['at_least_36']} at 36 or more; false positives "
+        f"{n['false_positives']} (empirical FPR {num(n['false_positives'] / max(n['pictures'], 1), 4)}, 95 % upper "
+        f"bound {num(n['fpr_upper_95'], 4)}).",
+        "",
+    ]
 
 
 def _speed(r) -> List[str]:

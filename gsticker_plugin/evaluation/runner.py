@@ -23,6 +23,7 @@ from gsticker_plugin.evaluation.stages import (
     seeds,
     speed,
     sticker,
+    wild,
 )
 from gsticker_plugin.evaluation.workspace import Workspace
 from gsticker_plugin.machine import machine_info
@@ -41,6 +42,7 @@ STAGES = {
     "purify": purify,
     "false_positives": false_positives,
     "speed": speed,
+    "wild": wild,
 }
 """Every stage in protocol order; each module's ``run(ws)`` returns the stage's numbers."""
 
@@ -64,6 +66,8 @@ class Runner(Workspace):
             want.remove("curves")
         if not self.p.distortions and "distortions" in want:
             want.remove("distortions")
+        if self.p.wild is None and "wild" in want:
+            want.remove("wild")
         for i, s in enumerate(want):
             self.say(f"[eval] stage {i + 1}/{len(want)}: {s}")
             self.stage(s, fns[s])
