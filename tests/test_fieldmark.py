@@ -211,29 +211,43 @@ def test_the_image_jacobian_is_the_colour_change_of_the_marked_render(monkeypatc
     assert float((change + predicted).norm() / change.norm()) > 1.9  # the sign matters: not a loose tolerance
 
 
-def test_a_picture_of_the_marked_field_at_its_camera_decodes_to_the_message_and_the_base_to_nothing(monkeypatch):
-    """decode_images at a given camera (two rounds with the pose Jacobian): the marked render, 8-bit, gives the
-    message; the base's own render leaves nothing to explain."""
+def marked_scene(monkeypatch, message, side: int = 24, recolour=None):
+    """The tiny nerfacto, a camera ``side`` px square looking at it, 8 patterns, the key and reference the image
+    decoder takes, and the base's and the marked field's renders there (``recolour``: a per-sample colour change
+    applied to the marked render, as ``ns-recolor`` edits a run)."""
     from types import SimpleNamespace
 
     from nerfstudio.cameras.cameras import Cameras
 
-    from gsticker_plugin.decoders.fieldimage import decode_images
+    from gsticker_plugin.recolor.model import ColorWrap
 
     model = tiny_nerfacto(monkeypatch)
     enc, _ = FM.parts(model.field)
     c2w = torch.tensor([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2.5]]])
-    cam = Cameras(camera_to_worlds=c2w, fx=20.0, fy=20.0, cx=12.0, cy=12.0, width=24, height=24)
+    f, c = 20.0 * side / 24, side / 2
+    cam = Cameras(camera_to_worlds=c2w, fx=f, fy=f, cx=c, cy=c, width=side, height=side)
     pats = FM.patterns(enc.hash_table.shape, enc.hash_table_size, [0, 1], 8, seed=3)
-    message = torch.tensor([1, 0, 1, 1, 0, 0, 1, 0])
     key = SimpleNamespace(message=message, num_bits=8)
     ref = SimpleNamespace(model=model, patterns=pats, amplitude=0.3)
     with torch.no_grad():
         base = model.get_outputs_for_camera(cam)["rgb"]
         table = enc.hash_table.data.clone()
         enc.hash_table.data = FM.marked_table(table, pats, FM.signs_of(message), 0.3)
+        wrap = ColorWrap(model.field, recolour) if recolour is not None else None
         marked = model.get_outputs_for_camera(cam)["rgb"]
+        if wrap is not None:
+            wrap.remove()
         enc.hash_table.data = table
+    return SimpleNamespace(model=model, cam=cam, key=key, ref=ref, base=base, marked=marked)
+
+
+def test_a_picture_of_the_marked_field_at_its_camera_decodes_to_the_message_and_the_base_to_nothing(monkeypatch):
+    """decode_images at a given camera (two rounds with the pose Jacobian): the marked render, 8-bit, gives the
+    message; the base's own render leaves nothing to explain."""
+    from gsticker_plugin.decoders.fieldimage import decode_images
+
+    sc = marked_scene(monkeypatch, torch.tensor([1, 0, 1, 1, 0, 0, 1, 0]))
+    key, ref, cam, marked, base = sc.key, sc.ref, sc.cam, sc.marked, sc.base
     pictures = [(x * 255).round() / 255 for x in (marked, base)]
     dec = decode_images(key, ref, pictures, seed=0, cameras=[cam, cam])
     assert dec["matches"].tolist()[0] == 8 and dec["image"][0]["explained"] > 0.5
@@ -245,29 +259,12 @@ def test_a_picture_of_a_recoloured_copy_is_read_through_a_colour_map_of_the_base
     at its camera the picture is read through the colour map fitted from the base (the map explains nearly all of
     its difference from the base render) and gives the message; without the map the same fit explains little of the
     picture (0.01 against 0.74 here)."""
-    from types import SimpleNamespace
-
-    from nerfstudio.cameras.cameras import Cameras
-
     from gsticker_plugin.decoders.fieldimage import decode_images, read_at_camera, recolouring_at
     from gsticker_plugin.decoders.fit import tie_generator
-    from gsticker_plugin.recolor.model import ColorWrap
 
-    model = tiny_nerfacto(monkeypatch)
-    enc, _ = FM.parts(model.field)
-    c2w = torch.tensor([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2.5]]])
-    cam = Cameras(camera_to_worlds=c2w, fx=20.0, fy=20.0, cx=12.0, cy=12.0, width=24, height=24)
-    pats = FM.patterns(enc.hash_table.shape, enc.hash_table_size, [0, 1], 8, seed=3)
     message = torch.tensor([0, 1, 1, 0, 1, 0, 0, 1])
-    key = SimpleNamespace(message=message, num_bits=8)
-    ref = SimpleNamespace(model=model, patterns=pats, amplitude=0.3)
-    with torch.no_grad():
-        table = enc.hash_table.data.clone()
-        enc.hash_table.data = FM.marked_table(table, pats, FM.signs_of(message), 0.3)
-        wrap = ColorWrap(model.field, lambda c: 0.8 * c[..., [1, 2, 0]] + 0.1)
-        recoloured = model.get_outputs_for_camera(cam)["rgb"]
-        wrap.remove()
-        enc.hash_table.data = table
+    sc = marked_scene(monkeypatch, message, recolour=lambda c: 0.8 * c[..., [1, 2, 0]] + 0.1)
+    model, cam, key, ref, recoloured = sc.model, sc.cam, sc.key, sc.ref, sc.marked
     picture = (recoloured * 255).round() / 255
     rec = recolouring_at(model, picture, cam)
     assert rec is not None and rec.reads and rec.share > 0.95
@@ -281,27 +278,11 @@ def test_a_blurred_picture_is_read_as_the_blur_shows_the_base_and_a_plain_one_as
     """The marked render blurred (sigma 1 px, as a re-poster's resize or filter does): the blur is matched from the
     picture and the base alone, the base render and the mark's change are blurred alike, and the message is read;
     the plain render is matched to no degradation."""
-    from types import SimpleNamespace
-
-    from nerfstudio.cameras.cameras import Cameras
-
     from gsticker_plugin.attacks import gaussian_blur
     from gsticker_plugin.decoders.fieldimage import decode_images, matched_degradation
 
-    model = tiny_nerfacto(monkeypatch)
-    enc, _ = FM.parts(model.field)
-    c2w = torch.tensor([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2.5]]])
-    cam = Cameras(camera_to_worlds=c2w, fx=40.0, fy=40.0, cx=24.0, cy=24.0, width=48, height=48)
-    pats = FM.patterns(enc.hash_table.shape, enc.hash_table_size, [0, 1], 8, seed=3)
-    message = torch.tensor([1, 1, 0, 1, 0, 0, 1, 0])
-    key = SimpleNamespace(message=message, num_bits=8)
-    ref = SimpleNamespace(model=model, patterns=pats, amplitude=0.3)
-    with torch.no_grad():
-        base = model.get_outputs_for_camera(cam)["rgb"]
-        table = enc.hash_table.data.clone()
-        enc.hash_table.data = FM.marked_table(table, pats, FM.signs_of(message), 0.3)
-        marked = model.get_outputs_for_camera(cam)["rgb"]
-        enc.hash_table.data = table
+    sc = marked_scene(monkeypatch, torch.tensor([1, 1, 0, 1, 0, 0, 1, 0]), side=48)
+    cam, key, ref, base, marked = sc.cam, sc.key, sc.ref, sc.base, sc.marked
     blurred = gaussian_blur(marked.permute(2, 0, 1)[None], 1.0)[0].permute(1, 2, 0)
     assert matched_degradation(marked, base.reshape(-1, 3)).name == "none"
     assert matched_degradation(blurred, base.reshape(-1, 3)).name == "blur"
