@@ -218,7 +218,7 @@ def read_at_camera(
     rounds: int,
     free: int = POSE,
     recolouring: Optional[Recolouring] = None,
-    degradation: Degradation = Degradation(),
+    degradation: Optional[Degradation] = Degradation(),
 ) -> Tuple[Dict[str, Any], Any, int]:
     """Fit the message and the camera's error (``free``: its pose, or with :data:`gsticker_plugin.decoders.pose.FRAMED`
     its zoom and principal point too) together for up to ``rounds`` rounds, each from the camera the previous fit's
@@ -226,14 +226,17 @@ def read_at_camera(
     camera's columns are those of the first camera (the steps are fractions of a pixel); each later round renders the
     base again at its camera. ``recolouring`` (fitted at ``camera``): the base is rendered with its sample colours
     through that map, and the map's own error is fitted beside the message too. ``degradation`` (a blur or JPEG the
-    picture went through, :func:`matched_degradation`): everything is compared as that degradation shows it
-    (:func:`degraded_view`; JPEG by luma)."""
+    picture went through; None: :func:`matched_degradation` at the first camera's base render): everything is compared
+    as that degradation shows it (:func:`degraded_view`; JPEG by luma)."""
     model = reference.model
     tint = mapped_colors(model, recolouring.cmap) if recolouring is not None else contextlib.nullcontext()
-    degraded = degradation.name != "none"
     best: Optional[Tuple[float, Dict[str, Any], Any, int]] = None
     with tint:
         view = FM.image_view(model, camera, reference.patterns)
+        if degradation is None:
+            assert view.image is not None
+            degradation = matched_degradation(image, view.image)
+        degraded = degradation.name != "none"
         h, w = view.hw
         rays = torch.arange(h * w) if degraded else view.rays
         at = view.image[rays] if view.image is not None else view.base_rgb
@@ -284,17 +287,17 @@ def read_picture(
     generator: torch.Generator,
     rounds: int = 2,
     recolouring: Optional[Recolouring] = None,
-    degradation: Degradation = Degradation(),
+    degradation: Optional[Degradation] = Degradation(),
 ) -> Tuple[Dict[str, Any], Any, int]:
     """Read a framed picture at the ``camera`` :func:`gsticker_plugin.decoders.framed.estimate_framed_camera` found:
     the base rendered at that camera (:func:`read_at_camera`, zoom and principal point free, through ``recolouring``'s
     colour map when given), and for a resized copy that is not read through a map also at the base's own intrinsics
-    carried into the picture by its framing (:func:`read_framed`; not for a picture matched to a ``degradation``); the
+    carried into the picture by its framing (:func:`read_framed`; not for a picture read through a degradation); the
     fit that leaves the least is kept (``read``: ``render`` or ``framing``). Neither looks at the message."""
     d, cam, used = read_at_camera(reference, picture, camera, generator, rounds, FRAMED, recolouring, degradation)
     d["read"] = "render"
     base = reference.pipeline.datamanager.train_dataset.cameras[:1]
-    if recolouring is None and degradation.name == "none" and resampled(framing_of(camera, base).sx):
+    if recolouring is None and d["degradation"] == "none" and resampled(framing_of(camera, base).sx):
         w, wcam, wused = read_framed(reference, picture, camera, generator, rounds)
         if left_after(w) < left_after(d):
             d, cam, used = w, wcam, wused
@@ -338,7 +341,8 @@ def read_framed(
     k = view.jacobian.shape[-1]
     jac = torch.zeros(h0 * w0, 3, k)
     jac[view.rays] = view.jacobian.float()
-    render = render_cameras(model, at)["rgb"][0]
+    assert view.image is not None
+    render = view.image.reshape(h0, w0, 3)
     pose = pose_columns(model, at, torch.arange(h0 * w0), False, eps, base=render.reshape(-1, 3))  # rows r * 3 + c
     fixed = torch.cat([jac.reshape(h0, w0, 3 * k), pose.reshape(h0, w0, 3 * POSE)], dim=-1).permute(2, 0, 1)
     kernel = matched_resampler(render, picture, framing_of(camera, base))
@@ -446,13 +450,10 @@ def decode_images(
             extra["search_seconds"] = time.time() - t0
         mapped = rec if rec is not None and rec.reads else None
         extra.update(color_map=mapped is not None, map_share=rec.share if rec is not None else 0.0)
-        with mapped_colors(reference.model, mapped.cmap) if mapped is not None else contextlib.nullcontext():
-            render = render_cameras(reference.model, camera)["rgb"][0].reshape(-1, 3)
-        degradation = matched_degradation(image, render)
         if framed:
-            d, camera, used = read_picture(reference, image, camera, gen, rounds, mapped, degradation)
+            d, camera, used = read_picture(reference, image, camera, gen, rounds, mapped, None)
         else:
-            d, camera, used = read_at_camera(reference, image, camera, gen, rounds, POSE, mapped, degradation)
+            d, camera, used = read_at_camera(reference, image, camera, gen, rounds, POSE, mapped, None)
         d.update(extra, name=name, round=used, c2w=camera.camera_to_worlds[0].tolist(), seconds=time.time() - t0)
         bits.append(d.pop("bits"))
         details.append(d)

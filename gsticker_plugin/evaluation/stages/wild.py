@@ -23,7 +23,7 @@ import sys
 import time
 from functools import partial
 from pathlib import Path
-from typing import Any, Dict, Iterator, List, Tuple
+from typing import Any, Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -202,17 +202,19 @@ def run(ws: Workspace) -> Dict[str, Any]:
     renders: Dict[Tuple[int, int], Any] = {}
     bank = bank_folder(key_path)
 
-    def render_of(name: str, config: Path, f: W.Framing) -> Image.Image:
-        """The suspect's render at the framing's test camera; a suspect's first call renders all drawn views."""
+    def render_of(name: str, config: Path, f: W.Framing, data: Optional[Path] = None) -> Image.Image:
+        """The suspect's render at the framing's test camera (for another scene's run, its own test camera
+        ``f.view`` modulo their count); a suspect's first call loads it once and renders every drawn view."""
         folder = work / "renders" / name.replace(" ", "-")
         path = folder / f"view-{f.view:03d}.png"
         if not path.is_file():
             with contextlib.redirect_stdout(sys.stderr):
-                model = load_run(config, data=ws.scene_dir, device=ws.device)[1].model.eval()
-            folder.mkdir(parents=True, exist_ok=True)
+                pipe = load_run(config, data=data or ws.scene_dir, device=ws.device)[1]
+            cams = pipe.datamanager.eval_dataset.cameras if data is not None else cameras
             for v in sorted({g.view for g in framings}):
+                c = v % len(cams)
                 with torch.no_grad():
-                    rgb = model.get_outputs_for_camera(cameras[v : v + 1].to(ws.device))["rgb"]
+                    rgb = pipe.model.eval().get_outputs_for_camera(cams[c : c + 1].to(ws.device))["rgb"]
                 save_png(rgb, folder / f"view-{v:03d}.png")
         return Image.open(path).convert("RGB")
 
@@ -222,19 +224,6 @@ def run(ws: Workspace) -> Dict[str, Any]:
     nulls = null_bases(ws)
     same_scene = [n for n in nulls if n[2] == ws.scene_dir]
     other = [n for n in nulls if n[2] != ws.scene_dir]
-
-    def render_other(name: str, config: Path, data: Path, f: W.Framing) -> Image.Image:
-        """The other scene's base at its test view ``f.view`` modulo its test views (its own intrinsics)."""
-        path = work / "renders" / name.replace(" ", "-") / f"view-{f.view:03d}.png"
-        if not path.is_file():
-            with contextlib.redirect_stdout(sys.stderr):
-                pipe = load_run(config, data=data, device=ws.device)[1]
-            cams = pipe.datamanager.eval_dataset.cameras
-            v = f.view % len(cams)
-            with torch.no_grad():
-                rgb = pipe.model.get_outputs_for_camera(cams[v : v + 1].to(ws.device))["rgb"]
-            save_png(rgb, path)
-        return Image.open(path).convert("RGB")
 
     def ground_truth(f: W.Framing) -> Image.Image:
         img = test.get_image_float32(f.view)
@@ -259,7 +248,7 @@ def run(ws: Workspace) -> Dict[str, Any]:
                     "framed",
                     i,
                     "null",
-                    partial(lambda n, c, d, f: W.frame(render_other(n, c, d, f), f), name, config, data, f),
+                    partial(lambda n, c, d, f: W.frame(render_of(n, c, f, d), f), name, config, data, f),
                 )
         for edit in recolor_edits(ws):
             for i, f in enumerate(framings):
