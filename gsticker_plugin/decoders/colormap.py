@@ -131,7 +131,7 @@ def fit_to_change(
 def mapped_colors(model, cmap: ColorMap) -> Iterator[None]:
     """Within the block ``model`` renders every sample's colour through ``cmap`` (before compositing, as ``ns-recolor``
     edits a run); the model is unchanged after it."""
-    wraps = [ColorWrap(f, lambda c: cmap(c)) for _, f in color_fields(model)]
+    wraps = [ColorWrap(f, cmap) for _, f in color_fields(model)]
     try:
         yield
     finally:
