@@ -19,7 +19,7 @@ import torch
 import yaml
 from conftest import CPU_ARGS, TINY_MESSAGE, TINY_STICKER_ARGS, small_key, subprocess_env
 
-from gsticker_plugin import runs
+from gsticker_plugin import metrics, runs
 from gsticker_plugin.attacks import recipient as R
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.key import (
@@ -77,13 +77,16 @@ def test_least_squares_reads_the_message_when_the_initial_patterns_are_known():
 
 
 def test_least_squares_with_patterns_from_another_seed_reads_at_chance():
+    """Twenty messages (drawn from a fixed generator, so the test does not flake) against eight wrong seeds' patterns:
+    the best fit's bits match like coin flips. 40/48 is past what 20 binomial(48, 1/2) draws reach once in 30 000."""
+    g = torch.Generator().manual_seed(2026)
     counts = []
     for i in range(20):
-        message = random_message()
+        message = metrics.random_message(48, g)
         folded = trained_like(1000 + i).fold(message)["mlp.3.weight"].reshape(-1)
         best = R.best_recovery(folded, [(s, seeded_sticker(SHAPE, s).mlp[-1].weight.detach()) for s in range(8)])
         counts.append(R.matches(best.bits, message))
-    assert max(counts) < 36 and 18 <= sum(counts) / len(counts) <= 30, counts
+    assert max(counts) < 40 and 20 <= sum(counts) / len(counts) <= 28, counts
 
 
 def test_the_sticker_is_initialised_from_a_secret_seed_not_the_global_generator(monkeypatch):
