@@ -36,6 +36,8 @@ class Args:
     """Test views rendered, framed and read."""
     seed: int = 20261207
     """Decoding seed."""
+    framings: Tuple[str, ...] = ()
+    """Only these framings (names as on the page); all by default."""
     recolored: Tuple[str, ...] = ()
     """Recolored copies of the shared run read beside it, as ``NAME=CONFIG`` (``ns-recolor``'s config.yml)."""
     output: Path = Path("docs/experiments/bench-framed.md")
@@ -139,7 +141,7 @@ def measure(args: Args) -> Dict[str, Any]:
                     write_png(png, model.get_outputs_for_camera(cameras[vi : vi + 1].to(dev))["rgb"].float().cpu())
             square = Image.open(png).convert("RGB")
             for name, frame in framings().items():
-                if (vi, name, model_name) in done:
+                if (vi, name, model_name) in done or (args.framings and name not in args.framings):
                     continue
                 framed = frame(square)
                 framed.save(args.work_dir / f"{model_name}-{vi:03d}-{len(rows):03d}.png")

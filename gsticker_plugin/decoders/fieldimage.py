@@ -46,11 +46,11 @@ from gsticker_plugin.decoders.colormap import (
 )
 from gsticker_plugin.decoders.fit import fit_and_decide, fit_summary, left_after, tie_generator
 from gsticker_plugin.decoders.framed import (
-    RESAMPLERS,
     base_frame,
     content_box,
     estimate_framed_camera,
     framing_of,
+    matched_resampler,
     resampled,
     warp_to_picture,
 )
@@ -291,30 +291,18 @@ def read_picture(
 ) -> Tuple[Dict[str, Any], Any, int]:
     """Read a framed picture at the ``camera`` :func:`gsticker_plugin.decoders.framed.estimate_framed_camera` found:
     the base rendered at that camera (:func:`read_at_camera`, zoom and principal point free, through ``recolouring``'s
-    colour map when given), and for a resized copy that is not read through a map also at the base's own intrinsics
-    carried into the picture by its framing (:func:`read_framed`; not for a picture read through a degradation); the
+    colour map when given), and for a resized copy also at the base's own intrinsics carried into the picture by its
+    framing (:func:`read_framed`, through the map too; not for a picture read through a degradation); the
     fit that leaves the least is kept (``read``: ``render`` or ``framing``). Neither looks at the message."""
     d, cam, used = read_at_camera(reference, picture, camera, generator, rounds, FRAMED, recolouring, degradation)
     d["read"] = "render"
     base = reference.pipeline.datamanager.train_dataset.cameras[:1]
-    if recolouring is None and d["degradation"] == "none" and resampled(framing_of(camera, base).sx):
-        w, wcam, wused = read_framed(reference, picture, camera, generator, rounds)
+    if d["degradation"] == "none" and resampled(framing_of(camera, base).sx):
+        w, wcam, wused = read_framed(reference, picture, camera, generator, rounds, recolouring=recolouring)
         if left_after(w) < left_after(d):
             d, cam, used = w, wcam, wused
             d["read"] = "framing"
     return d, cam, used
-
-
-def matched_resampler(render: Float[Tensor, "h w 3"], picture: Float[Tensor, "H W 3"], framing) -> str:
-    """The resampling filter (:data:`gsticker_plugin.decoders.framed.RESAMPLERS`) whose resize of the base's
-    ``render`` by ``framing`` is nearest ``picture`` where the render covers it: the tool a resized copy was made
-    with. Uses the picture and the base only."""
-    ph, pw = int(picture.shape[0]), int(picture.shape[1])
-    costs = {}
-    for kernel in RESAMPLERS:
-        warped, inside = warp_to_picture(render.permute(2, 0, 1), framing, ph, pw, kernel)
-        costs[kernel] = float(((warped.permute(1, 2, 0) - picture.float())[inside] ** 2).mean())
-    return min(costs, key=costs.__getitem__)
 
 
 def read_framed(
@@ -324,58 +312,70 @@ def read_framed(
     generator: torch.Generator,
     rounds: int = 2,
     eps: float = 3.5e-4,
+    recolouring: Optional[Recolouring] = None,
 ) -> Tuple[Dict[str, Any], Cameras, int]:
     """:func:`read_at_camera` for a framed picture whose ``camera`` (sized like it) was found by
     :func:`gsticker_plugin.decoders.framed.estimate_framed_camera`: the base render, the mark's per-bit colour change
     and the derivatives in the pose and in the framing's zoom and principal point, all at the base's own intrinsics (where a
     render is what a resized copy was made from), carried into the picture by its framing (:func:`warp_to_picture`);
-    the signs fitted there to ``picture - framed base`` beside those columns. Returns the fit that left the least,
-    its camera (the picture's) and its round (1-based)."""
+    the signs fitted there to ``picture - framed base`` beside those columns. ``recolouring``: the base rendered
+    through its colour map (a map of sample colours, whatever the camera), the map's own columns at the base's
+    samples fitted too. Returns the fit that left the least, its camera (the picture's) and its round (1-based)."""
     model = reference.model
     base = reference.pipeline.datamanager.train_dataset.cameras[:1]
     ph, pw = int(picture.shape[0]), int(picture.shape[1])
     dist = camera_distance(camera)
     at = base_frame(camera, base)
-    view = FM.image_view(model, at, reference.patterns)
-    h0, w0 = view.hw
-    k = view.jacobian.shape[-1]
-    jac = torch.zeros(h0 * w0, 3, k)
-    jac[view.rays] = view.jacobian.float()
-    assert view.image is not None
-    render = view.image.reshape(h0, w0, 3)
-    pose = pose_columns(model, at, torch.arange(h0 * w0), False, eps, base=render.reshape(-1, 3))  # rows r * 3 + c
-    fixed = torch.cat([jac.reshape(h0, w0, 3 * k), pose.reshape(h0, w0, 3 * POSE)], dim=-1).permute(2, 0, 1)
-    kernel = matched_resampler(render, picture, framing_of(camera, base))
+    tint = mapped_colors(model, recolouring.cmap) if recolouring is not None else contextlib.nullcontext()
+    map_cols: List[Tensor] = []
+    if recolouring is not None:
+        _, smp = FM.capture_samples(model, at)
+        weights = render_weights(smp["density"], smp["deltas"]).cpu()
+        map_cols = [map_columns(smp["rgb"].cpu(), weights, recolouring.cmap).float()]  # rows r * 3 + c
     best: Optional[Tuple[float, Dict[str, Any], Cameras, int]] = None
-    for r in range(rounds):
-        if r > 0:  # the Jacobians of the first camera (the steps are fractions of a pixel), the base rendered again
-            render = render_cameras(model, base_frame(camera, base))["rgb"][0]
-        framing = framing_of(camera, base)
-        warped, inside = warp_to_picture(torch.cat([render.permute(2, 0, 1), fixed]), framing, ph, pw, kernel)
-        rows = torch.nonzero(inside.reshape(-1)).reshape(-1)
-        flat = warped.reshape(warped.shape[0], -1)[:, rows].T  # [R C]
-        framed = FM.ImageView(rows, flat[:, :3], flat[:, 3 : 3 + 3 * k].reshape(-1, 3, k), (ph, pw))
-        cols = [flat[:, 3 + 3 * k :].reshape(-1, 3, POSE).reshape(-1, POSE)]  # rows r * 3 + c, like the message's
-        for i in range(POSE, FRAMED):  # the zoom and the principal point, moved in the picture
-            e = torch.zeros(FRAMED)
-            e[i] = PRINCIPAL_STEP if i > POSE else eps
-            plus = warp_to_picture(render.permute(2, 0, 1), framing_of(moved_camera(camera, e), base), ph, pw, kernel)[
-                0
-            ]
-            minus = warp_to_picture(
-                render.permute(2, 0, 1), framing_of(moved_camera(camera, -e), base), ph, pw, kernel
-            )[0]
-            cols.append(((plus - minus) / (2 * float(e[i]))).reshape(3, -1)[:, rows].T.reshape(-1, 1))
-        d = decode_image_view(
-            framed, picture.reshape(-1, 3)[rows].float(), reference.amplitude, generator, torch.cat(cols, 1)
-        )
-        step = torch.tensor(d.pop("column_step", [0.0] * FRAMED))[:FRAMED]
-        d["resampler"] = kernel
-        if best is None or left_after(d) < best[0]:
-            best = (left_after(d), d, camera, r + 1)
-        if r + 1 == rounds or float(step.abs().max()) <= 1e-7:
-            break
-        camera = moved_camera(camera, step, dist)
+    with tint:
+        view = FM.image_view(model, at, reference.patterns)
+        h0, w0 = view.hw
+        k = view.jacobian.shape[-1]
+        jac = torch.zeros(h0 * w0, 3, k)
+        jac[view.rays] = view.jacobian.float()
+        assert view.image is not None
+        render = view.image.reshape(h0, w0, 3)
+        pose = pose_columns(model, at, torch.arange(h0 * w0), False, eps, base=render.reshape(-1, 3))  # rows r * 3 + c
+        extra = torch.cat([pose] + map_cols, dim=1)
+        e = extra.shape[1]
+        fixed = torch.cat([jac.reshape(h0, w0, 3 * k), extra.reshape(h0, w0, 3 * e)], dim=-1).permute(2, 0, 1)
+        kernel = matched_resampler(render, picture, framing_of(camera, base))
+        for r in range(rounds):
+            if r > 0:  # the Jacobians of the first camera (the steps are fractions of a pixel), the base rendered again
+                render = render_cameras(model, base_frame(camera, base))["rgb"][0]
+            framing = framing_of(camera, base)
+            warped, inside = warp_to_picture(torch.cat([render.permute(2, 0, 1), fixed]), framing, ph, pw, kernel)
+            rows = torch.nonzero(inside.reshape(-1)).reshape(-1)
+            flat = warped.reshape(warped.shape[0], -1)[:, rows].T  # [R C]
+            framed = FM.ImageView(rows, flat[:, :3], flat[:, 3 : 3 + 3 * k].reshape(-1, 3, k), (ph, pw))
+            cols = [flat[:, 3 + 3 * k :].reshape(-1, 3, e).reshape(-1, e)]  # rows r * 3 + c, like the message's
+            for i in range(POSE, FRAMED):  # the zoom and the principal point, moved in the picture
+                step_i = torch.zeros(FRAMED)
+                step_i[i] = PRINCIPAL_STEP if i > POSE else eps
+                plus, minus = (
+                    warp_to_picture(
+                        render.permute(2, 0, 1), framing_of(moved_camera(camera, sign * step_i), base), ph, pw, kernel
+                    )[0]
+                    for sign in (1, -1)
+                )
+                cols.append(((plus - minus) / (2 * float(step_i[i]))).reshape(3, -1)[:, rows].T.reshape(-1, 1))
+            d = decode_image_view(
+                framed, picture.reshape(-1, 3)[rows].float(), reference.amplitude, generator, torch.cat(cols, 1)
+            )
+            coeffs = torch.tensor(d.pop("column_step", [0.0] * (e + FRAMED - POSE)))
+            step = torch.cat([coeffs[:POSE], coeffs[e : e + FRAMED - POSE]])  # the pose's, then the framing's
+            d["resampler"] = kernel
+            if best is None or left_after(d) < best[0]:
+                best = (left_after(d), d, camera, r + 1)
+            if r + 1 == rounds or float(step.abs().max()) <= 1e-7:
+                break
+            camera = moved_camera(camera, step, dist)
     assert best is not None
     return best[1], best[2], best[3]
 

@@ -18,6 +18,11 @@ a pinhole camera with the same pose and the intrinsics ::
 4. the best candidates' cameras, framed like the picture (:func:`framed_camera`), are refined on the picture by the
    pose stages of :func:`gsticker_plugin.decoders.pose.estimate_camera` (:func:`gsticker_plugin.decoders.pose.refine_starts`).
 
+5. a picture zoomed by more than :data:`RESAMPLED` is refined again on the whole picture as a resized copy is made -
+   the base rendered at its own intrinsics and resized with the filter that matches - and its render's pixel grid put
+   back where the copy's lay (:func:`refine_resampled`, :func:`phase_fit`); that camera is kept when it explains the
+   picture better than the one of step 4 (a render at the picture's own intrinsics).
+
 A framing's error left after step 2 is a fraction of a coarse pixel; the pose moves to absorb it (a zoom error as a
 step along the axis, an offset as a turn), which is what a camera of the right pose would show up to the scene's
 parallax at that scale. Uses the picture and the owner's base only, never the owner's message.
@@ -26,7 +31,7 @@ parallax at that scale. Uses the picture and the owner's base only, never the ow
 from __future__ import annotations
 
 import math
-from typing import List, Optional, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -37,15 +42,21 @@ from torch import Tensor
 from gsticker_plugin.decoders.framing import Framing, coarse_framings
 from gsticker_plugin.decoders.pose import (
     FRAMED,
+    POSE,
     PoseFit,
     PoseSearch,
+    Renderer,
     Window,
+    camera_distance,
     channel_of,
+    moved_camera,
     refine_starts,
+    render_cameras,
     scaled_camera,
     search_renders,
+    warp_refine,
 )
-from gsticker_plugin.fastpath import smoothed
+from gsticker_plugin.fastpath import axis_angle_matrix, smoothed
 
 PICTURE_SCALES = tuple(float(z) for z in torch.logspace(math.log10(0.3), math.log10(4.5), 29).tolist())
 """Picture px per base px tried by the coarse framing: a copy 0.5 to 3 times the base's size, zoomed 0.7 to 1.5
@@ -57,6 +68,10 @@ RESAMPLED = 0.03
 RESAMPLED_BLUR = 0.45
 """Blur (px of the picture worked) a resized copy holds beyond a render (the resampling kernels'), put on the
 renders it is compared with."""
+RESAMPLED_STAGES = ((3.0, 1.5, 0.75), (0.75, 0.4))
+"""Blurs (px per 100 px of the picture's larger side) of :func:`refine_resampled`'s groups of stages."""
+PHASE_SUPERSAMPLE = 2
+"""How many times finer than the base :func:`phase_fit` renders (its candidates sample that render)."""
 BAR_TOLERANCE = 6.0 / 255.0
 """A row or column whose values span less than this in every channel is a bar."""
 
@@ -152,7 +167,14 @@ def estimate_framed_camera(
     blur = RESAMPLED_BLUR if resampled(framings[0].sx) else 0.0
     b, cam, rms, total, history = refine_starts(reference.model, work, starts, value, search, FRAMED, blur)
     best = framings[order.index(b)]
-    return PoseFit(camera=scaled_camera(cam, ph, pw), rms=rms, score=best.score, iterations=total, history=history)
+    cam = scaled_camera(cam, ph, pw)
+    if blur > 0:  # a resized copy of a render, or a render at the picture's own intrinsics: whichever explains it
+        again, kernel = refine_resampled(reference.model, train[:1], cam, pic, value)
+        as_resized = resampled_renderer(train[:1], kernel)(reference.model, again, ("rgb",))["rgb"][0]
+        as_rendered = render_cameras(reference.model, cam)["rgb"][0]
+        if _rms(as_resized, pic, value) < _rms(as_rendered, pic, value):
+            cam = again
+    return PoseFit(camera=cam, rms=rms, score=best.score, iterations=total, history=history)
 
 
 def resampled(zoom: float) -> bool:
@@ -243,3 +265,167 @@ def warp_to_picture(
     mode = "bicubic" if s > 1 else "bilinear"
     out = F.grid_sample(img, grid, mode=mode, padding_mode="border", align_corners=False)[0]
     return out, inside
+
+
+def matched_resampler(render: Float[Tensor, "h w 3"], picture: Float[Tensor, "H W 3"], framing: Framing) -> str:
+    """The resampling filter (:data:`RESAMPLERS`) whose resize of the base's ``render`` by ``framing`` is nearest
+    ``picture`` where the render covers it: the tool a resized copy was made with. Uses the picture and the base
+    only."""
+    ph, pw = int(picture.shape[0]), int(picture.shape[1])
+    costs = {}
+    for kernel in RESAMPLERS:
+        warped, inside = warp_to_picture(render.permute(2, 0, 1), framing, ph, pw, kernel)
+        costs[kernel] = float(((warped.permute(1, 2, 0) - picture.float())[inside] ** 2).mean())
+    return min(costs, key=costs.__getitem__)
+
+
+def resampled_renderer(base: Cameras, kernel: str) -> Renderer:
+    """A :data:`gsticker_plugin.decoders.pose.Renderer` for a framed camera that renders it as a resized copy was
+    made: the base at its own intrinsics and the camera's pose (:func:`base_frame`), carried into the picture by the
+    camera's framing (:func:`warp_to_picture`; colour through ``kernel``, depth and accumulation bilinearly, the
+    accumulation 0 where the base frame does not reach)."""
+
+    def render(model, camera: Cameras, keys: Sequence[str] = ("rgb",)) -> Dict[str, Tensor]:
+        out = render_cameras(model, base_frame(camera, base), keys)
+        framing = framing_of(camera, base)
+        h, w = int(camera.height[0]), int(camera.width[0])
+        framed = {}
+        for k in keys:
+            x, inside = warp_to_picture(out[k][0].permute(2, 0, 1), framing, h, w, kernel if k == "rgb" else "bilinear")
+            framed[k] = (x * inside if k == "accumulation" else x).permute(1, 2, 0)[None]
+        return framed
+
+    return render
+
+
+def phase_fit(
+    model,
+    base: Cameras,
+    camera: Cameras,
+    picture: Float[Tensor, "H W 3"],
+    value: bool,
+    kernel: str,
+    supersample: int = PHASE_SUPERSAMPLE,
+    iterations: int = 30,
+) -> Tuple[Cameras, float]:
+    """The framed ``camera`` of a resized copy moved to where the base render's pixel grid lies as it lay when the
+    copy was made (see :func:`refine_resampled`): the base rendered once at ``camera``'s pose, ``supersample`` times
+    finer (``R``); a candidate turns that camera by ``w`` (3), steps along its axis (``z``: the ray grid zoomed by
+    ``e^z`` about the principal point) and frames by ``(log s, tx, ty)``; its render is ``R`` sampled at the
+    candidate's pixel-centre rays (exact for a turn) and resized into the picture by ``kernel``. Levenberg-Marquardt
+    on the picture's pixels (``V`` with ``value``) from turns a whole base px apart, -1 to 1 each way (a local minimum
+    each, as far apart); the best goes on for ``iterations``. The step along the axis is the zoom at the base's
+    median depth. Returns the camera (sized like ``picture``) and the RMS left."""
+    dist = camera_distance(camera)
+    at = base_frame(camera, base)
+    frame0 = framing_of(camera, base)
+    h0, w0 = int(base.height[0]), int(base.width[0])
+    fine = Cameras(
+        camera_to_worlds=at.camera_to_worlds,
+        fx=at.fx * supersample,
+        fy=at.fy * supersample,
+        cx=at.cx * supersample,
+        cy=at.cy * supersample,
+        width=w0 * supersample,
+        height=h0 * supersample,
+        camera_type=at.camera_type,
+    )
+    out = render_cameras(model, fine, ("rgb", "expected_depth", "accumulation"))
+    big = channel_of(out["rgb"][0], value).permute(2, 0, 1)[None].float()
+    solid = out["accumulation"][0, ..., 0] > 0.5
+    depth = float(out["expected_depth"][0, ..., 0][solid].median()) if bool(solid.any()) else dist
+    fx, fy, cx, cy = (float(x.reshape(-1)[0]) for x in (at.fx, at.fy, at.cx, at.cy))
+    ph, pw = int(picture.shape[0]), int(picture.shape[1])
+    target = channel_of(picture.float(), value)[..., 0] if value else picture.float().permute(2, 0, 1)
+    ii, jj = torch.meshgrid(
+        torch.arange(h0, dtype=torch.float64) + 0.5, torch.arange(w0, dtype=torch.float64) + 0.5, indexing="ij"
+    )
+
+    def framing(p: Tensor) -> Framing:
+        s = math.exp(float(p[4]))
+        return Framing(frame0.sx * s, frame0.sy * s, frame0.tx + float(p[5]), frame0.ty + float(p[6]))
+
+    def residual(p: Tensor) -> Tensor:
+        z = math.exp(float(p[3]))
+        ray = torch.stack([(jj - cx) / (fx * z), -(ii - cy) / (fy * z), -torch.ones_like(ii)], dim=-1)
+        angle = float(p[:3].norm())
+        turn = axis_angle_matrix((p[:3] / angle).float(), angle).double() if angle > 0 else torch.eye(3).double()
+        d = ray @ turn.T  # the candidate's rays in the rendered camera's frame
+        col = cx + fx * d[..., 0] / (-d[..., 2])
+        row = cy - fy * d[..., 1] / (-d[..., 2])
+        grid = torch.stack([col / w0 * 2 - 1, row / h0 * 2 - 1], dim=-1)[None].float()
+        img = F.grid_sample(big, grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
+        warped, inside = warp_to_picture(img, framing(p), ph, pw, kernel)
+        return ((warped[0] if value else warped) - target) * inside
+
+    steps = torch.tensor([1e-4, 1e-4, 1e-4, 1e-4, 1e-4, 0.02, 0.02], dtype=torch.float64)
+    starts = []
+    for a in (-1, 0, 1):
+        for b in (-1, 0, 1):
+            p = torch.zeros(7, dtype=torch.float64)
+            p[0], p[1] = b / fy, a / fx  # a turn about x moves the rows, about y the columns
+            starts.append(least_squares(residual, p, steps, 3))
+    p, rms = least_squares(residual, min(starts, key=lambda s: s[1])[0], steps, iterations)
+    delta = torch.zeros(POSE)
+    delta[:3] = p[:3].float()
+    delta[5] = -(math.exp(float(p[3])) - 1.0) * depth / dist  # forward is -z
+    moved = moved_camera(at, delta, dist)
+    return framed_camera(base, framing(p), ph, pw, moved.camera_to_worlds), rms
+
+
+def least_squares(residual, p: Tensor, steps: Tensor, iterations: int) -> Tuple[Tensor, float]:
+    """Levenberg-Marquardt on ``residual(p)`` (any shape) from ``p``, central-difference Jacobian with ``steps``;
+    returns the parameters and the residual's RMS."""
+    r = residual(p).reshape(-1).double()
+    cost = float(r @ r)
+    lam = 1e-3
+    for _ in range(iterations):
+        cols = [
+            (residual(p + e) - residual(p - e)).reshape(-1).double() / (2 * float(e.norm())) for e in torch.diag(steps)
+        ]
+        j = torch.stack(cols, dim=1)
+        a, g = j.T @ j, j.T @ r
+        accepted = False
+        for _ in range(6):
+            step = -torch.linalg.solve(a + lam * torch.diag(torch.diag(a).clamp_min(1e-12)), g)
+            r1 = residual(p + step).reshape(-1).double()
+            c1 = float(r1 @ r1)
+            if c1 < cost:
+                p, r, cost, lam, accepted = p + step, r1, c1, max(lam / 4, 1e-7), True
+                break
+            lam *= 8
+        if not accepted:
+            break
+    return p, math.sqrt(cost / max(1, r.numel()))
+
+
+def _rms(render: Float[Tensor, "H W 3"], picture: Float[Tensor, "H W 3"], value: bool) -> float:
+    return float((channel_of(render, value) - channel_of(picture.float(), value)).pow(2).mean().sqrt())
+
+
+def refine_resampled(
+    model, base: Cameras, camera: Cameras, picture: Float[Tensor, "H W 3"], value: bool
+) -> Tuple[Cameras, str]:
+    """The framed ``camera`` of a resized copy refined on the whole ``picture`` as it was made: the base rendered at
+    its own intrinsics and resized like the picture with the matched filter (:func:`matched_resampler`,
+    :func:`resampled_renderer`), by :func:`gsticker_plugin.decoders.pose.warp_refine` over the pose, zoom and principal
+    point at the blurs of :data:`RESAMPLED_STAGES`, each group followed by :func:`phase_fit`.
+
+    A render's colours are the field's at its pixel-centre rays, and a resized copy keeps where those rays fell:
+    a camera turned by a whole pixel and framed back gives nearly the same picture (only the keystone differs), one
+    turned by half a pixel does not (its samples fall between). The blurred stages find the camera to a pixel or two
+    of the base frame; :func:`phase_fit` then puts the render's samples where the copy's were. Returns the camera and
+    the filter."""
+    ph, pw = int(picture.shape[0]), int(picture.shape[1])
+    kernel = matched_resampler(
+        render_cameras(model, base_frame(camera, base))["rgb"][0], picture, framing_of(camera, base)
+    )
+    renderer = resampled_renderer(base, kernel)
+    target = channel_of(picture.float(), value)
+    cam = camera
+    for blurs in RESAMPLED_STAGES:
+        for blur in blurs:
+            sigma = blur * max(ph, pw) / 100.0
+            cam = warp_refine(model, cam, target, value, 8, sigma, renders=3, free=FRAMED, renderer=renderer)[0]
+        cam = phase_fit(model, base, cam, picture, value, kernel)[0]
+    return cam, kernel

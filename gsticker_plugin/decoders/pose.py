@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Literal, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -122,6 +122,11 @@ def render_cameras(
     )
     out = model.get_outputs_for_camera_ray_bundle(bundle.reshape((-1, 1)))
     return {k: out[k].reshape(n, h, w, -1).float().cpu() for k in keys}
+
+
+Renderer = Callable[[Any, Cameras, Sequence[str]], Dict[str, Tensor]]
+"""How a refinement renders the base at a camera: ``(model, camera, keys) -> {key: [1 H W C]}``, as
+:func:`render_cameras`."""
 
 
 def ncc(a: Float[Tensor, "N M"], b: Float[Tensor, " M"]) -> Float[Tensor, " N"]:
@@ -330,9 +335,10 @@ def warp_refine(
     trim: float = 1.0,
     free: int = POSE,
     render_blur: float = 0.0,
+    renderer: Optional[Renderer] = None,
 ) -> Tuple[Cameras, float, int]:
     """Gauss-Newton over the ``free`` parameters of ``camera`` (:func:`lk_refine`; sized like ``target``) with the
-    base render held fixed:
+    base render held fixed (made by ``renderer``, :func:`render_cameras` by default):
     the surface points the base shows at the camera (one render's depth) are projected through the moved pose into
     ``target``, which is sampled there; the residual ``target(pi(T P)) - render(p)`` and its Jacobian
     ``grad target * d pi / d pose`` need no render, so a step costs a projection and a bilinear sample. The base is
@@ -352,7 +358,7 @@ def warp_refine(
     cur, rms, total = camera, float("nan"), 0
 
     for _ in range(max(1, renders)):
-        out = render_cameras(model, cur, ("rgb", "expected_depth", "accumulation"))
+        out = (renderer or render_cameras)(model, cur, ("rgb", "expected_depth", "accumulation"))
         ref = smoothed(channel_of(out["rgb"][0], value).double(), math.hypot(sigma, render_blur)).reshape(-1, c)
         pixels = projection(cur, surface_points(cur, out["expected_depth"][0], out["accumulation"][0]))
 
