@@ -51,6 +51,7 @@ from gsticker_plugin.decoders.framed import (
     estimate_framed_camera,
     framing_of,
     matched_resampler,
+    refine_resampled,
     resampled,
     warp_to_picture,
 )
@@ -445,7 +446,12 @@ def decode_images(
             extra.update(pose_rms=pose.rms, pose_score=pose.score)
         rec = recolouring_at(reference.model, image, camera)
         if cameras is None and rec is not None and rec.share >= MAP_SEARCH_SHARE:
-            camera, rec = recoloured_camera(reference.model, image, camera, search, rec, free)
+            if framed and resampled(framing_of(camera, base[:1]).sx):  # a resized copy: refined as it was made
+                with mapped_colors(reference.model, rec.cmap):
+                    camera = refine_resampled(reference.model, base[:1], camera, image, False)[0]
+                rec = recolouring_at(reference.model, image, camera)
+            else:
+                camera, rec = recoloured_camera(reference.model, image, camera, search, rec, free)
         if cameras is None:
             extra["search_seconds"] = time.time() - t0
         mapped = rec if rec is not None and rec.reads else None
