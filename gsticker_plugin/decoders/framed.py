@@ -72,6 +72,8 @@ RESAMPLED_STAGES = ((3.0, 1.5, 0.75), (0.75, 0.4))
 """Blurs (px per 100 px of the picture's larger side) of :func:`refine_resampled`'s groups of stages."""
 PHASE_SUPERSAMPLE = 2
 """How many times finer than the base :func:`phase_fit` renders (its candidates sample that render)."""
+PHASE_REACH = 3.0
+"""Base px a :func:`phase_fit` may move the camera's render (a turn, the framing's offset)."""
 BAR_TOLERANCE = 6.0 / 255.0
 """A row or column whose values span less than this in every channel is a bar."""
 
@@ -315,21 +317,14 @@ def phase_fit(
     candidate's pixel-centre rays (exact for a turn) and resized into the picture by ``kernel``. Levenberg-Marquardt
     on the picture's pixels (``V`` with ``value``) from turns a whole base px apart, -1 to 1 each way (a local minimum
     each, as far apart); the best goes on for ``iterations``. The step along the axis is the zoom at the base's
-    median depth. Returns the camera (sized like ``picture``) and the RMS left."""
+    median depth. A fit that leaves more than the camera as given, or moves beyond :data:`PHASE_REACH` base px (or
+    5 % in zoom, 0.05 rad in roll), leaves it as given. Returns the camera (sized like ``picture``) and the RMS
+    left."""
     dist = camera_distance(camera)
     at = base_frame(camera, base)
     frame0 = framing_of(camera, base)
     h0, w0 = int(base.height[0]), int(base.width[0])
-    fine = Cameras(
-        camera_to_worlds=at.camera_to_worlds,
-        fx=at.fx * supersample,
-        fy=at.fy * supersample,
-        cx=at.cx * supersample,
-        cy=at.cy * supersample,
-        width=w0 * supersample,
-        height=h0 * supersample,
-        camera_type=at.camera_type,
-    )
+    fine = scaled_camera(at, h0 * supersample, w0 * supersample)
     out = render_cameras(model, fine, ("rgb", "expected_depth", "accumulation"))
     big = channel_of(out["rgb"][0], value).permute(2, 0, 1)[None].float()
     solid = out["accumulation"][0, ..., 0] > 0.5
@@ -366,6 +361,12 @@ def phase_fit(
             p[0], p[1] = b / fy, a / fx  # a turn about x moves the rows, about y the columns
             starts.append(least_squares(residual, p, steps, 3))
     p, rms = least_squares(residual, min(starts, key=lambda s: s[1])[0], steps, iterations)
+    still = float(residual(torch.zeros(7, dtype=torch.float64)).pow(2).mean().sqrt())
+    reach = torch.tensor(
+        [PHASE_REACH / fy, PHASE_REACH / fx, 0.05, 0.05, 0.05, PHASE_REACH * frame0.sx, PHASE_REACH * frame0.sy]
+    )
+    if not (bool(torch.isfinite(p).all()) and bool((p.abs() <= reach.double()).all()) and rms < still):
+        return camera, still  # a fit that ran off (or did not help) leaves the camera as it was
     delta = torch.zeros(POSE)
     delta[:3] = p[:3].float()
     delta[5] = -(math.exp(float(p[3])) - 1.0) * depth / dist  # forward is -z

@@ -152,3 +152,14 @@ def _left(camera, picture, base) -> float:
     """RMS of ``picture`` less the base rendered at ``camera``'s pose and resized by its framing."""
     render = FR.resampled_renderer(base, "bicubic")(TexturedSquare(), camera, ("rgb",))["rgb"][0]
     return float((render - picture).pow(2).mean().sqrt())
+
+
+def test_a_phase_fit_that_cannot_help_leaves_the_camera_as_it_was():
+    """A picture the base does not explain (noise): whatever the fit runs into, the camera comes back unchanged."""
+    train = orbit(24, size=40)
+    held = P.novel_cameras(train, 1, torch.Generator().manual_seed(3))
+    start = FR.framed_camera(held, Framing(1.3, 1.3, -3.0, -2.0), 44, 48)
+    noise = torch.rand(44, 48, 3, generator=torch.Generator().manual_seed(0))
+    cam, _ = FR.phase_fit(TexturedSquare(), held, start, noise, False, "bicubic")
+    assert torch.equal(cam.camera_to_worlds, start.camera_to_worlds)
+    assert all(float(getattr(cam, k)) == float(getattr(start, k)) for k in ("fx", "fy", "cx", "cy"))
