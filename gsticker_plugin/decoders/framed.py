@@ -170,7 +170,7 @@ def estimate_framed_camera(
     b, cam, rms, total, history = refine_starts(reference.model, work, starts, value, search, FRAMED, blur)
     best = framings[order.index(b)]
     cam = scaled_camera(cam, ph, pw)
-    if blur > 0:  # a resized copy of a render, or a render at the picture's own intrinsics: whichever explains it
+    if resampled(framings[0].sx):  # a resized copy of a render, or a render at the picture's own intrinsics
         again, kernel = refine_resampled(reference.model, train[:1], cam, pic, value)
         as_resized = resampled_renderer(train[:1], kernel)(reference.model, again, ("rgb",))["rgb"][0]
         as_rendered = render_cameras(reference.model, cam)["rgb"][0]
@@ -309,7 +309,7 @@ def phase_fit(
     kernel: str,
     supersample: int = PHASE_SUPERSAMPLE,
     iterations: int = 30,
-) -> Tuple[Cameras, float]:
+) -> Cameras:
     """The framed ``camera`` of a resized copy moved to where the base render's pixel grid lies as it lay when the
     copy was made (see :func:`refine_resampled`): the base rendered once at ``camera``'s pose, ``supersample`` times
     finer (``R``); a candidate turns that camera by ``w`` (3), steps along its axis (``z``: the ray grid zoomed by
@@ -318,8 +318,7 @@ def phase_fit(
     on the picture's pixels (``V`` with ``value``) from turns a whole base px apart, -1 to 1 each way (a local minimum
     each, as far apart); the best goes on for ``iterations``. The step along the axis is the zoom at the base's
     median depth. A fit that leaves more than the camera as given, or moves beyond :data:`PHASE_REACH` base px (or
-    5 % in zoom, 0.05 rad in roll), leaves it as given. Returns the camera (sized like ``picture``) and the RMS
-    left."""
+    5 % in zoom, 0.05 rad in roll), leaves it as given. Returns the camera, sized like ``picture``."""
     dist = camera_distance(camera)
     at = base_frame(camera, base)
     frame0 = framing_of(camera, base)
@@ -366,12 +365,12 @@ def phase_fit(
         [PHASE_REACH / fy, PHASE_REACH / fx, 0.05, 0.05, 0.05, PHASE_REACH * frame0.sx, PHASE_REACH * frame0.sy]
     )
     if not (bool(torch.isfinite(p).all()) and bool((p.abs() <= reach.double()).all()) and rms < still):
-        return camera, still  # a fit that ran off (or did not help) leaves the camera as it was
+        return camera  # a fit that ran off (or did not help) leaves the camera as it was
     delta = torch.zeros(POSE)
     delta[:3] = p[:3].float()
     delta[5] = -(math.exp(float(p[3])) - 1.0) * depth / dist  # forward is -z
     moved = moved_camera(at, delta, dist)
-    return framed_camera(base, framing(p), ph, pw, moved.camera_to_worlds), rms
+    return framed_camera(base, framing(p), ph, pw, moved.camera_to_worlds)
 
 
 def least_squares(residual, p: Tensor, steps: Tensor, iterations: int) -> Tuple[Tensor, float]:
@@ -428,5 +427,5 @@ def refine_resampled(
         for blur in blurs:
             sigma = blur * max(ph, pw) / 100.0
             cam = warp_refine(model, cam, target, value, 8, sigma, renders=3, free=FRAMED, renderer=renderer)[0]
-        cam = phase_fit(model, base, cam, picture, value, kernel)[0]
+        cam = phase_fit(model, base, cam, picture, value, kernel)
     return cam, kernel
