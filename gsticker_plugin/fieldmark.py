@@ -482,6 +482,8 @@ class ImageView:
     jacobian: Tensor  # [R 3 K] d rgb / d s per unit amplitude
     hw: Tuple[int, int]
     image: Optional[Tensor] = None  # [H*W 3] the base's colour at every pixel (None: not kept)
+    depth: Optional[Tensor] = None  # [H*W 1] the base's expected depth at every pixel (None: not kept)
+    accumulation: Optional[Tensor] = None  # [H*W 1] its accumulation
 
 
 def image_view(
@@ -531,15 +533,16 @@ def image_view(
 
     h, w = int(camera.height[0, 0]), int(camera.width[0, 0])
     bundle = camera.to(model.device).generate_rays(camera_indices=0, keep_shape=False)
-    rgb_all, jac_all = [], []
+    rgb_all, jac_all, geometry_all = [], [], []
     for i in range(0, h * w, chunk):
         sub = bundle[i : i + chunk]
         object.__setattr__(field, "forward", field_forward)
         try:
             with torch.no_grad():
-                model(sub)
+                first = model(sub)
         finally:
             del field.__dict__["forward"]
+        geometry_all.append(torch.cat([first["expected_depth"], first["accumulation"]], dim=-1).float().cpu())
         s = torch.zeros(len(sub), k, device=table.device, requires_grad=True)
         state["s"] = s
         object.__setattr__(encoder, "forward", forward)
@@ -556,4 +559,5 @@ def image_view(
         jac_all.append(torch.stack(grads, dim=1).detach().float().cpu())
     rgb_full, jac_full = torch.cat(rgb_all), torch.cat(jac_all)
     rays = (jac_full.abs().amax(dim=(1, 2)) > min_change).nonzero().squeeze(-1)
-    return ImageView(rays=rays, base_rgb=rgb_full[rays], jacobian=jac_full[rays], hw=(h, w), image=rgb_full)
+    geometry = torch.cat(geometry_all)
+    return ImageView(rays, rgb_full[rays], jac_full[rays], (h, w), rgb_full, geometry[:, :1], geometry[:, 1:])

@@ -45,14 +45,17 @@ class Args:
 
 
 class RenderCount:
-    """Counts the base renders (batched ray-bundle passes) asked of ``model``."""
+    """Counts the ray-bundle passes asked of ``model`` (``count``; a render is cut into passes of at most
+    :data:`gsticker_plugin.decoders.geometric.RAY_CHUNK` rays) and the rays they rendered (``rays``)."""
 
     def __init__(self, model) -> None:
         self.count = 0
+        self.rays = 0
         inner = model.get_outputs_for_camera_ray_bundle
 
         def counted(bundle):
             self.count += 1
+            self.rays += int(bundle.shape[0])
             return inner(bundle)
 
         model.get_outputs_for_camera_ray_bundle = counted
@@ -91,7 +94,7 @@ def measure(args: Args) -> Dict[str, Any]:
         for refine in args.refines:
             if (vi, refine) in done:
                 continue
-            counter.count = 0
+            counter.count = counter.rays = 0
             t0 = time.time()
             dec = decode_images(key, ref, [image], args.seed, search=PoseSearch(refine=refine), renders=renders)
             d = dec["image"][0]
@@ -105,6 +108,7 @@ def measure(args: Args) -> Dict[str, Any]:
                     "pose_rms": d["pose_rms"],
                     "seconds": time.time() - t0,
                     "renders": counter.count,
+                    "rays": counter.rays,
                 }
             )
             with rows_path.open("a") as f:

@@ -49,10 +49,12 @@ from gsticker_plugin.decoders.framed import (
     base_frame,
     content_box,
     estimate_framed_camera,
+    footprint,
     framing_of,
     matched_resampler,
     refine_resampled,
     resampled,
+    resampled_renderer,
     warp_to_picture,
 )
 from gsticker_plugin.decoders.image import (
@@ -71,6 +73,7 @@ from gsticker_plugin.decoders.pose import (
     PoseSearch,
     camera_distance,
     estimate_camera,
+    flow_columns,
     moved_camera,
     pose_columns,
     refine_stage,
@@ -211,6 +214,24 @@ def recoloured_camera(
     return camera, recolouring_at(model, image, camera)
 
 
+FLOW_COLUMNS = True
+"""The camera's columns of a read from the base's one render (:func:`gsticker_plugin.decoders.pose.flow_columns`);
+False: a render per column (:func:`gsticker_plugin.decoders.pose.pose_columns`)."""
+
+
+def camera_columns(
+    model, camera, view: FM.ImageView, rays: Tensor, free: int, eps: float = 3.5e-4
+) -> Float[Tensor, "M free"]:
+    """d (base render at ``rays``) / d (the camera's ``free`` parameters), rows ``r * 3 + c``: from ``view``'s render
+    of every pixel (:data:`FLOW_COLUMNS`) or a render per column."""
+    assert view.image is not None
+    h, w = view.hw
+    if FLOW_COLUMNS and view.depth is not None and view.accumulation is not None:
+        rgb, depth, acc = view.image.reshape(h, w, 3), view.depth.reshape(h, w, 1), view.accumulation.reshape(h, w, 1)
+        return flow_columns(camera, rgb, depth, acc, rays, False, free)
+    return pose_columns(model, camera, rays, False, eps, free=free, base=view.image[rays])
+
+
 def read_at_camera(
     reference,
     image: Float[Tensor, "H W 3"],
@@ -240,8 +261,7 @@ def read_at_camera(
         degraded = degradation.name != "none"
         h, w = view.hw
         rays = torch.arange(h * w) if degraded else view.rays
-        at = view.image[rays] if view.image is not None else view.base_rgb
-        cols = pose_columns(model, camera, rays, False, free=free, base=at) if rounds > 1 else None
+        cols = camera_columns(model, camera, view, rays, free) if rounds > 1 else None
         if recolouring is not None:
             mapped = recolouring.columns(rays)
             cols = mapped if cols is None else torch.cat([cols, mapped], dim=1)
@@ -288,21 +308,28 @@ def read_picture(
     generator: torch.Generator,
     rounds: int = 2,
     recolouring: Optional[Recolouring] = None,
-    degradation: Optional[Degradation] = Degradation(),
+    resampler: Optional[str] = None,
 ) -> Tuple[Dict[str, Any], Any, int]:
     """Read a framed picture at the ``camera`` :func:`gsticker_plugin.decoders.framed.estimate_framed_camera` found:
-    the base rendered at that camera (:func:`read_at_camera`, zoom and principal point free, through ``recolouring``'s
-    colour map when given), and for a resized copy also at the base's own intrinsics carried into the picture by its
-    framing (:func:`read_framed`, through the map too; not for a picture read through a degradation); the
-    fit that leaves the least is kept (``read``: ``render`` or ``framing``). Neither looks at the message."""
+    a resized copy (``resampler``: the filter its camera was refined with) at the base's own intrinsics carried into
+    the picture by its framing (:func:`read_framed`), unless the picture went through a blur or JPEG after that
+    (:func:`matched_degradation` against that resized render); any other picture, and a degraded one, with the base
+    rendered at ``camera`` (:func:`read_at_camera`, zoom and principal point free, the degradation matched). Both
+    through ``recolouring``'s colour map when given (``read``: ``framing`` or ``render``). Neither looks at the
+    message."""
+    degradation: Optional[Degradation] = None
+    if resampler is not None:
+        base = reference.pipeline.datamanager.train_dataset.cameras[:1]
+        tint = mapped_colors(reference.model, recolouring.cmap) if recolouring is not None else contextlib.nullcontext()
+        with tint:
+            render = resampled_renderer(base, resampler)(reference.model, camera, ("rgb",))["rgb"][0]
+        degradation = matched_degradation(picture, render.reshape(-1, 3))
+        if degradation.name == "none":
+            d, cam, used = read_framed(reference, picture, camera, generator, rounds, recolouring=recolouring)
+            d["read"] = "framing"
+            return d, cam, used
     d, cam, used = read_at_camera(reference, picture, camera, generator, rounds, FRAMED, recolouring, degradation)
     d["read"] = "render"
-    base = reference.pipeline.datamanager.train_dataset.cameras[:1]
-    if d["degradation"] == "none" and resampled(framing_of(camera, base).sx):
-        w, wcam, wused = read_framed(reference, picture, camera, generator, rounds, recolouring=recolouring)
-        if left_after(w) < left_after(d):
-            d, cam, used = w, wcam, wused
-            d["read"] = "framing"
     return d, cam, used
 
 
@@ -326,7 +353,7 @@ def read_framed(
     base = reference.pipeline.datamanager.train_dataset.cameras[:1]
     ph, pw = int(picture.shape[0]), int(picture.shape[1])
     dist = camera_distance(camera)
-    at = base_frame(camera, base)
+    at = footprint(camera, base)
     tint = mapped_colors(model, recolouring.cmap) if recolouring is not None else contextlib.nullcontext()
     map_cols: List[Tensor] = []
     if recolouring is not None:
@@ -342,15 +369,15 @@ def read_framed(
         jac[view.rays] = view.jacobian.float()
         assert view.image is not None
         render = view.image.reshape(h0, w0, 3)
-        pose = pose_columns(model, at, torch.arange(h0 * w0), False, eps, base=render.reshape(-1, 3))  # rows r * 3 + c
+        pose = camera_columns(model, at, view, torch.arange(h0 * w0), POSE, eps)  # rows r * 3 + c
         extra = torch.cat([pose] + map_cols, dim=1)
         e = extra.shape[1]
         fixed = torch.cat([jac.reshape(h0, w0, 3 * k), extra.reshape(h0, w0, 3 * e)], dim=-1).permute(2, 0, 1)
-        kernel = matched_resampler(render, picture, framing_of(camera, base))
+        kernel = matched_resampler(render, picture, framing_of(camera, at))
         for r in range(rounds):
             if r > 0:  # the Jacobians of the first camera (the steps are fractions of a pixel), the base rendered again
-                render = render_cameras(model, base_frame(camera, base))["rgb"][0]
-            framing = framing_of(camera, base)
+                render = render_cameras(model, base_frame(camera, at))["rgb"][0]
+            framing = framing_of(camera, at)
             warped, inside = warp_to_picture(torch.cat([render.permute(2, 0, 1), fixed]), framing, ph, pw, kernel)
             rows = torch.nonzero(inside.reshape(-1)).reshape(-1)
             flat = warped.reshape(warped.shape[0], -1)[:, rows].T  # [R C]
@@ -361,7 +388,7 @@ def read_framed(
                 step_i[i] = PRINCIPAL_STEP if i > POSE else eps
                 plus, minus = (
                     warp_to_picture(
-                        render.permute(2, 0, 1), framing_of(moved_camera(camera, sign * step_i), base), ph, pw, kernel
+                        render.permute(2, 0, 1), framing_of(moved_camera(camera, sign * step_i), at), ph, pw, kernel
                     )[0]
                     for sign in (1, -1)
                 )
@@ -433,6 +460,7 @@ def decode_images(
                 extra["view_bank_seconds"] = time.time() - t0
         t0 = time.time()
         free = FRAMED if framed else POSE
+        resampler: Optional[str] = None
         if cameras is not None:
             camera = cameras[i]
         else:
@@ -442,13 +470,13 @@ def decode_images(
             else:
                 pose = estimate_camera(reference, image, True, search, renders[hw])
                 extra["camera"] = "estimated"
-            camera = pose.camera
+            camera, resampler = pose.camera, pose.resampler
             extra.update(pose_rms=pose.rms, pose_score=pose.score)
         rec = recolouring_at(reference.model, image, camera)
         if cameras is None and rec is not None and rec.share >= MAP_SEARCH_SHARE:
             if framed and resampled(framing_of(camera, base[:1]).sx):  # a resized copy: refined as it was made
                 with mapped_colors(reference.model, rec.cmap):
-                    camera = refine_resampled(reference.model, base[:1], camera, image, False)[0]
+                    camera, resampler = refine_resampled(reference.model, base[:1], camera, image, False)
                 rec = recolouring_at(reference.model, image, camera)
             else:
                 camera, rec = recoloured_camera(reference.model, image, camera, search, rec, free)
@@ -457,7 +485,7 @@ def decode_images(
         mapped = rec if rec is not None and rec.reads else None
         extra.update(color_map=mapped is not None, map_share=rec.share if rec is not None else 0.0)
         if framed:
-            d, camera, used = read_picture(reference, image, camera, gen, rounds, mapped, None)
+            d, camera, used = read_picture(reference, image, camera, gen, rounds, mapped, resampler)
         else:
             d, camera, used = read_at_camera(reference, image, camera, gen, rounds, POSE, mapped, None)
         d.update(extra, name=name, round=used, c2w=camera.camera_to_worlds[0].tolist(), seconds=time.time() - t0)

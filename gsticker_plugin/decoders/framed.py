@@ -50,6 +50,7 @@ from gsticker_plugin.decoders.pose import (
     camera_distance,
     channel_of,
     moved_camera,
+    refine_further,
     refine_starts,
     render_cameras,
     scaled_camera,
@@ -70,10 +71,21 @@ RESAMPLED_BLUR = 0.45
 renders it is compared with."""
 RESAMPLED_STAGES = ((3.0, 1.5, 0.75), (0.75, 0.4))
 """Blurs (px per 100 px of the picture's larger side) of :func:`refine_resampled`'s groups of stages."""
+RENDERED_STAGES = 2
+"""Stages of the search (:attr:`gsticker_plugin.decoders.pose.PoseSearch.blurs`) a picture taken for a resized copy
+runs on renders at its own intrinsics before :func:`refine_resampled`; the rest run only when those renders explain it
+better."""
+RESAMPLED_RENDERS = 2
+"""Renders of the base per stage of :func:`refine_resampled` (:func:`gsticker_plugin.decoders.pose.warp_refine`)."""
+RESAMPLED_HALF = 3.0
+"""Stages of :func:`refine_resampled` blurred by at least this many px per 100 px render the base at half its size."""
 PHASE_SUPERSAMPLE = 2
 """How many times finer than the base :func:`phase_fit` renders (its candidates sample that render)."""
 PHASE_REACH = 3.0
 """Base px a :func:`phase_fit` may move the camera's render (a turn, the framing's offset)."""
+FOOTPRINT_MARGIN = 4.0
+"""Base px around a picture's footprint in the base frame that a resized copy's renders cover (:func:`footprint`):
+room for the refinement's moves."""
 BAR_TOLERANCE = 6.0 / 255.0
 """A row or column whose values span less than this in every channel is a bar."""
 
@@ -166,17 +178,22 @@ def estimate_framed_camera(
     hh, ww = max(1, round(ph / scale)), max(1, round(pw / scale))
     work = pic if (hh, ww) == (ph, pw) else resized(pic, hh, ww)
     starts = [(b, scaled_camera(framed_camera(cands[b : b + 1], f, ph, pw), hh, ww)) for b, f in zip(order, framings)]
-    blur = RESAMPLED_BLUR if resampled(framings[0].sx) else 0.0
-    b, cam, rms, total, history = refine_starts(reference.model, work, starts, value, search, FRAMED, blur)
+    copy = resampled(framings[0].sx)  # a resized copy of a render, or a render at the picture's own intrinsics
+    blur = RESAMPLED_BLUR if copy else 0.0
+    stages = RENDERED_STAGES if copy else None
+    b, cam, rms, total, history = refine_starts(reference.model, work, starts, value, search, FRAMED, blur, stages)
     best = framings[order.index(b)]
-    cam = scaled_camera(cam, ph, pw)
-    if resampled(framings[0].sx):  # a resized copy of a render, or a render at the picture's own intrinsics
-        again, kernel = refine_resampled(reference.model, train[:1], cam, pic, value)
+    if copy:
+        at = scaled_camera(cam, ph, pw)
+        again, kernel = refine_resampled(reference.model, train[:1], at, pic, value)
         as_resized = resampled_renderer(train[:1], kernel)(reference.model, again, ("rgb",))["rgb"][0]
-        as_rendered = render_cameras(reference.model, cam)["rgb"][0]
+        as_rendered = render_cameras(reference.model, at)["rgb"][0]
         if _rms(as_resized, pic, value) < _rms(as_rendered, pic, value):
-            cam = again
-    return PoseFit(camera=cam, rms=rms, score=best.score, iterations=total, history=history)
+            return PoseFit(again, rms, best.score, total, history, resampler=kernel)
+        cam, rms, n_it, more = refine_further(reference.model, work, cam, value, search, stages, None, FRAMED, blur)
+        history += [{"candidate": b, **h} for h in more]
+        total += n_it
+    return PoseFit(camera=scaled_camera(cam, ph, pw), rms=rms, score=best.score, iterations=total, history=history)
 
 
 def resampled(zoom: float) -> bool:
@@ -205,6 +222,26 @@ def base_frame(camera: Cameras, base: Cameras) -> Cameras:
     """``camera``'s pose with ``base``'s intrinsics and size (one camera)."""
     c2w = camera.camera_to_worlds[:1].detach().float().cpu()
     return framed_camera(base[:1], Framing(1.0, 1.0, 0.0, 0.0), int(base.height[0]), int(base.width[0]), c2w)
+
+
+def footprint(camera: Cameras, base: Cameras, margin: float = FOOTPRINT_MARGIN) -> Cameras:
+    """The part of ``base``'s frame that the framed ``camera``'s picture shows, widened by ``margin`` base px and by
+    the reach of a resampling filter (3 taps, widened when the picture is smaller), within the frame: a camera at
+    ``camera``'s pose with the base's focal length, its principal point moved by the part's corner and its size. A
+    render there is the base frame's render cut to that part (every ray is the same)."""
+    f = framing_of(camera, base)
+    h0, w0 = int(base.height[0]), int(base.width[0])
+    ph, pw = int(camera.height.reshape(-1)[0]), int(camera.width.reshape(-1)[0])
+    reach = margin + 3.0 * max(1.0, 1.0 / min(f.sx, f.sy))
+    c0 = max(0, math.floor(-f.tx / f.sx - reach))
+    c1 = min(w0, math.ceil((pw - f.tx) / f.sx + reach))
+    r0 = max(0, math.floor(-f.ty / f.sy - reach))
+    r1 = min(h0, math.ceil((ph - f.ty) / f.sy + reach))
+    if c1 <= c0 or r1 <= r0:
+        c0, c1, r0, r1 = 0, w0, 0, h0
+    part = Framing(1.0, 1.0, -float(c0), -float(r0))
+    c2w = camera.camera_to_worlds[:1].detach().float().cpu()
+    return framed_camera(base[:1], part, r1 - r0, c1 - c0, c2w)
 
 
 def resampling_kernel(name: str, x: Tensor) -> Tensor:
@@ -288,8 +325,9 @@ def resampled_renderer(base: Cameras, kernel: str) -> Renderer:
     accumulation 0 where the base frame does not reach)."""
 
     def render(model, camera: Cameras, keys: Sequence[str] = ("rgb",)) -> Dict[str, Tensor]:
-        out = render_cameras(model, base_frame(camera, base), keys)
-        framing = framing_of(camera, base)
+        part = footprint(camera, base)
+        out = render_cameras(model, part, keys)
+        framing = framing_of(camera, part)
         h, w = int(camera.height[0]), int(camera.width[0])
         framed = {}
         for k in keys:
@@ -320,9 +358,9 @@ def phase_fit(
     median depth. A fit that leaves more than the camera as given, or moves beyond :data:`PHASE_REACH` base px (or
     5 % in zoom, 0.05 rad in roll), leaves it as given. Returns the camera, sized like ``picture``."""
     dist = camera_distance(camera)
-    at = base_frame(camera, base)
-    frame0 = framing_of(camera, base)
-    h0, w0 = int(base.height[0]), int(base.width[0])
+    at = footprint(camera, base, FOOTPRINT_MARGIN + PHASE_REACH)
+    frame0 = framing_of(camera, at)
+    h0, w0 = int(at.height[0]), int(at.width[0])
     fine = scaled_camera(at, h0 * supersample, w0 * supersample)
     out = render_cameras(model, fine, ("rgb", "expected_depth", "accumulation"))
     big = channel_of(out["rgb"][0], value).permute(2, 0, 1)[None].float()
@@ -370,7 +408,7 @@ def phase_fit(
     delta[:3] = p[:3].float()
     delta[5] = -(math.exp(float(p[3])) - 1.0) * depth / dist  # forward is -z
     moved = moved_camera(at, delta, dist)
-    return framed_camera(base, framing(p), ph, pw, moved.camera_to_worlds)
+    return framed_camera(at, framing(p), ph, pw, moved.camera_to_worlds)
 
 
 def least_squares(residual, p: Tensor, steps: Tensor, iterations: int) -> Tuple[Tensor, float]:
@@ -409,7 +447,8 @@ def refine_resampled(
     """The framed ``camera`` of a resized copy refined on the whole ``picture`` as it was made: the base rendered at
     its own intrinsics and resized like the picture with the matched filter (:func:`matched_resampler`,
     :func:`resampled_renderer`), by :func:`gsticker_plugin.decoders.pose.warp_refine` over the pose, zoom and principal
-    point at the blurs of :data:`RESAMPLED_STAGES`, each group followed by :func:`phase_fit`.
+    point at the blurs of :data:`RESAMPLED_STAGES` (:data:`RESAMPLED_RENDERS` renders each, at half the base's size
+    from :data:`RESAMPLED_HALF`), each group followed by :func:`phase_fit`.
 
     A render's colours are the field's at its pixel-centre rays, and a resized copy keeps where those rays fell:
     a camera turned by a whole pixel and framed back gives nearly the same picture (only the keystone differs), one
@@ -417,15 +456,21 @@ def refine_resampled(
     of the base frame; :func:`phase_fit` then puts the render's samples where the copy's were. Returns the camera and
     the filter."""
     ph, pw = int(picture.shape[0]), int(picture.shape[1])
-    kernel = matched_resampler(
-        render_cameras(model, base_frame(camera, base))["rgb"][0], picture, framing_of(camera, base)
-    )
-    renderer = resampled_renderer(base, kernel)
+    part = footprint(camera, base)
+    kernel = matched_resampler(render_cameras(model, part)["rgb"][0], picture, framing_of(camera, part))
+    h0, w0 = int(base.height[0]), int(base.width[0])
+    renderers = {
+        False: resampled_renderer(base, kernel),
+        True: resampled_renderer(scaled_camera(base, max(1, h0 // 2), max(1, w0 // 2)), kernel),
+    }
     target = channel_of(picture.float(), value)
     cam = camera
     for blurs in RESAMPLED_STAGES:
         for blur in blurs:
             sigma = blur * max(ph, pw) / 100.0
-            cam = warp_refine(model, cam, target, value, 8, sigma, renders=3, free=FRAMED, renderer=renderer)[0]
+            renderer = renderers[blur >= RESAMPLED_HALF]
+            cam = warp_refine(
+                model, cam, target, value, 8, sigma, renders=RESAMPLED_RENDERS, free=FRAMED, renderer=renderer
+            )[0]
         cam = phase_fit(model, base, cam, picture, value, kernel)
     return cam, kernel

@@ -23,7 +23,7 @@ from torch import Tensor
 from gsticker_plugin.attacks.geometric import rotate
 from gsticker_plugin.cameras import same_aspect
 from gsticker_plugin.decoders import viewbank as VB
-from gsticker_plugin.decoders.geometric import render_rays
+from gsticker_plugin.decoders.geometric import outputs_in_chunks, render_rays
 from gsticker_plugin.errors import GStickerError
 from gsticker_plugin.fastpath import axis_angle_matrix, novel_cameras, smoothed
 
@@ -120,7 +120,7 @@ def render_cameras(
     bundle = cameras.to(model.device).generate_rays(
         camera_indices=index.to(model.device), coords=coords.to(model.device)
     )
-    out = model.get_outputs_for_camera_ray_bundle(bundle.reshape((-1, 1)))
+    out = outputs_in_chunks(model, bundle.reshape((-1, 1)))
     return {k: out[k].reshape(n, h, w, -1).float().cpu() for k in keys}
 
 
@@ -145,6 +145,9 @@ class PoseFit:
     score: float  # NCC of the best candidate at the search size
     iterations: int
     history: List[Dict[str, Any]] = field(default_factory=list)
+    resampler: Optional[str] = None
+    """The resampling filter of a resized copy whose camera was refined as the copy was made
+    (:func:`gsticker_plugin.decoders.framed.refine_resampled`); None for a render at the camera's own intrinsics."""
 
 
 def projection(camera: Cameras, points: Float[Tensor, "P 3"]):
@@ -568,11 +571,13 @@ def refine_starts(
     search: PoseSearch,
     free: int = POSE,
     render_blur: float = 0.0,
+    stages: Optional[int] = None,
 ) -> Tuple[int, Cameras, float, int, List[Dict[str, Any]]]:
     """The refinement of :func:`estimate_camera` from the start cameras ``(candidate, camera)`` (sized like
-    ``image``): the first stage for each (RMS over :attr:`PoseSearch.trim` of the pixels), then every stage for the one
-    that explains the image best; ``free``: the parameters moved, ``render_blur``: px the image was blurred after
-    rendering (:func:`refine_stage`). Returns its candidate, camera, RMS, the iterations taken and the stages' history."""
+    ``image``): the first stage for each (RMS over :attr:`PoseSearch.trim` of the pixels), then every stage (the first
+    ``stages`` of them; :func:`refine_further` runs the rest) for the one that explains the image best; ``free``: the
+    parameters moved, ``render_blur``: px the image was blurred after rendering (:func:`refine_stage`). Returns its
+    candidate, camera, RMS, the iterations taken and the stages' history."""
     search = search.for_size(int(image.shape[0]), int(image.shape[1]))
     history: List[Dict[str, Any]] = []
     first = []
@@ -592,13 +597,36 @@ def refine_starts(
         history.append({"candidate": b, **record(cam, rms, n_it, search.blurs[0])})
         first.append((b, cam, rms, n_it))
     b, cam, rms, total = min(first, key=lambda f: f[2])
-    for i, (blur, its) in enumerate(zip(search.blurs, search.iterations)):
-        last = i == len(search.blurs) - 1
-        stage = replace(search, refine="render") if search.refine == "mixed" and last else search
+    cam, rms, n_it, more = refine_further(model, image, cam, value, search, 0, stages, free, render_blur)
+    history += [{"candidate": b, **h} for h in more]
+    return b, cam, rms, total + n_it, history
+
+
+def refine_further(
+    model,
+    image: Float[Tensor, "H W 3"],
+    camera: Cameras,
+    value: bool,
+    search: PoseSearch,
+    begin: int = 0,
+    end: Optional[int] = None,
+    free: int = POSE,
+    render_blur: float = 0.0,
+) -> Tuple[Cameras, float, int, List[Dict[str, Any]]]:
+    """Stages ``begin`` to ``end`` of ``search`` (:func:`refine_stage`; the finest renders per step when
+    ``search.refine`` is ``mixed``) from ``camera``. Returns the camera, the last stage's RMS, the iterations taken and
+    the stages' history."""
+    search = search.for_size(int(image.shape[0]), int(image.shape[1]))
+    history: List[Dict[str, Any]] = []
+    cam, rms, total = camera, float("nan"), 0
+    n = min(len(search.blurs), len(search.iterations))
+    for i in range(begin, n if end is None else min(end, n)):
+        blur, its = search.blurs[i], search.iterations[i]
+        stage = replace(search, refine="render") if search.refine == "mixed" and i == n - 1 else search
         cam, rms, n_it = refine_stage(model, image, cam, value, stage, blur, its, render_blur, free=free)
-        history.append({"candidate": b, **record(cam, rms, n_it, blur)})
+        history.append(record(cam, rms, n_it, blur))
         total += n_it
-    return b, cam, rms, total, history
+    return cam, rms, total, history
 
 
 def record(cam: Cameras, rms: float, iterations: int, blur: float) -> Dict[str, Any]:
@@ -699,6 +727,31 @@ def render_at(model, camera: Cameras, rays: Int[Tensor, " R"]) -> Float[Tensor, 
         return torch.zeros(0, 3)
     out = render_rays(model, camera, rays)["rgb"].reshape(-1, 3)[rays.to(model.device)]
     return out.float().cpu()
+
+
+def flow_columns(
+    camera: Cameras,
+    rgb: Float[Tensor, "H W 3"],
+    depth: Float[Tensor, "H W 1"],
+    accumulation: Float[Tensor, "H W 1"],
+    rays: Int[Tensor, " R"],
+    value: bool,
+    free: int = POSE,
+) -> Float[Tensor, "M free"]:
+    """d (base render at ``rays``) / d (pose, and with ``free`` = :data:`FRAMED` zoom and principal point, as
+    :func:`moved_camera`) from one render of ``camera`` (its colour, depth and accumulation): the point each pixel
+    sees moves to ``pi(delta)`` (:func:`projection`), so the render there changes by ``-grad(render) . d pi / d
+    delta`` (central differences of the render, :func:`image_gradient`). What :func:`pose_columns` gives with a render a
+    column, save for view-dependent colour and what a move uncovers. Rows ``r * 3 + c``, or one V row per ray with
+    ``value``."""
+    x = channel_of(rgb.float(), value)
+    g_row, g_col = image_gradient(x)
+    points = surface_points(camera, depth, accumulation).reshape(-1, 3)[rays.cpu()]
+    dp = torch.func.jacfwd(projection(camera, points))(torch.zeros(free, dtype=torch.float64))  # [R 2 free]
+    c = x.shape[-1]
+    gr, gc = g_row.reshape(-1, c)[rays.cpu()], g_col.reshape(-1, c)[rays.cpu()]
+    cols = -(gr[:, :, None] * dp[:, None, 0, :] + gc[:, :, None] * dp[:, None, 1, :])  # [R C free]
+    return cols.reshape(-1, free).float()
 
 
 def pose_columns(

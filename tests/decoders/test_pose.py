@@ -364,3 +364,43 @@ def test_an_unknown_refinement_is_refused_rather_than_run_as_the_default():
 
     with pytest.raises(ValueError, match="auto, render, warp or mixed"):
         P.PoseSearch(refine="wrap")  # type: ignore[arg-type]
+
+
+def test_render_cameras_cut_into_ray_chunks_equals_one_pass():
+    """A render of more rays than ``RAY_CHUNK`` goes to the model in passes of at most that many rays, and the
+    image is the one a single pass gives (pixels in place, none lost at a chunk's edge)."""
+    from gsticker_plugin.decoders.geometric import RAY_CHUNK
+
+    square = TexturedSquare()
+    sizes = []
+    inner = square.get_outputs_for_camera_ray_bundle
+
+    def counted(bundle):
+        sizes.append(int(bundle.shape[0]))
+        return inner(bundle)
+
+    square.get_outputs_for_camera_ray_bundle = counted
+    cam = orbit(8, size=72)[1:2]  # 5184 rays: two passes
+    out = P.render_cameras(square, cam, ("rgb", "accumulation"))
+    assert sizes == [RAY_CHUNK, 72 * 72 - RAY_CHUNK]
+    bundle = cam.generate_rays(camera_indices=0, keep_shape=True)
+    whole = inner(bundle)
+    for k in ("rgb", "accumulation"):
+        assert torch.allclose(out[k][0], whole[k], atol=1e-6), k
+
+
+def test_flow_columns_match_a_render_per_column():
+    """The camera's columns from one render (the render's gradient times each surface point's pixel motion) are the
+    finite-difference columns of a render per parameter, pose and framing alike, where the surface is smooth."""
+    cam = orbit(8, size=48)[3:4]
+    out = P.render_cameras(TexturedSquare(), cam, ("rgb", "expected_depth", "accumulation"))
+    rgb, depth, acc = out["rgb"][0], out["expected_depth"][0], out["accumulation"][0]
+    inner = (acc[..., 0] > 0.99).reshape(-1)
+    rays = torch.nonzero(inner).reshape(-1)
+    flow = P.flow_columns(cam, rgb, depth, acc, rays, False, P.FRAMED)
+    rendered = P.pose_columns(TexturedSquare(), cam, rays, False, free=P.FRAMED)
+    for k in range(P.FRAMED):
+        a, b = flow[:, k].double(), rendered[:, k].double()
+        cos = float(a @ b / (a.norm() * b.norm()))
+        assert cos > 0.97, (k, cos)
+        assert 0.8 < float(a.norm() / b.norm()) < 1.25, (k, float(a.norm() / b.norm()))
