@@ -435,3 +435,32 @@ def test_the_density_of_a_wrapping_model_is_read_from_the_model_it_wraps(monkeyp
     assert torch.equal(FM.probe_density(wrapper, x), FM.probe_density(model, x))
     with pytest.raises(GStickerError, match="no Nerfstudio field"):
         FM.density_field(nn.Linear(2, 2))
+
+
+def test_a_resized_then_blurred_copy_is_read_at_the_base_frame_through_the_blur(monkeypatch):
+    """The marked render enlarged 1.5x (Pillow's bicubic) and then blurred (sigma 1 px of the copy): at its camera the
+    blur is matched against the base resized like the copy, and the copy read at the base's own intrinsics through
+    both gives the message and explains more of the picture than the same read ignoring the blur."""
+    from types import SimpleNamespace
+
+    from gsticker_plugin.attacks import gaussian_blur
+    from gsticker_plugin.decoders import framed as FR
+    from gsticker_plugin.decoders.fieldimage import matched_degradation, read_framed
+    from gsticker_plugin.decoders.fit import tie_generator
+    from gsticker_plugin.decoders.framing import Framing
+
+    message = torch.tensor([0, 1, 1, 0, 1, 1, 0, 1])
+    sc = marked_scene(monkeypatch, message, side=32)
+    ref = sc.ref
+    ref.pipeline = SimpleNamespace(datamanager=SimpleNamespace(train_dataset=SimpleNamespace(cameras=sc.cam)))
+    framing = Framing(1.5, 1.5, 0.0, 0.0)
+    copy = FR.warp_to_picture(sc.marked.permute(2, 0, 1), framing, 48, 48, "bicubic")[0]
+    picture = (gaussian_blur(copy[None], 1.0)[0].permute(1, 2, 0).clamp(0, 1) * 255).round() / 255
+    camera = FR.framed_camera(sc.cam, framing, 48, 48)
+    resized_base = FR.resampled_renderer(sc.cam, "bicubic")(sc.model, camera, ("rgb",))["rgb"][0]
+    blur = matched_degradation(picture, resized_base.reshape(-1, 3))
+    assert blur.name == "blur"
+    read, _, _ = read_framed(ref, picture, camera, tie_generator(0), 2, degradation=blur)
+    assert read["bits"].tolist() == message.tolist() and read["degradation"].startswith("blur=")
+    plain, _, _ = read_framed(ref, picture, camera, tie_generator(0), 2)
+    assert plain["explained"] < read["explained"]

@@ -55,6 +55,7 @@ from gsticker_plugin.decoders.framed import (
     refine_resampled,
     resampled,
     resampled_renderer,
+    resized,
     warp_to_picture,
 )
 from gsticker_plugin.decoders.image import (
@@ -79,6 +80,7 @@ from gsticker_plugin.decoders.pose import (
     refine_stage,
     render_at,
     render_cameras,
+    scaled_camera,
     search_renders,
 )
 from gsticker_plugin.decoders.result import Decoded, decoded
@@ -195,6 +197,16 @@ def recolouring_at(model, image: Float[Tensor, "H W 3"], camera) -> Optional[Rec
     return Recolouring(cmap, 1.0 - after / before, rgb, weights)
 
 
+def at_base_scale(image: Float[Tensor, "H W 3"], camera, base: Optional[Cameras]) -> Tuple[Tensor, Any]:
+    """``image`` and its ``camera`` shrunk to ``base``'s scale when the picture is larger (a colour map needs no finer
+    pixels); as they are for a smaller picture or no ``base``."""
+    scale = framing_of(camera, base).sx if base is not None else 1.0
+    if scale <= 1.0:
+        return image, camera
+    hh, ww = max(1, round(int(image.shape[0]) / scale)), max(1, round(int(image.shape[1]) / scale))
+    return resized(image, hh, ww), scaled_camera(camera, hh, ww)
+
+
 def recoloured_camera(
     model, image: Float[Tensor, "H W 3"], camera, search: PoseSearch, recolouring: Recolouring, free: int = POSE
 ) -> Tuple[Any, Optional[Recolouring]]:
@@ -251,6 +263,9 @@ def read_at_camera(
     picture went through; None: :func:`matched_degradation` at the first camera's base render): everything is compared
     as that degradation shows it (:func:`degraded_view`; JPEG by luma)."""
     model = reference.model
+    h, w = int(image.shape[0]), int(image.shape[1])
+    if recolouring is not None and recolouring.sample_rgb.shape[0] != h * w:  # fitted at another scale
+        recolouring = recolouring_at(model, image, camera) or recolouring
     tint = mapped_colors(model, recolouring.cmap) if recolouring is not None else contextlib.nullcontext()
     best: Optional[Tuple[float, Dict[str, Any], Any, int]] = None
     with tint:
@@ -312,23 +327,22 @@ def read_picture(
 ) -> Tuple[Dict[str, Any], Any, int]:
     """Read a framed picture at the ``camera`` :func:`gsticker_plugin.decoders.framed.estimate_framed_camera` found:
     a resized copy (``resampler``: the filter its camera was refined with) at the base's own intrinsics carried into
-    the picture by its framing (:func:`read_framed`), unless the picture went through a blur or JPEG after that
-    (:func:`matched_degradation` against that resized render); any other picture, and a degraded one, with the base
-    rendered at ``camera`` (:func:`read_at_camera`, zoom and principal point free, the degradation matched). Both
-    through ``recolouring``'s colour map when given (``read``: ``framing`` or ``render``). Neither looks at the
-    message."""
-    degradation: Optional[Degradation] = None
+    the picture by its framing (:func:`read_framed`, through the blur or JPEG :func:`matched_degradation` finds against
+    that resized render); any other picture with the base rendered at ``camera`` (:func:`read_at_camera`, zoom and
+    principal point free, the degradation matched there). Both through ``recolouring``'s colour map when given
+    (``read``: ``framing`` or ``render``). Neither looks at the message."""
     if resampler is not None:
         base = reference.pipeline.datamanager.train_dataset.cameras[:1]
         tint = mapped_colors(reference.model, recolouring.cmap) if recolouring is not None else contextlib.nullcontext()
         with tint:
             render = resampled_renderer(base, resampler)(reference.model, camera, ("rgb",))["rgb"][0]
         degradation = matched_degradation(picture, render.reshape(-1, 3))
-        if degradation.name == "none":
-            d, cam, used = read_framed(reference, picture, camera, generator, rounds, recolouring=recolouring)
-            d["read"] = "framing"
-            return d, cam, used
-    d, cam, used = read_at_camera(reference, picture, camera, generator, rounds, FRAMED, recolouring, degradation)
+        d, cam, used = read_framed(
+            reference, picture, camera, generator, rounds, recolouring=recolouring, degradation=degradation
+        )
+        d["read"] = "framing"
+        return d, cam, used
+    d, cam, used = read_at_camera(reference, picture, camera, generator, rounds, FRAMED, recolouring, None)
     d["read"] = "render"
     return d, cam, used
 
@@ -341,6 +355,7 @@ def read_framed(
     rounds: int = 2,
     eps: float = 3.5e-4,
     recolouring: Optional[Recolouring] = None,
+    degradation: Degradation = Degradation(),
 ) -> Tuple[Dict[str, Any], Cameras, int]:
     """:func:`read_at_camera` for a framed picture whose ``camera`` (sized like it) was found by
     :func:`gsticker_plugin.decoders.framed.estimate_framed_camera`: the base render, the mark's per-bit colour change
@@ -348,9 +363,12 @@ def read_framed(
     render is what a resized copy was made from), carried into the picture by its framing (:func:`warp_to_picture`);
     the signs fitted there to ``picture - framed base`` beside those columns. ``recolouring``: the base rendered
     through its colour map (a map of sample colours, whatever the camera), the map's own columns at the base's
-    samples fitted too. Returns the fit that left the least, its camera (the picture's) and its round (1-based)."""
+    samples fitted too. ``degradation`` (a blur or JPEG the copy went through after it was resized): everything
+    compared as it shows it (:func:`degraded_view`). Returns the fit that left the least, its camera (the picture's)
+    and its round (1-based)."""
     model = reference.model
     base = reference.pipeline.datamanager.train_dataset.cameras[:1]
+    degraded = degradation.name != "none"
     ph, pw = int(picture.shape[0]), int(picture.shape[1])
     dist = camera_distance(camera)
     at = footprint(camera, base)
@@ -379,9 +397,9 @@ def read_framed(
                 render = render_cameras(model, base_frame(camera, at))["rgb"][0]
             framing = framing_of(camera, at)
             warped, inside = warp_to_picture(torch.cat([render.permute(2, 0, 1), fixed]), framing, ph, pw, kernel)
-            rows = torch.nonzero(inside.reshape(-1)).reshape(-1)
+            rows = torch.arange(ph * pw) if degraded else torch.nonzero(inside.reshape(-1)).reshape(-1)
             flat = warped.reshape(warped.shape[0], -1)[:, rows].T  # [R C]
-            framed = FM.ImageView(rows, flat[:, :3], flat[:, 3 : 3 + 3 * k].reshape(-1, 3, k), (ph, pw))
+            framed = FM.ImageView(rows, flat[:, :3], flat[:, 3 : 3 + 3 * k].reshape(-1, 3, k), (ph, pw), flat[:, :3])
             cols = [flat[:, 3 + 3 * k :].reshape(-1, 3, e).reshape(-1, e)]  # rows r * 3 + c, like the message's
             for i in range(POSE, FRAMED):  # the zoom and the principal point, moved in the picture
                 step_i = torch.zeros(FRAMED)
@@ -393,12 +411,16 @@ def read_framed(
                     for sign in (1, -1)
                 )
                 cols.append(((plus - minus) / (2 * float(step_i[i]))).reshape(3, -1)[:, rows].T.reshape(-1, 1))
-            d = decode_image_view(
-                framed, picture.reshape(-1, 3)[rows].float(), reference.amplitude, generator, torch.cat(cols, 1)
-            )
+            columns = torch.cat(cols, 1)
+            if degraded:  # every pixel of the picture, as the degradation shows them
+                framed, columns = degraded_view(framed, degradation, columns)
+                assert columns is not None
+            picture_rows = picture.reshape(-1, 3)[framed.rays].float()
+            d = decode_image_view(framed, picture_rows, reference.amplitude, generator, columns, degradation.luma)
             coeffs = torch.tensor(d.pop("column_step", [0.0] * (e + FRAMED - POSE)))
             step = torch.cat([coeffs[:POSE], coeffs[e : e + FRAMED - POSE]])  # the pose's, then the framing's
             d["resampler"] = kernel
+            d["degradation"] = degradation.label()
             if best is None or left_after(d) < best[0]:
                 best = (left_after(d), d, camera, r + 1)
             if r + 1 == rounds or float(step.abs().max()) <= 1e-7:
@@ -472,12 +494,12 @@ def decode_images(
                 extra["camera"] = "estimated"
             camera, resampler = pose.camera, pose.resampler
             extra.update(pose_rms=pose.rms, pose_score=pose.score)
-        rec = recolouring_at(reference.model, image, camera)
+        rec = recolouring_at(reference.model, *at_base_scale(image, camera, base[:1] if resampler else None))
         if cameras is None and rec is not None and rec.share >= MAP_SEARCH_SHARE:
-            if framed and resampled(framing_of(camera, base[:1]).sx):  # a resized copy: refined as it was made
+            if framed and resampled(framing_of(camera, base[:1]).sx):  # a resized copy: refined again as it was made
                 with mapped_colors(reference.model, rec.cmap):
-                    camera, resampler = refine_resampled(reference.model, base[:1], camera, image, False)
-                rec = recolouring_at(reference.model, image, camera)
+                    camera, resampler = refine_resampled(reference.model, base[:1], camera, image, False, last=True)
+                rec = recolouring_at(reference.model, *at_base_scale(image, camera, base[:1]))
             else:
                 camera, rec = recoloured_camera(reference.model, image, camera, search, rec, free)
         if cameras is None:

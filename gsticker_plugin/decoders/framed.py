@@ -31,6 +31,7 @@ parallax at that scale. Uses the picture and the owner's base only, never the ow
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
@@ -181,7 +182,8 @@ def estimate_framed_camera(
     copy = resampled(framings[0].sx)  # a resized copy of a render, or a render at the picture's own intrinsics
     blur = RESAMPLED_BLUR if copy else 0.0
     stages = RENDERED_STAGES if copy else None
-    b, cam, rms, total, history = refine_starts(reference.model, work, starts, value, search, FRAMED, blur, stages)
+    first = replace(search, refine="warp") if copy and search.refine == "auto" else search  # starts for the copy's
+    b, cam, rms, total, history = refine_starts(reference.model, work, starts, value, first, FRAMED, blur, stages)
     best = framings[order.index(b)]
     if copy:
         at = scaled_camera(cam, ph, pw)
@@ -442,13 +444,19 @@ def _rms(render: Float[Tensor, "H W 3"], picture: Float[Tensor, "H W 3"], value:
 
 
 def refine_resampled(
-    model, base: Cameras, camera: Cameras, picture: Float[Tensor, "H W 3"], value: bool
+    model,
+    base: Cameras,
+    camera: Cameras,
+    picture: Float[Tensor, "H W 3"],
+    value: bool,
+    last: bool = False,
 ) -> Tuple[Cameras, str]:
     """The framed ``camera`` of a resized copy refined on the whole ``picture`` as it was made: the base rendered at
     its own intrinsics and resized like the picture with the matched filter (:func:`matched_resampler`,
     :func:`resampled_renderer`), by :func:`gsticker_plugin.decoders.pose.warp_refine` over the pose, zoom and principal
-    point at the blurs of :data:`RESAMPLED_STAGES` (:data:`RESAMPLED_RENDERS` renders each, at half the base's size
-    from :data:`RESAMPLED_HALF`), each group followed by :func:`phase_fit`.
+    point at the blurs of :data:`RESAMPLED_STAGES` (its ``last`` group alone for a camera already refined so;
+    :data:`RESAMPLED_RENDERS` renders each, at half the base's size from :data:`RESAMPLED_HALF`), each group followed
+    by :func:`phase_fit`.
 
     A render's colours are the field's at its pixel-centre rays, and a resized copy keeps where those rays fell:
     a camera turned by a whole pixel and framed back gives nearly the same picture (only the keystone differs), one
@@ -465,7 +473,7 @@ def refine_resampled(
     }
     target = channel_of(picture.float(), value)
     cam = camera
-    for blurs in RESAMPLED_STAGES:
+    for blurs in RESAMPLED_STAGES[-1:] if last else RESAMPLED_STAGES:
         for blur in blurs:
             sigma = blur * max(ph, pw) / 100.0
             renderer = renderers[blur >= RESAMPLED_HALF]
