@@ -2,7 +2,8 @@
 
 The shared run of ``bench.shared`` rendered at a few test views (8-bit PNG at the base's size), then framed the way a
 re-poster would (Pillow): as rendered, a 16:9 crop, a portrait crop, a letterbox into a 16:9 frame, a 1.3x zoomed
-16:9 crop, a 2x upscaled 4:3 crop saved as JPEG 85, the square saved as JPEG 50 and blurred by a 1 px Gaussian. Each picture is read by
+16:9 crop (also saved as JPEG 50), a 2x upscaled 4:3 crop saved as JPEG 85, the square saved as JPEG 50 and blurred by
+a 1 px Gaussian. Each picture is read by
 :func:`gsticker_plugin.decoders.fieldimage.decode_images` with no camera (``ns-verify-owner --images``'s path); the
 unmarked base's picture of the same view and framing beside it. Rows go to ``WORK/rows.jsonl`` as they are measured
 (a rerun continues). The default views are the image decoder's development views, none of the frozen evaluation's.
@@ -96,6 +97,7 @@ def framings() -> Dict[str, Callable]:
         "16:9 letterbox": letterbox,
         "1.3x zoom, 16:9 crop": zoomed,
         "2x upscale, 4:3 crop, JPEG 85": upscaled,
+        "1.3x zoom, 16:9 crop, JPEG 50": lambda im: _jpeg(zoomed(im), 50),
         "JPEG 50": lambda im: _jpeg(im, 50),
         "blur 1 px": lambda im: im.filter(ImageFilter.GaussianBlur(1.0)),
     }
