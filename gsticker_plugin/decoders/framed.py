@@ -31,7 +31,6 @@ parallax at that scale. Uses the picture and the owner's base only, never the ow
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
@@ -73,9 +72,9 @@ renders it is compared with."""
 RESAMPLED_STAGES = ((3.0, 1.5, 0.75), (0.75, 0.4))
 """Blurs (px per 100 px of the picture's larger side) of :func:`refine_resampled`'s groups of stages."""
 RENDERED_STAGES = 2
-"""Stages of the search (:attr:`gsticker_plugin.decoders.pose.PoseSearch.blurs`) a picture taken for a resized copy
-runs on renders at its own intrinsics before :func:`refine_resampled`; the rest run only when those renders explain it
-better."""
+"""Stages of the search (:attr:`gsticker_plugin.decoders.pose.PoseSearch.blurs`) a framed picture runs on renders at
+its own intrinsics before its zoom decides whether it is taken for a resized copy (:func:`refine_resampled`); the rest
+run unless the copy's model explains it better."""
 RESAMPLED_RENDERS = 2
 """Renders of the base per stage of :func:`refine_resampled` (:func:`gsticker_plugin.decoders.pose.warp_refine`)."""
 RESAMPLED_HALF = 3.0
@@ -179,23 +178,23 @@ def estimate_framed_camera(
     hh, ww = max(1, round(ph / scale)), max(1, round(pw / scale))
     work = pic if (hh, ww) == (ph, pw) else resized(pic, hh, ww)
     starts = [(b, scaled_camera(framed_camera(cands[b : b + 1], f, ph, pw), hh, ww)) for b, f in zip(order, framings)]
-    copy = resampled(framings[0].sx)  # a resized copy of a render, or a render at the picture's own intrinsics
-    blur = RESAMPLED_BLUR if copy else 0.0
-    stages = RENDERED_STAGES if copy else None
-    first = replace(search, refine="warp") if copy and search.refine == "auto" else search  # starts for the copy's
-    b, cam, rms, total, history = refine_starts(reference.model, work, starts, value, first, FRAMED, blur, stages)
+    blur = RESAMPLED_BLUR if resampled(framings[0].sx) else 0.0
+    b, cam, rms, total, history = refine_starts(
+        reference.model, work, starts, value, search, FRAMED, blur, RENDERED_STAGES
+    )
     best = framings[order.index(b)]
-    if copy:
-        at = scaled_camera(cam, ph, pw)
+    at = scaled_camera(cam, ph, pw)
+    if resampled(framing_of(at, train[:1]).sx):  # a resized copy of a render, or a render at its own intrinsics
         again, kernel = refine_resampled(reference.model, train[:1], at, pic, value)
         as_resized = resampled_renderer(train[:1], kernel)(reference.model, again, ("rgb",))["rgb"][0]
         as_rendered = render_cameras(reference.model, at)["rgb"][0]
         if _rms(as_resized, pic, value) < _rms(as_rendered, pic, value):
             return PoseFit(again, rms, best.score, total, history, resampler=kernel)
-        cam, rms, n_it, more = refine_further(reference.model, work, cam, value, search, stages, None, FRAMED, blur)
-        history += [{"candidate": b, **h} for h in more]
-        total += n_it
-    return PoseFit(camera=scaled_camera(cam, ph, pw), rms=rms, score=best.score, iterations=total, history=history)
+    cam, rms, n_it, more = refine_further(
+        reference.model, work, cam, value, search, RENDERED_STAGES, None, FRAMED, blur
+    )
+    history += [{"candidate": b, **h} for h in more]
+    return PoseFit(scaled_camera(cam, ph, pw), rms, best.score, total + n_it, history)
 
 
 def resampled(zoom: float) -> bool:
