@@ -16,12 +16,13 @@ a pinhole camera with the same pose and the intrinsics ::
    base's render did not), and a resized copy is compared with renders blurred by :data:`RESAMPLED_BLUR` (what its
    resampling blurred);
 4. the best candidates' cameras, framed like the picture (:func:`framed_camera`), are refined on the picture by the
-   pose stages of :func:`gsticker_plugin.decoders.pose.estimate_camera` (:func:`gsticker_plugin.decoders.pose.refine_starts`).
-
-5. a picture zoomed by more than :data:`RESAMPLED` is refined again on the whole picture as a resized copy is made -
-   the base rendered at its own intrinsics and resized with the filter that matches - and its render's pixel grid put
-   back where the copy's lay (:func:`refine_resampled`, :func:`phase_fit`); that camera is kept when it explains the
-   picture better than the one of step 4 (a render at the picture's own intrinsics).
+   first :data:`RENDERED_STAGES` pose stages of :func:`gsticker_plugin.decoders.pose.estimate_camera`
+   (:func:`gsticker_plugin.decoders.pose.refine_starts`);
+5. a picture then zoomed by more than :data:`RESAMPLED` is refined again on the whole picture as a resized copy is
+   made - the base rendered at its own intrinsics over the picture's :func:`footprint` and resized with the filter
+   that matches - and its render's pixel grid put back where the copy's lay (:func:`refine_resampled`,
+   :func:`phase_fit`); that camera is kept when it explains the picture better than the one of step 4 (a render at
+   the picture's own intrinsics), whose remaining stages run otherwise.
 
 A framing's error left after step 2 is a fraction of a coarse pixel; the pose moves to absorb it (a zoom error as a
 step along the axis, an offset as a turn), which is what a camera of the right pose would show up to the scene's
