@@ -76,7 +76,6 @@ from gsticker_plugin.decoders.pose import (
     estimate_camera,
     flow_columns,
     moved_camera,
-    pose_columns,
     refine_stage,
     render_at,
     render_cameras,
@@ -226,22 +225,13 @@ def recoloured_camera(
     return camera, recolouring_at(model, image, camera)
 
 
-FLOW_COLUMNS = True
-"""The camera's columns of a read from the base's one render (:func:`gsticker_plugin.decoders.pose.flow_columns`);
-False: a render per column (:func:`gsticker_plugin.decoders.pose.pose_columns`)."""
-
-
-def camera_columns(
-    model, camera, view: FM.ImageView, rays: Tensor, free: int, eps: float = 3.5e-4
-) -> Float[Tensor, "M free"]:
-    """d (base render at ``rays``) / d (the camera's ``free`` parameters), rows ``r * 3 + c``: from ``view``'s render
-    of every pixel (:data:`FLOW_COLUMNS`) or a render per column."""
-    assert view.image is not None
+def camera_columns(camera, view: FM.ImageView, rays: Tensor, free: int) -> Float[Tensor, "M free"]:
+    """d (base render at ``rays``) / d (the camera's ``free`` parameters), rows ``r * 3 + c``, from ``view``'s render
+    of every pixel (:func:`gsticker_plugin.decoders.pose.flow_columns`; no render of its own)."""
+    assert view.image is not None and view.depth is not None and view.accumulation is not None
     h, w = view.hw
-    if FLOW_COLUMNS and view.depth is not None and view.accumulation is not None:
-        rgb, depth, acc = view.image.reshape(h, w, 3), view.depth.reshape(h, w, 1), view.accumulation.reshape(h, w, 1)
-        return flow_columns(camera, rgb, depth, acc, rays, False, free)
-    return pose_columns(model, camera, rays, False, eps, free=free, base=view.image[rays])
+    rgb, depth, acc = view.image.reshape(h, w, 3), view.depth.reshape(h, w, 1), view.accumulation.reshape(h, w, 1)
+    return flow_columns(camera, rgb, depth, acc, rays, False, free)
 
 
 def read_at_camera(
@@ -263,9 +253,6 @@ def read_at_camera(
     picture went through; None: :func:`matched_degradation` at the first camera's base render): everything is compared
     as that degradation shows it (:func:`degraded_view`; JPEG by luma)."""
     model = reference.model
-    h, w = int(image.shape[0]), int(image.shape[1])
-    if recolouring is not None and recolouring.sample_rgb.shape[0] != h * w:  # fitted at another scale
-        recolouring = recolouring_at(model, image, camera) or recolouring
     tint = mapped_colors(model, recolouring.cmap) if recolouring is not None else contextlib.nullcontext()
     best: Optional[Tuple[float, Dict[str, Any], Any, int]] = None
     with tint:
@@ -276,7 +263,7 @@ def read_at_camera(
         degraded = degradation.name != "none"
         h, w = view.hw
         rays = torch.arange(h * w) if degraded else view.rays
-        cols = camera_columns(model, camera, view, rays, free) if rounds > 1 else None
+        cols = camera_columns(camera, view, rays, free) if rounds > 1 else None
         if recolouring is not None:
             mapped = recolouring.columns(rays)
             cols = mapped if cols is None else torch.cat([cols, mapped], dim=1)
@@ -387,7 +374,7 @@ def read_framed(
         jac[view.rays] = view.jacobian.float()
         assert view.image is not None
         render = view.image.reshape(h0, w0, 3)
-        pose = camera_columns(model, at, view, torch.arange(h0 * w0), POSE, eps)  # rows r * 3 + c
+        pose = camera_columns(at, view, torch.arange(h0 * w0), POSE)  # rows r * 3 + c
         extra = torch.cat([pose] + map_cols, dim=1)
         e = extra.shape[1]
         fixed = torch.cat([jac.reshape(h0, w0, 3 * k), extra.reshape(h0, w0, 3 * e)], dim=-1).permute(2, 0, 1)
